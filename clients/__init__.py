@@ -1,0 +1,1 @@
+"""Python SDK, demo scripts and the `bdf` command line."""

@@ -1,0 +1,1 @@
+"""Risk-aware route planning on velocity tubes (OMPL); built in a later issue."""

@@ -1,0 +1,1 @@
+"""HTTP service over the tiled maps (FastAPI); built in a later issue."""
