@@ -1,0 +1,6 @@
+"""Bayesian Dynamic Fields: 3D velocity maps with calibrated uncertainty."""
+
+from bdf.field import BayesianDynamicField
+from bdf.stats import Evidence
+
+__all__ = ["BayesianDynamicField", "Evidence"]

@@ -1,0 +1,75 @@
+"""Input checks shared by the library: every failure is a ValueError saying what and where."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_vector3(value, name: str, *, positive: bool = False) -> np.ndarray:
+    """A 3-vector of finite floats (a scalar is broadcast to all three axes)."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a number or 3 numbers, got {value!r}") from exc
+    if arr.ndim == 0:
+        arr = np.full(3, float(arr))
+    if arr.shape != (3,):
+        raise ValueError(f"{name} must be a number or 3 numbers, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
+    if positive and np.any(arr <= 0):
+        raise ValueError(f"{name} must be positive on every axis, got {arr.tolist()}")
+    return arr
+
+
+def _bad_rows(mask: np.ndarray) -> str:
+    rows = np.flatnonzero(mask)
+    shown = ", ".join(str(r) for r in rows[:5])
+    return f"rows [{shown}{', ...' if rows.size > 5 else ''}] ({rows.size} in all)"
+
+
+def as_points(value, name: str, *, allow_empty: bool = False) -> np.ndarray:
+    """An (N, 3) float64 array of finite values."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if arr.shape[0] == 0 and not allow_empty:
+        raise ValueError(f"{name} is empty: at least one row is needed")
+    bad = ~np.all(np.isfinite(arr), axis=1)
+    if bad.any():
+        raise ValueError(f"{name} has NaN or infinite values in {_bad_rows(bad)}")
+    return arr
+
+
+def as_observations(X, V) -> tuple[np.ndarray, np.ndarray]:
+    X = as_points(X, "X")
+    V = as_points(V, "V")
+    if X.shape[0] != V.shape[0]:
+        raise ValueError(f"X has {X.shape[0]} rows but V has {V.shape[0]}")
+    return X, V
+
+
+def as_noise_std(value, n: int) -> np.ndarray | None:
+    """Per-point, per-axis input-noise std as (n, 3), or None when all zero."""
+    if value is None:
+        return None
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = np.full((n, 3), float(arr))
+    elif arr.shape == (n,):
+        arr = np.repeat(arr[:, None], 3, axis=1)
+    elif arr.shape != (n, 3):
+        raise ValueError(f"input_noise_std must be a number, shape ({n},) or ({n}, 3), got {arr.shape}")
+    bad = ~np.all(np.isfinite(arr) & (arr >= 0), axis=1)
+    if bad.any():
+        raise ValueError(f"input_noise_std must be finite and >= 0; bad {_bad_rows(bad)}")
+    return arr if np.any(arr > 0) else None
+
+
+def as_hyper(value, name: str):
+    """'auto', a positive number, or 3 positive numbers (one per velocity component)."""
+    if isinstance(value, str):
+        if value != "auto":
+            raise ValueError(f"{name} must be a positive number, 3 numbers or 'auto', got {value!r}")
+        return value
+    return as_vector3(value, name, positive=True)

@@ -1,0 +1,270 @@
+"""BayesianDynamicField: exact Bayesian linear regression on local RBF features (paper III-A..E)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg as sla
+
+from bdf import features, tuning
+from bdf._validate import as_hyper, as_noise_std, as_observations, as_points, as_vector3
+from bdf.grid import HingeGrid
+from bdf.stats import FORMAT_VERSION, Evidence, variance_density
+
+
+class Posterior:
+    """What a factorisation of the evidence gives: weights now, the variance density on demand.
+
+    Derived data only (tiles cache these per version); the evidence is the source of truth.
+    """
+
+    def __init__(self, grid: HingeGrid, gamma, evidence: Evidence, alpha, beta, cutoff):
+        self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
+        gram = evidence.gram(grid, gamma)
+        self.alpha, self.beta, sols = tuning.fit_evidence(
+            gram, evidence.proj, evidence.v_sq, evidence.count, alpha, beta
+        )
+        self.log_evidence = np.array(
+            [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
+        )
+        self.weights = np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
+        self._solutions = sols
+        self._variance = None
+
+    def mean(self, X: np.ndarray) -> np.ndarray:
+        T = self.weights.reshape(*self.grid.shape, 3)
+        return features.gather(self.grid, X, T, self.gamma, cutoff=self.cutoff)
+
+    def epistemic_variance(self, X: np.ndarray) -> np.ndarray:
+        """``phi(x)^T Sigma_c phi(x)`` per component, (N, 3), via the variance density."""
+        if self._variance is None:
+            self._variance = self._variance_density()
+        densities, columns = self._variance
+        var = features.gather(self.grid.midpoints(), X, densities, 2.0 * self.gamma, cutoff=self.cutoff)
+        return np.maximum(var[:, columns] / self.beta, 0.0)
+
+    def _variance_density(self):
+        # Sigma_c = (G + lam I)^-1 / beta_c; one density per distinct factorisation
+        unique = list({id(s): s for s in self._solutions}.values())
+        densities = []
+        for sol in unique:
+            inv, info = sla.lapack.dpotri(sol.factor, lower=1)
+            if info != 0:
+                raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
+            inv = np.tril(inv) + np.tril(inv, -1).T
+            densities.append(variance_density(self.grid, self.gamma, inv))
+        columns = [next(i for i, u in enumerate(unique) if u is s) for s in self._solutions]
+        return np.stack(densities, axis=-1), columns
+
+
+class BayesianDynamicField:
+    """A 3D velocity field with calibrated uncertainty: exact Bayesian linear regression
+    on squared-exponential features centred on a regular hinge grid.
+
+    Parameters
+    ----------
+    lower, upper : 3 numbers
+        Box of the hinge grid (metres in the map layer). Hinges are ``lower + i * spacing``
+        per axis up to ``upper`` inclusive.
+    spacing : number or 3 numbers
+        Hinge spacing per axis.
+    gamma : number or 3 numbers
+        Inverse squared bandwidth per axis: kernel ``exp(-sum_d gamma_d (x_d - h_d)^2)``.
+    alpha : "auto", number or 3 numbers
+        Prior precision of the weights (prior ``N(0, alpha^-1 I)``). "auto" fits it by
+        evidence maximisation.
+    beta : "auto", number or 3 numbers
+        Noise precision per velocity component. "auto" fits one per component.
+    cutoff : float
+        Kernel cutoff: per-axis Gaussian factors below it are dropped (see :mod:`bdf.features`).
+    half_life : float or None
+        Exponential forgetting: before each :meth:`partial_fit`, old evidence is weighted
+        by ``0.5 ** ((time - previous_time) / half_life)``. None keeps everything.
+
+    Attributes
+    ----------
+    evidence_ : Evidence
+        The additive statistics of everything learned (decayed when forgetting).
+    alpha_, beta_ : ndarray (3,)
+        Hyperparameters in use per component (the fitted values when "auto").
+    log_evidence_ : ndarray (3,)
+        Log marginal likelihood per component at ``alpha_``, ``beta_``.
+    weights_ : ndarray (M, 3)
+        Posterior mean of the weights.
+    time_ : float
+        Time of the last update (forgetting).
+
+    Notes
+    -----
+    The three components share the features and hence ``Phi^T Phi``; with a shared ratio
+    ``alpha / beta`` they share one Cholesky factorisation. The posterior is computed
+    lazily after each update and the variance only when a std is asked for.
+
+    Examples
+    --------
+    >>> f = BayesianDynamicField([0, 0, 0], [10, 10, 10], 2.0, 0.3).fit(X, V)  # doctest: +SKIP
+    >>> mean, std = f.predict(Xq, return_std=True)                              # doctest: +SKIP
+    """
+
+    def __init__(self, lower, upper, spacing, gamma, alpha=1e-2, beta=1e2, *,
+                 cutoff=features.DEFAULT_CUTOFF, half_life=None):
+        self.lower = lower
+        self.upper = upper
+        self.spacing = spacing
+        self.gamma = gamma
+        self.alpha = alpha
+        self.beta = beta
+        self.cutoff = cutoff
+        self.half_life = half_life
+
+    # -- configuration -------------------------------------------------------------------
+    def _setup(self):
+        """Validate the constructor arguments (scikit-learn style: at fit, not in __init__)."""
+        grid = HingeGrid(self.lower, self.upper, self.spacing)
+        gamma = as_vector3(self.gamma, "gamma", positive=True)
+        alpha, beta = as_hyper(self.alpha, "alpha"), as_hyper(self.beta, "beta")
+        if not 0 < float(self.cutoff) < 1:
+            raise ValueError(f"cutoff must be in (0, 1), got {self.cutoff!r}")
+        if self.half_life is not None and not float(self.half_life) > 0:
+            raise ValueError(f"half_life must be positive or None, got {self.half_life!r}")
+        return grid, gamma, alpha, beta
+
+    @property
+    def hinges(self) -> np.ndarray:
+        """(M, 3) hinge coordinates, first axis slowest."""
+        return HingeGrid(self.lower, self.upper, self.spacing).points()
+
+    # -- learning --------------------------------------------------------------------------
+    def fit(self, X, V, *, input_noise_std=None, time=None):
+        """Learn from ``(X, V)`` only, replacing what was learned. Returns self."""
+        self._grid, self._gamma, self._alpha, self._beta = self._setup()
+        self.evidence_ = Evidence.zeros(self._grid)
+        self.time_ = None
+        return self.partial_fit(X, V, input_noise_std=input_noise_std, time=time)
+
+    def partial_fit(self, X, V, *, input_noise_std=None, time=None):
+        """Add evidence: the posterior of the data so far is the prior of ``(X, V)``.
+
+        Any split and order of the data gives the same result as one :meth:`fit`.
+
+        Parameters
+        ----------
+        X, V : (N, 3)
+            Positions and velocities.
+        input_noise_std : None, number, (N,) or (N, 3)
+            Std of Gaussian noise on the positions; such points use the expected kernel.
+        time : float, optional
+            Time of this batch, in the units of ``half_life`` (forgetting only); defaults to
+            the previous time plus one.
+        """
+        if not hasattr(self, "evidence_"):
+            return self.fit(X, V, input_noise_std=input_noise_std, time=time)
+        X, V = as_observations(X, V)
+        noise = as_noise_std(input_noise_std, len(X))
+        time = self._advance(time)
+        self.evidence_ = self.evidence_ + Evidence.from_points(
+            self._grid, self._gamma, X, V, noise, cutoff=self.cutoff
+        )
+        self._posterior = None
+        return self
+
+    def _advance(self, time):
+        """Decay the evidence to ``time`` (forgetting) and return the new time."""
+        previous = self.time_
+        if time is None:
+            time = 0.0 if previous is None else previous + 1.0
+        time = float(time)
+        if not np.isfinite(time):
+            raise ValueError(f"time must be finite, got {time}")
+        if previous is not None:
+            if time < previous:
+                raise ValueError(f"time {time} is before the previous update at {previous}")
+            if self.half_life is not None:
+                self.evidence_ = self.evidence_.scaled(0.5 ** ((time - previous) / self.half_life))
+        self.time_ = time
+        return time
+
+    # -- the posterior -----------------------------------------------------------------------
+    @property
+    def posterior_(self) -> Posterior:
+        if not hasattr(self, "evidence_"):
+            raise ValueError("this field has not been fitted: call fit(X, V) first")
+        if getattr(self, "_posterior", None) is None:
+            self._posterior = Posterior(
+                self._grid, self._gamma, self.evidence_, self._alpha, self._beta, self.cutoff
+            )
+        return self._posterior
+
+    @property
+    def alpha_(self) -> np.ndarray:
+        return self.posterior_.alpha
+
+    @property
+    def beta_(self) -> np.ndarray:
+        return self.posterior_.beta
+
+    @property
+    def log_evidence_(self) -> np.ndarray:
+        return self.posterior_.log_evidence
+
+    @property
+    def weights_(self) -> np.ndarray:
+        return self.posterior_.weights
+
+    def predict(self, X, return_std=False, *, include_noise=True):
+        """Predictive mean, and std if asked, at positions ``X`` (n, 3).
+
+        Parameters
+        ----------
+        return_std : bool
+            Also return the std (n, 3). Only then is any variance computed.
+        include_noise : bool
+            True: predictive std ``sqrt(1/beta + phi^T Sigma phi)`` (what a new
+            observation would scatter by). False: epistemic std ``sqrt(phi^T Sigma phi)``
+            (the uncertainty of the mean field itself).
+        """
+        X = as_points(X, "X", allow_empty=True)
+        post = self.posterior_
+        mean = post.mean(X)
+        if not return_std:
+            return mean
+        var = post.epistemic_variance(X)
+        if include_noise:
+            var = var + 1.0 / post.beta
+        return mean, np.sqrt(var)
+
+    # -- persistence -----------------------------------------------------------------------
+    def save(self, path) -> None:
+        """Write parameters and evidence to an ``.npz`` file (versioned format)."""
+        if not hasattr(self, "evidence_"):
+            raise ValueError("nothing to save: the field has not been fitted")
+        params = {k: _jsonable(getattr(self, k)) for k in _PARAMS}
+        params["time_"] = self.time_
+        with open(path, "wb") as fh:  # np.savez would append .npz to a bare name
+            np.savez(fh, format_version=FORMAT_VERSION, params=json.dumps(params),
+                     **{f"evidence_{k}": v for k, v in self.evidence_.to_arrays().items()})
+
+    @classmethod
+    def load(cls, path) -> BayesianDynamicField:
+        path = Path(path)
+        with np.load(path, allow_pickle=False) as data:
+            version = int(data["format_version"]) if "format_version" in data else None
+            if version != FORMAT_VERSION:
+                raise ValueError(f"{path}: format version {version}, this library reads {FORMAT_VERSION}")
+            params = json.loads(str(data["params"]))
+            arrays = {k.removeprefix("evidence_"): data[k] for k in data.files if k.startswith("evidence_")}
+        time = params.pop("time_")
+        field = cls(**params)
+        field._grid, field._gamma, field._alpha, field._beta = field._setup()
+        field.evidence_ = Evidence.from_arrays(arrays, field._grid)
+        field.time_ = time
+        return field
+
+
+_PARAMS = ("lower", "upper", "spacing", "gamma", "alpha", "beta", "cutoff", "half_life")
+
+
+def _jsonable(value):
+    return value if isinstance(value, str | type(None)) else np.asarray(value, float).tolist()

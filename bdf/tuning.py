@@ -1,0 +1,118 @@
+"""Hyperparameters: evidence maximisation for alpha and beta, cross-validation for gamma and spacing.
+
+Log marginal likelihood of Bayesian linear regression for one velocity component
+(Bishop, PRML eq. 3.86), with ``A = alpha I + beta G``, ``G = Phi^T Phi``, ``b = Phi^T v``:
+
+    ln p(v) = M/2 ln alpha + N/2 ln beta - beta/2 R - 1/2 ln|A| - N/2 ln 2 pi
+
+where, writing ``lam = alpha / beta`` and ``m = (G + lam I)^-1 b`` (the posterior mean),
+``R = ||v - Phi m||^2 + lam ||m||^2 = v^T v - b^T m`` and ``ln|A| = M ln beta +
+ln|G + lam I|``. Everything comes from the additive statistics. For a fixed ratio ``lam``
+the best beta is ``N / R`` in closed form, so with both hyperparameters "auto" a 1-D
+search over ``lam`` with one Cholesky factorisation per step fits alpha and a separate
+beta for each of the three components (they share ``lam``, hence one factorisation).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+from scipy.optimize import minimize_scalar
+
+log = logging.getLogger(__name__)
+
+#: Hyperparameters used for "auto" while a field holds no data (the paper's values).
+EMPTY_ALPHA, EMPTY_BETA = 1e-2, 1e2
+
+
+@dataclass
+class Solution:
+    """One factorisation ``G + lam I = L L^T`` and what it gives."""
+
+    lam: float
+    factor: np.ndarray  # lower Cholesky factor
+    weights: np.ndarray  # (M, 3) posterior means m for every component
+    logdet: float  # ln|G + lam I|
+    residual: np.ndarray  # (3,) R per component
+
+
+def solve(gram: np.ndarray, proj: np.ndarray, v_sq: np.ndarray, lam: float) -> Solution:
+    """Factor ``gram + lam I`` (float64 Cholesky) and solve for the three components at once."""
+    a = gram.copy()
+    a.flat[:: len(a) + 1] += lam
+    try:
+        factor = sla.cholesky(a, lower=True, check_finite=False)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError(
+            f"the precision matrix is not positive definite (alpha/beta = {lam:.3g}); "
+            "increase alpha or decrease beta"
+        ) from exc
+    weights = sla.cho_solve((factor, True), proj, check_finite=False)
+    residual = np.maximum(v_sq - np.einsum("mc,mc->c", proj, weights), 1e-300)
+    logdet = 2.0 * float(np.sum(np.log(np.diag(factor))))
+    return Solution(lam, factor, weights, logdet, residual)
+
+
+def log_evidence(sol: Solution, alpha, beta, count: float) -> np.ndarray:
+    """ln p(v | alpha, beta) per component for ``alpha / beta == sol.lam``."""
+    M = len(sol.weights)
+    alpha, beta = np.asarray(alpha, float), np.asarray(beta, float)
+    return (
+        0.5 * M * np.log(alpha)
+        + 0.5 * count * np.log(beta)
+        - 0.5 * beta * sol.residual
+        - 0.5 * (M * np.log(beta) + sol.logdet)
+        - 0.5 * count * np.log(2 * np.pi)
+    )
+
+
+def _hyper_for(sol: Solution, alpha, beta, count: float):
+    """alpha, beta (3,) implied by ``sol.lam`` and whichever of them is fixed."""
+    if isinstance(beta, str):
+        beta = count / sol.residual if isinstance(alpha, str) else alpha / sol.lam
+    beta = np.broadcast_to(np.asarray(beta, float), (3,))
+    return sol.lam * beta, beta
+
+
+def fit_evidence(gram, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.ndarray, list]:
+    """alpha (3,), beta (3,) and the factorisation(s) serving component 0, 1, 2.
+
+    ``alpha``/``beta``: "auto" or 3-vectors. Fixed values need no search. "auto" for
+    alpha shares ``lam`` over the components; a fixed alpha with "auto" beta searches
+    each component on its own (up to three factorisations).
+    """
+    auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
+    if (auto_a or auto_b) and count <= 0:
+        log.info("no data: 'auto' hyperparameters take alpha=%g, beta=%g", EMPTY_ALPHA, EMPTY_BETA)
+        alpha = EMPTY_ALPHA if auto_a else alpha
+        beta = EMPTY_BETA if auto_b else beta
+        auto_a = auto_b = False
+    if not (auto_a or auto_b):
+        alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
+        beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
+        lams = alpha_v / beta_v
+        cache = {lam: solve(gram, proj, v_sq, lam) for lam in np.unique(lams)}
+        return alpha_v.copy(), beta_v.copy(), [cache[lam] for lam in lams]
+
+    scale = max(float(np.mean(np.diag(gram))), 1e-300)
+    groups = [[0], [1], [2]] if (auto_b and not auto_a) else [[0, 1, 2]]
+    alpha_v, beta_v, sols = np.empty(3), np.empty(3), [None] * 3
+    for comps in groups:
+
+        def cost(log_lam, comps=comps):
+            sol = solve(gram, proj, v_sq, scale * np.exp(log_lam))
+            a, b = _hyper_for(sol, alpha, beta, count)
+            return -float(np.sum(log_evidence(sol, a, b, count)[comps]))
+
+        res = minimize_scalar(cost, bounds=(np.log(1e-10), np.log(1e4)), method="bounded",
+                              options={"xatol": 1e-2})
+        sol = solve(gram, proj, v_sq, scale * np.exp(res.x))
+        a, b = _hyper_for(sol, alpha, beta, count)
+        alpha_v[comps], beta_v[comps] = a[comps], b[comps]
+        for c in comps:
+            sols[c] = sol
+        log.debug("evidence fit for components %s: lam=%.4g in %d steps", comps, sol.lam, res.nfev)
+    return alpha_v, beta_v, sols
