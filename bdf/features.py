@@ -65,13 +65,13 @@ class _Blocks:
         self.bounds = np.concatenate([[0], edges, [len(key)]])
         self.start = start[self.order]
 
+        # factors in lattice units: t = offset of x from its window start, in steps
+        t = (X[self.order] - lattice.origin) / lattice.step - (self.start - self.pad)
+        scale = k[self.order] * lattice.step**2
         self.factors = []
         for d in range(3):
-            g = lattice.origin[d] + lattice.step[d] * (
-                self.start[:, d, None] - self.pad[d] + np.arange(self.width[d])
-            )
-            diff = X[self.order, d, None] - g
-            self.factors.append(np.exp(-k[self.order, d, None] * diff * diff))
+            q = t[:, d, None] - np.arange(self.width[d])
+            self.factors.append(np.exp(-scale[:, d, None] * (q * q)))
 
     def __iter__(self):
         """Yield (slice into the sorted points, window slices into the padded array)."""
@@ -94,12 +94,15 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     fx, fy, fz = blocks.factors
     W = W[blocks.order]
     Lx, Ly, Lz = blocks.width
-    padded = np.zeros((*blocks.padded_shape, n_out))
-    for rows, window in blocks:
-        yz = fy[rows, :, None] * fz[rows, None, :]
-        rhs = (yz[..., None] * W[rows, None, None, :]).reshape(-1, Ly * Lz * n_out)
-        padded[window] += (fx[rows].T @ rhs).reshape(Lx, Ly, Lz, n_out)
-    return blocks.crop(padded, lattice.shape).copy()
+    # layout (x, c, y, z): the channels ride on the small x factor, so each block is
+    # one GEMM (Lx*C x n) @ (n x Ly*Lz) and one elementwise yz product
+    px, py, pz = blocks.padded_shape
+    padded = np.zeros((px, n_out, py, pz))
+    for rows, (wx, wy, wz) in blocks:
+        yz = (fy[rows, :, None] * fz[rows, None, :]).reshape(-1, Ly * Lz)
+        xc = (fx[rows, :, None] * W[rows, None, :]).reshape(-1, Lx * n_out)
+        padded[wx, :, wy, wz] += (xc.T @ yz).reshape(Lx, n_out, Ly, Lz)
+    return blocks.crop(padded.transpose(0, 2, 3, 1), lattice.shape).copy()
 
 
 def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
@@ -111,13 +114,15 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
     blocks = _Blocks(lattice, X, k, cutoff, block)
     fx, fy, fz = blocks.factors
     Lx, Ly, Lz = blocks.width
+    # layout (y, z, x, c): one GEMM (n x Ly*Lz) @ (Ly*Lz x Lx*C) per block
     padded = np.zeros((*blocks.padded_shape, n_out))
     blocks.crop(padded, lattice.shape)[...] = T
+    padded = np.ascontiguousarray(padded.transpose(1, 2, 0, 3))
     sorted_out = np.empty_like(out)
-    for rows, window in blocks:
-        tx = (fx[rows] @ padded[window].reshape(Lx, -1)).reshape(-1, Ly, Lz * n_out)
-        ty = np.einsum("njc,nj->nc", tx, fy[rows]).reshape(-1, Lz, n_out)
-        sorted_out[rows] = np.einsum("nkc,nk->nc", ty, fz[rows])
+    for rows, (wx, wy, wz) in blocks:
+        yz = (fy[rows, :, None] * fz[rows, None, :]).reshape(-1, Ly * Lz)
+        txc = (yz @ padded[wy, wz, wx].reshape(Ly * Lz, Lx * n_out)).reshape(-1, Lx, n_out)
+        sorted_out[rows] = np.einsum("nxc,nx->nc", txc, fx[rows])
     out[blocks.order] = sorted_out
     return out
 

