@@ -145,7 +145,7 @@ def gram(lattice: Lattice, X, k, amplitude, *, cutoff=DEFAULT_CUTOFF) -> np.ndar
     for rows, window in blocks:
         idx = flat[window].ravel()
         keep = idx >= 0
-        phi = (fx[rows, :, None, None] * fy[rows, None, :, None] * fz[rows, None, None, :])
+        phi = fx[rows, :, None, None] * fy[rows, None, :, None] * fz[rows, None, None, :]
         phi = phi.reshape(len(phi), -1)[:, keep] * amplitude[rows, None]
         sel = idx[keep]
         out[np.ix_(sel, sel)] += phi.T @ phi

@@ -11,7 +11,7 @@ import scipy.linalg as sla
 from bdf import features, tuning
 from bdf._validate import as_hyper, as_noise_std, as_observations, as_points, as_vector3
 from bdf.grid import HingeGrid
-from bdf.stats import FORMAT_VERSION, Evidence, variance_density
+from bdf.stats import FORMAT_VERSION, MIDPOINT_BLOCK, Evidence, variance_density
 
 
 class Posterior:
@@ -42,7 +42,14 @@ class Posterior:
         if self._variance is None:
             self._variance = self._variance_density()
         densities, columns = self._variance
-        var = features.gather(self.grid.midpoints(), X, densities, 2.0 * self.gamma, cutoff=self.cutoff)
+        var = features.gather(
+            self.grid.midpoints(),
+            X,
+            densities,
+            2.0 * self.gamma,
+            cutoff=self.cutoff,
+            block=MIDPOINT_BLOCK,
+        )
         return np.maximum(var[:, columns] / self.beta, 0.0)
 
     def _variance_density(self):
@@ -53,7 +60,7 @@ class Posterior:
             inv, info = sla.lapack.dpotri(sol.factor, lower=1)
             if info != 0:
                 raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
-            inv = np.tril(inv) + np.tril(inv, -1).T
+            inv += np.tril(inv, -1).T  # dpotri fills the lower triangle only
             densities.append(variance_density(self.grid, self.gamma, inv))
         columns = [next(i for i, u in enumerate(unique) if u is s) for s in self._solutions]
         return np.stack(densities, axis=-1), columns
@@ -108,8 +115,18 @@ class BayesianDynamicField:
     >>> mean, std = f.predict(Xq, return_std=True)                              # doctest: +SKIP
     """
 
-    def __init__(self, lower, upper, spacing, gamma, alpha=1e-2, beta=1e2, *,
-                 cutoff=features.DEFAULT_CUTOFF, half_life=None):
+    def __init__(
+        self,
+        lower,
+        upper,
+        spacing,
+        gamma,
+        alpha=1e-2,
+        beta=1e2,
+        *,
+        cutoff=features.DEFAULT_CUTOFF,
+        half_life=None,
+    ):
         self.lower = lower
         self.upper = upper
         self.spacing = spacing
@@ -243,8 +260,12 @@ class BayesianDynamicField:
         params = {k: _jsonable(getattr(self, k)) for k in _PARAMS}
         params["time_"] = self.time_
         with open(path, "wb") as fh:  # np.savez would append .npz to a bare name
-            np.savez(fh, format_version=FORMAT_VERSION, params=json.dumps(params),
-                     **{f"evidence_{k}": v for k, v in self.evidence_.to_arrays().items()})
+            np.savez(
+                fh,
+                format_version=FORMAT_VERSION,
+                params=json.dumps(params),
+                **{f"evidence_{k}": v for k, v in self.evidence_.to_arrays().items()},
+            )
 
     @classmethod
     def load(cls, path) -> BayesianDynamicField:

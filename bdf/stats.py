@@ -30,6 +30,8 @@ from bdf import features
 from bdf.grid import HingeGrid
 
 FORMAT_VERSION = 1
+#: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
+MIDPOINT_BLOCK = 2
 
 
 @dataclass
@@ -71,7 +73,9 @@ class Evidence:
         noisy = np.zeros(len(X), bool) if input_noise_std is None else np.any(input_noise_std > 0, 1)
         plain = ~noisy
         ones = np.ones((int(plain.sum()), 1))
-        density = features.splat(grid.midpoints(), X[plain], ones, 2.0 * gamma, cutoff=cutoff)[..., 0]
+        density = features.splat(
+            grid.midpoints(), X[plain], ones, 2.0 * gamma, cutoff=cutoff, block=MIDPOINT_BLOCK
+        )[..., 0]
         proj = features.splat(grid, X[plain], V[plain], gamma, cutoff=cutoff).reshape(-1, 3)
         gram_noisy = None
         if noisy.any():
@@ -90,9 +94,7 @@ class Evidence:
 
     def __add__(self, other: Evidence) -> Evidence:
         if self.density.shape != other.density.shape:
-            raise ValueError(
-                f"cannot add evidence of grids {self.density.shape} and {other.density.shape}"
-            )
+            raise ValueError(f"cannot add evidence of grids {self.density.shape} and {other.density.shape}")
         if self.gram_noisy is None or other.gram_noisy is None:
             gram_noisy = self.gram_noisy if other.gram_noisy is None else other.gram_noisy
         else:
