@@ -136,6 +136,10 @@ class BayesianDynamicField:
         self.cutoff = cutoff
         self.half_life = half_life
 
+    def get_params(self, deep=True) -> dict:
+        """Constructor arguments as given (scikit-learn convention)."""
+        return {k: getattr(self, k) for k in _PARAMS}
+
     # -- configuration -------------------------------------------------------------------
     def _setup(self):
         """Validate the constructor arguments (scikit-learn style: at fit, not in __init__)."""
@@ -257,7 +261,7 @@ class BayesianDynamicField:
         """Write parameters and evidence to an ``.npz`` file (versioned format)."""
         if not hasattr(self, "evidence_"):
             raise ValueError("nothing to save: the field has not been fitted")
-        params = {k: _jsonable(getattr(self, k)) for k in _PARAMS}
+        params = {k: _jsonable(v) for k, v in self.get_params().items()}
         params["time_"] = self.time_
         with open(path, "wb") as fh:  # np.savez would append .npz to a bare name
             np.savez(

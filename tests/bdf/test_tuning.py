@@ -1,0 +1,28 @@
+import numpy as np
+import pytest
+
+from bdf.tuning import cross_validate
+from tests.bdf.conftest import LOWER, UPPER, flow
+
+
+def test_cross_validation_prefers_the_bandwidth_that_resolves_the_flow():
+    rng = np.random.default_rng(0)
+    X = rng.uniform(LOWER, UPPER, (1500, 3))
+    V = flow(X) + 0.05 * rng.standard_normal(X.shape)
+    candidates = [(1.0, 1.0), (4.0, 0.02)]  # fine enough vs far too smooth for sin(x)
+    best, table = cross_validate(X, V, LOWER, UPPER, candidates, n_splits=3)
+    assert best["spacing"] == [1.0, 1.0, 1.0]
+    assert [row["hinges"] for row in table] == [11 * 9 * 7, 3 * 3 * 2]
+    assert table[0]["rmse"] < 0.5 * table[1]["rmse"]
+    best_rmse, _ = cross_validate(
+        X, V, LOWER, UPPER, candidates, n_splits=3, score="rmse", groups=np.arange(len(X)) // 100
+    )
+    assert best_rmse["spacing"] == [1.0, 1.0, 1.0]
+
+
+def test_cross_validation_rejects_bad_arguments():
+    X = np.zeros((10, 3))
+    with pytest.raises(ValueError, match="score must be"):
+        cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], score="r2")
+    with pytest.raises(ValueError, match="2 groups cannot fill 3 folds"):
+        cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], n_splits=3, groups=np.arange(10) % 2)
