@@ -73,3 +73,16 @@ def as_hyper(value, name: str):
             raise ValueError(f"{name} must be a positive number, 3 numbers or 'auto', got {value!r}")
         return value
     return as_vector3(value, name, positive=True)
+
+
+def as_sample_weight(value, n: int) -> np.ndarray | None:
+    """None, or (n,) finite non-negative weights."""
+    if value is None:
+        return None
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (n,):
+        raise ValueError(f"sample_weight must have shape ({n},), got {arr.shape}")
+    bad = ~(np.isfinite(arr) & (arr >= 0))
+    if bad.any():
+        raise ValueError(f"sample_weight must be finite and >= 0; bad {_bad_rows(bad)}")
+    return arr

@@ -24,6 +24,8 @@ import numpy as np
 from bdf.grid import Lattice
 
 DEFAULT_CUTOFF = 1e-12
+#: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
+MIN_POINTS_PER_BLOCK = 32
 
 
 def expected_kernel(gamma: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -43,30 +45,32 @@ class _Blocks:
     """Points grouped by lattice-cell blocks, with their per-axis window factors."""
 
     def __init__(self, lattice: Lattice, X: np.ndarray, k: np.ndarray, cutoff: float, block: int):
+        """``block``: the smallest block edge in lattice cells; it doubles while blocks are sparse."""
         k = np.broadcast_to(k, X.shape)
         radius = np.sqrt(np.log(1.0 / cutoff) / k.min(axis=0))
         reach = np.ceil(radius / lattice.step).astype(int)
         shape = np.array(lattice.shape)
-        # cells clipped to [-1, n-1]: a far point's window still covers every lattice
-        # point within its radius, and the padding keeps every window inside the array
         cells = np.floor((X - lattice.origin) / lattice.step).astype(np.int64)
         cells = np.clip(cells, -1, shape - 1)
-        blocks = np.floor_divide(cells, block)
-        self.pad = block + reach + 1
-        self.width = block + 2 * reach + 1
-        start = blocks * block - reach + self.pad  # window start in padded coordinates
-        self.padded_shape = tuple(int(s) for s in shape + 2 * self.pad)
-
-        counts = np.max(blocks, axis=0) - np.min(blocks, axis=0) + 1 if len(X) else np.ones(3, int)
-        key = np.ravel_multi_index(tuple((blocks - blocks.min(axis=0)).T), tuple(counts))
-        self.order = np.argsort(key, kind="stable")
-        key = key[self.order]
-        edges = np.flatnonzero(np.diff(key)) + 1
+        # grow blocks until they hold enough points to amortise a BLAS call each
+        while True:
+            edge = np.minimum(block, shape)
+            blocks = np.floor_divide(cells, edge)
+            low = blocks.min(axis=0)
+            key = np.ravel_multi_index(tuple((blocks - low).T), tuple(blocks.max(axis=0) - low + 1))
+            self.order = np.argsort(key, kind="stable")
+            key = key[self.order]
+            edges = np.flatnonzero(np.diff(key)) + 1
+            if len(X) >= MIN_POINTS_PER_BLOCK * (len(edges) + 1) or block >= shape.max():
+                break
+            block *= 2
         self.bounds = np.concatenate([[0], edges, [len(key)]])
-        self.start = start[self.order]
-
-        # factors in lattice units: t = offset of x from its window start, in steps
-        t = (X[self.order] - lattice.origin) / lattice.step - (self.start - self.pad)
+        # A block's window holds every lattice point within reach of its cells. Shifted to
+        # lie inside the lattice, a window of the same width still holds all of those that
+        # exist, so no padding is needed and no window is wider than the lattice.
+        self.width = np.minimum(edge + 2 * reach + 1, shape)
+        self.start = np.clip(blocks[self.order] * edge - reach, 0, shape - self.width)
+        t = (X[self.order] - lattice.origin) / lattice.step - self.start  # in lattice steps
         scale = k[self.order] * lattice.step**2
         self.factors = []
         for d in range(3):
@@ -74,35 +78,29 @@ class _Blocks:
             self.factors.append(np.exp(-scale[:, d, None] * (q * q)))
 
     def __iter__(self):
-        """Yield (slice into the sorted points, window slices into the padded array)."""
+        """Yield (slice into the sorted points, window slices into the lattice array)."""
         for a, b in zip(self.bounds[:-1], self.bounds[1:], strict=True):
             s = self.start[a]
-            window = tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
-            yield slice(a, b), window
-
-    def crop(self, padded: np.ndarray, shape) -> np.ndarray:
-        p = self.pad
-        return padded[p[0] : p[0] + shape[0], p[1] : p[1] + shape[1], p[2] : p[2] + shape[2]]
+            yield slice(a, b), tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
 
 
 def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
     """``T[g, c] = sum_n W[n, c] prod_d exp(-k_nd (x_nd - g_d)^2)``, shape lattice + (C,)."""
     n_out = W.shape[1]
-    if len(X) == 0:
-        return np.zeros((*lattice.shape, n_out))
-    blocks = _Blocks(lattice, X, k, cutoff, block)
-    fx, fy, fz = blocks.factors
-    W = W[blocks.order]
-    Lx, Ly, Lz = blocks.width
+    nx, ny, nz = lattice.shape
     # layout (x, c, y, z): the channels ride on the small x factor, so each block is
     # one GEMM (Lx*C x n) @ (n x Ly*Lz) and one elementwise yz product
-    px, py, pz = blocks.padded_shape
-    padded = np.zeros((px, n_out, py, pz))
-    for rows, (wx, wy, wz) in blocks:
-        yz = (fy[rows, :, None] * fz[rows, None, :]).reshape(-1, Ly * Lz)
-        xc = (fx[rows, :, None] * W[rows, None, :]).reshape(-1, Lx * n_out)
-        padded[wx, :, wy, wz] += (xc.T @ yz).reshape(Lx, n_out, Ly, Lz)
-    return blocks.crop(padded.transpose(0, 2, 3, 1), lattice.shape).copy()
+    out = np.zeros((nx, n_out, ny, nz))
+    if len(X):
+        blocks = _Blocks(lattice, X, k, cutoff, block)
+        fx, fy, fz = blocks.factors
+        W = W[blocks.order]
+        Lx, Ly, Lz = blocks.width
+        for rows, (wx, wy, wz) in blocks:
+            yz = (fy[rows, :, None] * fz[rows, None, :]).reshape(-1, Ly * Lz)
+            xc = (fx[rows, :, None] * W[rows, None, :]).reshape(-1, Lx * n_out)
+            out[wx, :, wy, wz] += (xc.T @ yz).reshape(Lx, n_out, Ly, Lz)
+    return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
 
 
 def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
@@ -115,13 +113,11 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
     fx, fy, fz = blocks.factors
     Lx, Ly, Lz = blocks.width
     # layout (y, z, x, c): one GEMM (n x Ly*Lz) @ (Ly*Lz x Lx*C) per block
-    padded = np.zeros((*blocks.padded_shape, n_out))
-    blocks.crop(padded, lattice.shape)[...] = T
-    padded = np.ascontiguousarray(padded.transpose(1, 2, 0, 3))
+    T = np.ascontiguousarray(np.asarray(T).transpose(1, 2, 0, 3))
     sorted_out = np.empty_like(out)
     for rows, (wx, wy, wz) in blocks:
         yz = (fy[rows, :, None] * fz[rows, None, :]).reshape(-1, Ly * Lz)
-        txc = (yz @ padded[wy, wz, wx].reshape(Ly * Lz, Lx * n_out)).reshape(-1, Lx, n_out)
+        txc = (yz @ T[wy, wz, wx].reshape(Ly * Lz, Lx * n_out)).reshape(-1, Lx, n_out)
         sorted_out[rows] = np.einsum("nxc,nx->nc", txc, fx[rows])
     out[blocks.order] = sorted_out
     return out
@@ -140,13 +136,10 @@ def gram(lattice: Lattice, X, k, amplitude, *, cutoff=DEFAULT_CUTOFF) -> np.ndar
     blocks = _Blocks(lattice, X, k, cutoff, block=1)
     fx, fy, fz = blocks.factors
     amplitude = amplitude[blocks.order]
-    flat = np.full(blocks.padded_shape, -1, dtype=np.int64)
-    blocks.crop(flat, lattice.shape)[...] = np.arange(M).reshape(lattice.shape)
+    flat = np.arange(M).reshape(lattice.shape)
     for rows, window in blocks:
         idx = flat[window].ravel()
-        keep = idx >= 0
         phi = fx[rows, :, None, None] * fy[rows, None, :, None] * fz[rows, None, None, :]
-        phi = phi.reshape(len(phi), -1)[:, keep] * amplitude[rows, None]
-        sel = idx[keep]
-        out[np.ix_(sel, sel)] += phi.T @ phi
+        phi = phi.reshape(len(phi), -1) * amplitude[rows, None]
+        out[np.ix_(idx, idx)] += phi.T @ phi
     return out

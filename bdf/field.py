@@ -9,7 +9,14 @@ import numpy as np
 import scipy.linalg as sla
 
 from bdf import features, tuning
-from bdf._validate import as_hyper, as_noise_std, as_observations, as_points, as_vector3
+from bdf._validate import (
+    as_hyper,
+    as_noise_std,
+    as_observations,
+    as_points,
+    as_sample_weight,
+    as_vector3,
+)
 from bdf.grid import HingeGrid
 from bdf.stats import FORMAT_VERSION, MIDPOINT_BLOCK, Evidence, variance_density
 
@@ -158,14 +165,14 @@ class BayesianDynamicField:
         return HingeGrid(self.lower, self.upper, self.spacing).points()
 
     # -- learning --------------------------------------------------------------------------
-    def fit(self, X, V, *, input_noise_std=None, time=None):
+    def fit(self, X, V, *, input_noise_std=None, sample_weight=None, time=None):
         """Learn from ``(X, V)`` only, replacing what was learned. Returns self."""
         self._grid, self._gamma, self._alpha, self._beta = self._setup()
         self.evidence_ = Evidence.zeros(self._grid)
         self.time_ = None
-        return self.partial_fit(X, V, input_noise_std=input_noise_std, time=time)
+        return self.partial_fit(X, V, input_noise_std=input_noise_std, sample_weight=sample_weight, time=time)
 
-    def partial_fit(self, X, V, *, input_noise_std=None, time=None):
+    def partial_fit(self, X, V, *, input_noise_std=None, sample_weight=None, time=None):
         """Add evidence: the posterior of the data so far is the prior of ``(X, V)``.
 
         Any split and order of the data gives the same result as one :meth:`fit`.
@@ -176,17 +183,22 @@ class BayesianDynamicField:
             Positions and velocities.
         input_noise_std : None, number, (N,) or (N, 3)
             Std of Gaussian noise on the positions; such points use the expected kernel.
+        sample_weight : None or (N,)
+            Likelihood weight per point (>= 0). Correlated samples (ADS-B at 1 Hz along one
+            track) should share one unit of weight, or the evidence overfits:
+            see :func:`bdf.ingest.track_weights`.
         time : float, optional
             Time of this batch, in the units of ``half_life`` (forgetting only); defaults to
             the previous time plus one.
         """
         if not hasattr(self, "evidence_"):
-            return self.fit(X, V, input_noise_std=input_noise_std, time=time)
+            return self.fit(X, V, input_noise_std=input_noise_std, sample_weight=sample_weight, time=time)
         X, V = as_observations(X, V)
         noise = as_noise_std(input_noise_std, len(X))
+        weight = as_sample_weight(sample_weight, len(X))
         time = self._advance(time)
         self.evidence_ = self.evidence_ + Evidence.from_points(
-            self._grid, self._gamma, X, V, noise, cutoff=self.cutoff
+            self._grid, self._gamma, X, V, noise, weight, cutoff=self.cutoff
         )
         self._posterior = None
         return self

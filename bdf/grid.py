@@ -37,7 +37,7 @@ class HingeGrid(Lattice):
     """Hinges ``lower + i * spacing`` per axis, up to ``upper`` inclusive.
 
     The midpoints of all hinge pairs lie on the half-spacing lattice returned by
-    :meth:`midpoints`; hinge ``(i, j, k)`` and ``(i', j', k')`` have their midpoint at
+    :meth:`midpoints`; hinges ``(i, j, k)`` and ``(i', j', k')`` have their midpoint at
     index ``(i + i', j + j', k + k')`` there, which is what makes the Gram identity and
     the variance identity of :mod:`bdf.stats` cheap.
     """
@@ -59,9 +59,3 @@ class HingeGrid(Lattice):
 
     def midpoints(self) -> Lattice:
         return Lattice(self.origin, self.step / 2.0, tuple(2 * n - 1 for n in self.shape))
-
-    def midpoint_index(self) -> np.ndarray:
-        """Per hinge, an offset ``u`` with ``u[m] + u[m']`` = flat midpoint index of (m, m')."""
-        gy, gz = 2 * self.shape[1] - 1, 2 * self.shape[2] - 1
-        i, j, k = np.unravel_index(np.arange(self.size), self.shape)
-        return (i * gy * gz + j * gz + k).astype(np.int64)

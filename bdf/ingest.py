@@ -191,3 +191,46 @@ def fetch_sample(name: str = "paris", cache: Path | None = None) -> Path:
 
 def sample_origin(name: str = "paris") -> ENUFrame:
     return ENUFrame(*SAMPLES[name][2])
+
+
+def load_paris(radius_m: float = 40_000.0, max_alt_m: float = 6_000.0, cache=None):
+    """The Paris sample as the benchmarks use it: points within ``radius_m`` (horizontal)
+    of the mean position and below ``max_alt_m``.
+
+    Returns ``(observations, lower, upper)`` with the box ``mean -/+ radius_m`` by ``[0, max_alt_m]``.
+    """
+    obs = read_adsb(fetch_sample("paris", cache), sample_origin("paris"))
+    centre = obs.X[:, :2].mean(axis=0)
+    keep = (np.hypot(*(obs.X[:, :2] - centre).T) < radius_m) & (obs.X[:, 2] < max_alt_m)
+    lower = np.array([centre[0] - radius_m, centre[1] - radius_m, 0.0])
+    upper = np.array([centre[0] + radius_m, centre[1] + radius_m, max_alt_m])
+    return obs.subset(keep), lower, upper
+
+
+def train_test_split(obs: Observations, *, by: str = "point", test_fraction: float = 0.2, seed: int = 0):
+    """Boolean test mask: a random fraction of points, or of whole flights (``by="flight"``).
+
+    A point split mostly measures interpolation along a track between neighbouring samples;
+    a flight split measures prediction where that aircraft was never seen.
+    """
+    rng = np.random.default_rng(seed)
+    if by == "point":
+        return rng.permutation(len(obs)) < round(test_fraction * len(obs))
+    if by == "flight":
+        flights = np.unique(obs.flight)
+        held = rng.permutation(flights)[: round(test_fraction * len(flights))]
+        return np.isin(obs.flight, held)
+    raise ValueError(f"by must be 'point' or 'flight', got {by!r}")
+
+
+def track_weights(obs: Observations, cell_m) -> np.ndarray:
+    """Sample weights giving each flight one unit of weight per cell of size ``cell_m`` it visits.
+
+    Samples along one track a second apart are not independent observations of the flow;
+    counted as such, they make the evidence trust the data far too much (overfitting and
+    overconfident std on flights not seen). Use a cell about the kernel width.
+    """
+    cell = np.floor(obs.X / np.broadcast_to(np.asarray(cell_m, float), (3,))).astype(np.int64)
+    keys = np.concatenate([obs.flight[:, None], cell], axis=1)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    return 1.0 / counts[inverse.ravel()]

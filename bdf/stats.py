@@ -15,7 +15,7 @@ Stored format (version 1), all float64:
     density     (2nx-1, 2ny-1, 2nz-1)   D above, noise-free points
     gram_noisy  (M, M) or absent         sum of phi~ phi~^T over noisy-input points
     proj        (M, 3)                   Phi^T V
-    count       ()                       number of points (decayed when forgetting)
+    count       ()                       sum of sample weights (decayed when forgetting)
     v_sum       (3,)                     sum of V per component
     v_sq        (3,)                     sum of V^2 per component
 """
@@ -23,6 +23,7 @@ Stored format (version 1), all float64:
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from functools import lru_cache
 
 import numpy as np
 
@@ -63,32 +64,36 @@ class Evidence:
         X: np.ndarray,
         V: np.ndarray,
         input_noise_std: np.ndarray | None = None,
+        sample_weight: np.ndarray | None = None,
         *,
         cutoff: float = features.DEFAULT_CUTOFF,
     ) -> Evidence:
         """The statistics increment of observations ``(X, V)``: everything that learns calls this.
 
-        ``X``, ``V`` are validated (N, 3) arrays; ``input_noise_std`` is None or (N, 3).
+        ``X``, ``V`` are validated (N, 3) arrays; ``input_noise_std`` is None or (N, 3);
+        ``sample_weight`` is None or (N,) >= 0: each point's log-likelihood counts that many
+        times (a weight of 2 equals the point given twice).
         """
+        w = np.ones(len(X)) if sample_weight is None else sample_weight
         noisy = np.zeros(len(X), bool) if input_noise_std is None else np.any(input_noise_std > 0, 1)
         plain = ~noisy
-        ones = np.ones((int(plain.sum()), 1))
         density = features.splat(
-            grid.midpoints(), X[plain], ones, 2.0 * gamma, cutoff=cutoff, block=MIDPOINT_BLOCK
+            grid.midpoints(), X[plain], w[plain, None], 2.0 * gamma, cutoff=cutoff, block=MIDPOINT_BLOCK
         )[..., 0]
-        proj = features.splat(grid, X[plain], V[plain], gamma, cutoff=cutoff).reshape(-1, 3)
+        wV = V * w[:, None]
+        proj = features.splat(grid, X[plain], wV[plain], gamma, cutoff=cutoff).reshape(-1, 3)
         gram_noisy = None
         if noisy.any():
             k, amplitude = features.expected_kernel(gamma, input_noise_std[noisy])
-            weighted_v = V[noisy] * amplitude[:, None]
+            weighted_v = wV[noisy] * amplitude[:, None]
             proj += features.splat(grid, X[noisy], weighted_v, k, cutoff=cutoff).reshape(-1, 3)
-            gram_noisy = features.gram(grid, X[noisy], k, amplitude, cutoff=cutoff)
+            gram_noisy = features.gram(grid, X[noisy], k, amplitude * np.sqrt(w[noisy]), cutoff=cutoff)
         return cls(
             density=density,
             proj=proj,
-            count=float(len(X)),
-            v_sum=V.sum(axis=0),
-            v_sq=(V * V).sum(axis=0),
+            count=float(w.sum()),
+            v_sum=wV.sum(axis=0),
+            v_sq=(wV * V).sum(axis=0),
             gram_noisy=gram_noisy,
         )
 
@@ -124,9 +129,9 @@ class Evidence:
 
     def gram(self, grid: HingeGrid, gamma: np.ndarray) -> np.ndarray:
         """``Phi^T Phi`` (M x M) from the density by the midpoint identity (plus the noisy part)."""
-        u = grid.midpoint_index()
-        out = np.take(self.density.ravel(), u[:, None] + u[None, :])
-        out *= pair_factor(grid, gamma)
+        index, factor = pair_structure(grid, gamma)
+        out = np.take(self.density.ravel(), index)
+        out *= factor
         if self.gram_noisy is not None:
             out += self.gram_noisy
         return out
@@ -162,14 +167,25 @@ class Evidence:
         return cls(**values)
 
 
-def pair_factor(grid: HingeGrid, gamma: np.ndarray) -> np.ndarray:
-    """``c(h_m - h_m') = exp(-sum_d gamma_d (h_md - h_m'd)^2 / 2)`` as an M x M matrix."""
-    out = np.ones((1, 1))
+def pair_structure(grid: HingeGrid, gamma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per hinge pair (M x M): flat midpoint index, and ``c(h_m - h_m') = exp(-sum_d gamma_d
+    (h_md - h_m'd)^2 / 2)``. Cached: every posterior of a grid needs both."""
+    return _pair_structure(grid.shape, tuple(grid.step), tuple(gamma))
+
+
+@lru_cache(maxsize=2)
+def _pair_structure(shape, step, gamma):
+    factor = np.ones((1, 1))
     for d in range(3):
-        i = np.arange(grid.shape[d])
-        gap = (i[:, None] - i[None, :]) * grid.step[d]
-        out = np.kron(out, np.exp(-0.5 * gamma[d] * gap * gap))
-    return out
+        i = np.arange(shape[d])
+        gap = (i[:, None] - i[None, :]) * step[d]
+        factor = np.kron(factor, np.exp(-0.5 * gamma[d] * gap * gap))
+    gy, gz = 2 * shape[1] - 1, 2 * shape[2] - 1
+    i, j, k = np.unravel_index(np.arange(int(np.prod(shape))), shape)
+    u = i * gy * gz + j * gz + k
+    index = u[:, None] + u[None, :]
+    index.flags.writeable = factor.flags.writeable = False
+    return index, factor
 
 
 def variance_density(grid: HingeGrid, gamma: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -178,7 +194,6 @@ def variance_density(grid: HingeGrid, gamma: np.ndarray, covariance: np.ndarray)
     Then ``phi(x)^T Sigma phi(x) = sum_g S(g) exp(-sum_d 2 gamma_d (x_d - g_d)^2)``, a
     gather on the midpoint lattice: O(K) per query point instead of O(K^2).
     """
-    u = grid.midpoint_index()
-    weights = covariance * pair_factor(grid, gamma)
+    index, factor = pair_structure(grid, gamma)
     mid = grid.midpoints()
-    return np.bincount((u[:, None] + u[None, :]).ravel(), weights.ravel(), mid.size).reshape(mid.shape)
+    return np.bincount(index.ravel(), (covariance * factor).ravel(), mid.size).reshape(mid.shape)

@@ -256,3 +256,30 @@ def test_bad_input_is_a_clear_value_error(change, message):
 def test_predict_before_fit_is_a_value_error():
     with pytest.raises(ValueError, match="not been fitted"):
         BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA).predict(np.zeros((1, 3)))
+
+
+def test_sample_weight_equals_repeating_points(data):
+    X, V = data
+    weights = np.tile([0.0, 1.0, 2.0], 100)
+    weighted = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, alpha="auto", beta="auto")
+    weighted.fit(X, V, sample_weight=weights)
+    repeat = np.repeat(np.arange(len(X)), weights.astype(int))
+    repeated = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, alpha="auto", beta="auto").fit(
+        X[repeat], V[repeat]
+    )
+    Xq = X[:40] + 0.3
+    assert_close(
+        weighted.predict(Xq, return_std=True)[1], repeated.predict(Xq, return_std=True)[1], 1e-9, "std"
+    )
+    assert_close(weighted.predict(Xq), repeated.predict(Xq), 1e-9, "mean")
+    assert_close(weighted.beta_, repeated.beta_, 1e-9, "fitted beta")
+    with pytest.raises(ValueError, match="sample_weight must be finite and >= 0"):
+        weighted.fit(X, V, sample_weight=-weights)
+
+
+def test_track_weights_give_each_flight_one_unit_per_cell():
+    from bdf.ingest import Observations, track_weights
+
+    X = np.array([[0.5, 0, 0], [0.6, 0, 0], [0.7, 0, 0], [1.5, 0, 0], [0.5, 0, 0]])
+    obs = Observations(X, X, np.zeros(5), np.array([0, 0, 0, 0, 1]))
+    np.testing.assert_allclose(track_weights(obs, 1.0), [1 / 3, 1 / 3, 1 / 3, 1.0, 1.0])

@@ -1,0 +1,237 @@
+"""Core benchmark on real ADS-B traffic around Paris: bdf vs the paper's algorithm vs an exact GP.
+
+    .venv/bin/python bench/bench_core.py [--gp-points 2000] [--skip-reference] [--no-append]
+
+Data: the Paris sample (OpenSky via `traffic`), points within 40 km of the mean position
+and below 6,000 m. Two splits, seed 0: 20% of points at random; 20% of whole flights.
+Every method sees the same train/test arrays in the same run. Times are wall-clock on
+this machine, best of ``--repeat`` runs for the fast methods. Appends to bench/RESULTS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bdf import BayesianDynamicField, ingest, metrics
+from clients.demo import PARIS_GAMMA, PARIS_SPACING_M
+
+PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
+
+
+def score(name, V_test, V_train, mean, std, train_s, query_s, note=""):
+    return {
+        "method": name,
+        "train s": train_s,
+        "query s": query_s,
+        "RMSE": float(metrics.rmse(V_test, mean)),
+        "MSLL": float(metrics.msll(V_test, mean, std, V_train.mean(0), V_train.std(0))),
+        "cov95": float(metrics.coverage(V_test, mean, std)),
+        "note": note,
+    }
+
+
+def best_of(repeat, fn):
+    times, out = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), out
+
+
+def run_bdf(lower, upper, Xtr, Vtr, Xte, alpha, beta, repeat):
+    """Train = statistics + posterior + variance precompute; query = mean and std of the test set."""
+
+    def train():
+        field = BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA, alpha=alpha, beta=beta)
+        field.fit(Xtr, Vtr)
+        field.predict(Xte[:1], return_std=True)  # factorisation and variance density
+        return field
+
+    train_s, field = best_of(repeat, train)
+    query_s, (mean, std) = best_of(repeat, lambda: field.predict(Xte, return_std=True))
+    return field, train_s, query_s, mean, std
+
+
+def paper_reference(hinges, Xtr, Vtr, Xte, dtype):
+    """The published algorithm: dense Phi, a separate posterior per component, explicit inverses."""
+    gamma = PARIS_GAMMA.astype(dtype)
+    H = hinges.astype(dtype)
+
+    def phi(X):
+        X = X.astype(dtype)
+        out = np.empty((len(X), len(H)), dtype)
+        for a in range(0, len(X), 20_000):
+            d2 = (X[a : a + 20_000, None, :] - H[None]) ** 2
+            out[a : a + 20_000] = np.exp(-(d2 * gamma).sum(-1))
+        return out
+
+    t0 = time.perf_counter()
+    P = phi(Xtr)
+    posts = []
+    for c in range(3):
+        precision = PAPER_ALPHA * np.eye(len(H), dtype=dtype) + PAPER_BETA * (P.T @ P)
+        sigma = np.linalg.inv(precision)
+        posts.append((sigma, PAPER_BETA * sigma @ (P.T @ Vtr[:, c].astype(dtype))))
+    train_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    Q = phi(Xte)
+    mean = np.stack([Q @ mu for _, mu in posts], 1).astype(float)
+    var = np.stack([1 / PAPER_BETA + np.einsum("nm,nm->n", Q @ s, Q) for s, _ in posts], 1)
+    query_s = time.perf_counter() - t0
+    min_eig = min(float(np.linalg.eigvalsh(np.linalg.inv(s.astype(float))).min()) for s, _ in posts[:1])
+    return train_s, query_s, mean, np.sqrt(np.maximum(var.astype(float), 1e-12)), min_eig
+
+
+def exact_gp(Xtr, Vtr, Xte, n, seed=0):
+    """scikit-learn GP, ARD RBF + white noise, hyperparameters by marginal likelihood, on n points."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
+    idx = np.random.default_rng(seed).choice(len(Xtr), size=min(n, len(Xtr)), replace=False)
+    kernel = ConstantKernel(1.0) * RBF(
+        length_scale=PARIS_SPACING_M, length_scale_bounds=(1e2, 1e6)
+    ) + WhiteKernel(0.1, noise_level_bounds=(1e-5, 10.0))
+    gp = GaussianProcessRegressor(kernel, normalize_y=True, random_state=seed)
+    t0 = time.perf_counter()
+    gp.fit(Xtr[idx], Vtr[idx])
+    train_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mean, std = gp.predict(Xte, return_std=True)
+    query_s = time.perf_counter() - t0
+    return train_s, query_s, mean, std if std.ndim == 2 else np.repeat(std[:, None], 3, 1)
+
+
+def microscopic(repeat=200):
+    """A 300-point radar scan, M = 500: partial_fit + prediction at 1,000 points (median ms)."""
+    rng = np.random.default_rng(0)
+    lower, upper, spacing = np.zeros(3), np.array([45.0, 18.0, 4.0]), np.array([5.0, 2.0, 1.0])
+    field = BayesianDynamicField(lower, upper, spacing, 1 / spacing**2, alpha=1.0, beta=4.0)
+    assert len(field.hinges) == 500
+    field.fit(rng.uniform(lower, upper, (300, 3)), rng.normal(size=(300, 3)))
+    Xq = rng.uniform(lower, upper, (1000, 3))
+    mean_only, with_std = [], []
+    for _ in range(repeat):
+        scan, vel = rng.uniform(lower, upper, (300, 3)), rng.normal(size=(300, 3))
+        t0 = time.perf_counter()
+        field.partial_fit(scan, vel)
+        field.predict(Xq)
+        mean_only.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        field.partial_fit(scan, vel)
+        field.predict(Xq, return_std=True)
+        with_std.append(time.perf_counter() - t0)
+    return 1e3 * np.median(mean_only), 1e3 * np.median(with_std)
+
+
+def table(rows):
+    cols = ["method", "train s", "query s", "RMSE", "MSLL", "cov95", "note"]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = [
+            r[c] if isinstance(r[c], str) else f"{r[c]:.3f}" if abs(r[c]) < 100 else f"{r[c]:.1f}"
+            for c in cols
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main():
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--gp-points", type=int, default=2000, help="training subset of the exact GP")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--skip-reference", action="store_true", help="skip the paper's algorithm (slow)")
+    parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
+    args = parser.parse_args()
+
+    obs, lower, upper = ingest.load_paris()
+    M = len(BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA).hinges)
+    report = [
+        f"## Core benchmark, {datetime.date.today()}",
+        "",
+        f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
+        f"{os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}.",
+        f"Paris sample: {len(obs)} points within 40 km and below 6,000 m. Grid spacing "
+        f"{PARIS_SPACING_M.tolist()} m, gamma = 1/spacing^2, M = {M} hinges (chosen by 5-fold "
+        "flight-grouped cross-validation). Query = mean and std of the whole test set.",
+    ]
+    for split in ("point", "flight"):
+        test = ingest.train_test_split(obs, by=split, test_fraction=0.2, seed=0)
+        Xtr, Vtr, Xte, Vte = obs.X[~test], obs.V[~test], obs.X[test], obs.V[test]
+        rows = []
+        field, tr, q, mean, std = run_bdf(lower, upper, Xtr, Vtr, Xte, "auto", "auto", args.repeat)
+        rows.append(
+            score(
+                "bdf, alpha/beta auto",
+                Vte,
+                Vtr,
+                mean,
+                std,
+                tr,
+                q,
+                f"noise std {np.round(1 / np.sqrt(field.beta_), 1).tolist()} m/s",
+            )
+        )
+        _, tr_fixed, q_fixed, mean, std = run_bdf(
+            lower, upper, Xtr, Vtr, Xte, PAPER_ALPHA, PAPER_BETA, args.repeat
+        )
+        rows.append(score("bdf, alpha=1e-2 beta=1e2 (paper's)", Vte, Vtr, mean, std, tr_fixed, q_fixed))
+        ours_fixed_rmse = rows[-1]["RMSE"]
+        if not args.skip_reference:
+            for dtype in (np.float32, np.float64):
+                tr, q, mean, std, min_eig = paper_reference(field.hinges, Xtr, Vtr, Xte, dtype)
+                rows.append(
+                    score(
+                        f"paper's algorithm, {np.dtype(dtype).name}",
+                        Vte,
+                        Vtr,
+                        mean,
+                        std,
+                        tr,
+                        q,
+                        f"{tr / tr_fixed:.0f}x our train time; min eig of precision {min_eig:.2g}",
+                    )
+                )
+        tr, q, mean, std = exact_gp(Xtr, Vtr, Xte, args.gp_points)
+        rows.append(score(f"exact GP (scikit-learn), {args.gp_points} pts", Vte, Vtr, mean, std, tr, q))
+        title = "random 20% of points" if split == "point" else "20% of whole flights held out"
+        report += ["", f"### Split: {title} (train {len(Xtr)}, test {len(Xte)})", "", table(rows)]
+        if not args.skip_reference:
+            ref64 = next(r for r in rows if r["method"].endswith("float64"))
+            report.append(
+                f"\nbdf (paper's alpha, beta) RMSE vs paper's algorithm float64: "
+                f"{100 * (ours_fixed_rmse / ref64['RMSE'] - 1):+.3f}%"
+            )
+        print("\n".join(report[-3:]), flush=True)
+
+    q100k = obs.X[np.random.default_rng(0).integers(0, len(obs), 100_000)]
+    q_s, _ = best_of(args.repeat, lambda: field.predict(q100k, return_std=True))
+    mean_ms, std_ms = microscopic()
+    report += [
+        "",
+        f"Query of 100,000 points (mean and std): {q_s:.3f} s.",
+        f"Microscopic, 300-point radar scan, M = 500: partial_fit + mean at 1,000 points {mean_ms:.2f} ms; "
+        f"partial_fit + mean and std {std_ms:.2f} ms (medians of 200).",
+        "",
+    ]
+    text = "\n".join(report)
+    print(text)
+    if not args.no_append:
+        with open(Path(__file__).with_name("RESULTS.md"), "a") as fh:
+            fh.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
