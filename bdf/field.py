@@ -59,18 +59,28 @@ class Posterior:
         )
         return np.maximum(var[:, columns] / self.beta, 0.0)
 
+    def predict(self, X: np.ndarray, return_std=False, include_noise=True):
+        """Mean (N, 3), and the std if asked: predictive, or epistemic without ``1/beta``."""
+        mean = self.mean(X)
+        if not return_std:
+            return mean
+        var = self.epistemic_variance(X)
+        if include_noise:
+            var = var + 1.0 / self.beta
+        return mean, np.sqrt(var)
+
     def _variance_density(self):
         # Sigma_c = (G + lam I)^-1 / beta_c; one density per distinct factorisation
-        unique = list({id(s): s for s in self._solutions}.values())
-        densities = []
-        for sol in unique:
-            inv, info = sla.lapack.dpotri(sol.factor, lower=1)
-            if info != 0:
-                raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
-            inv += np.tril(inv, -1).T  # dpotri fills the lower triangle only
-            densities.append(variance_density(self.grid, self.gamma, inv))
-        columns = [next(i for i, u in enumerate(unique) if u is s) for s in self._solutions]
-        return np.stack(densities, axis=-1), columns
+        densities, columns = {}, []
+        for sol in self._solutions:
+            if id(sol) not in densities:
+                inv, info = sla.lapack.dpotri(sol.factor, lower=1)
+                if info != 0:
+                    raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
+                inv += np.tril(inv, -1).T  # dpotri fills the lower triangle only
+                densities[id(sol)] = variance_density(self.grid, self.gamma, inv)
+            columns.append(list(densities).index(id(sol)))
+        return np.stack(list(densities.values()), axis=-1), columns
 
 
 class BayesianDynamicField:
@@ -258,15 +268,7 @@ class BayesianDynamicField:
             observation would scatter by). False: epistemic std ``sqrt(phi^T Sigma phi)``
             (the uncertainty of the mean field itself).
         """
-        X = as_points(X, "X", allow_empty=True)
-        post = self.posterior_
-        mean = post.mean(X)
-        if not return_std:
-            return mean
-        var = post.epistemic_variance(X)
-        if include_noise:
-            var = var + 1.0 / post.beta
-        return mean, np.sqrt(var)
+        return self.posterior_.predict(as_points(X, "X", allow_empty=True), return_std, include_noise)
 
     # -- persistence -----------------------------------------------------------------------
     def save(self, path) -> None:

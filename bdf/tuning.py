@@ -22,7 +22,10 @@ import numpy as np
 import scipy.linalg as sla
 from scipy.optimize import minimize_scalar
 
-from bdf import features
+from bdf import features, metrics
+from bdf._validate import as_observations, as_sample_weight
+from bdf.grid import HingeGrid
+from bdf.stats import Evidence
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +133,7 @@ def cross_validate(
     *,
     n_splits=5,
     groups=None,
+    sample_weight=None,
     alpha="auto",
     beta="auto",
     score="msll",
@@ -147,6 +151,8 @@ def cross_validate(
     groups : (N,) or None
         Keep each group (e.g. a flight) within one fold, so the score measures prediction
         away from the tracks seen, not interpolation along them.
+    sample_weight : (N,) or None
+        Likelihood weights of the training points (see :func:`bdf.ingest.track_weights`).
     score : "msll" or "rmse"
         What to minimise (averaged over the three components).
 
@@ -157,15 +163,12 @@ def cross_validate(
     table : list of dict
         Per candidate: spacing, gamma, hinges, rmse, msll (means over folds).
     """
-    from bdf import metrics
-    from bdf._validate import as_observations
-    from bdf.field import Posterior
-    from bdf.grid import HingeGrid
-    from bdf.stats import Evidence
+    from bdf.field import Posterior  # bdf.field imports this module
 
     if score not in ("msll", "rmse"):
         raise ValueError(f"score must be 'msll' or 'rmse', got {score!r}")
     X, V = as_observations(X, V)
+    weight = np.ones(len(X)) if sample_weight is None else as_sample_weight(sample_weight, len(X))
     if n_splits < 2:
         raise ValueError(f"n_splits must be at least 2, got {n_splits}")
     rng = np.random.default_rng(seed)
@@ -181,7 +184,10 @@ def cross_validate(
     for spacing, gamma in candidates:
         grid = HingeGrid(lower, upper, spacing)
         gamma_v = np.broadcast_to(np.asarray(gamma, float), (3,)).copy()
-        parts = [Evidence.from_points(grid, gamma_v, X[fold == k], V[fold == k]) for k in range(n_splits)]
+        parts = [
+            Evidence.from_points(grid, gamma_v, X[f], V[f], None, weight[f])
+            for f in (fold == k for k in range(n_splits))
+        ]
         total = parts[0]
         for part in parts[1:]:
             total = total + part
@@ -189,8 +195,7 @@ def cross_validate(
         for k in range(n_splits):
             test = fold == k
             post = Posterior(grid, gamma_v, total - parts[k], alpha, beta, features.DEFAULT_CUTOFF)
-            mean = post.mean(X[test])
-            std = np.sqrt(post.epistemic_variance(X[test]) + 1.0 / post.beta)
+            mean, std = post.predict(X[test], return_std=True)
             train = V[~test]
             rmses.append(metrics.rmse(V[test], mean))
             mslls.append(metrics.msll(V[test], mean, std, train.mean(0), train.std(0)))

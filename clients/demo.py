@@ -12,7 +12,7 @@ from bdf import BayesianDynamicField, ingest, metrics
 
 log = logging.getLogger(__name__)
 
-#: The grid the benchmark uses (bench/RESULTS.md), chosen by flight-grouped cross-validation.
+#: The grid the benchmark uses (bench/RESULTS.md), picked by hand (see its note on the grid).
 PARIS_SPACING_M = np.array([4000.0, 4000.0, 1000.0])
 PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
 

@@ -18,6 +18,11 @@ def test_cross_validation_prefers_the_bandwidth_that_resolves_the_flow():
         X, V, LOWER, UPPER, candidates, n_splits=3, score="rmse", groups=np.arange(len(X)) // 100
     )
     assert best_rmse["spacing"] == [1.0, 1.0, 1.0]
+    # unit weights change nothing; doubling every weight is seen (the evidence counts N twice)
+    _, unit = cross_validate(X, V, LOWER, UPPER, candidates, n_splits=3, sample_weight=np.ones(len(X)))
+    assert unit == table
+    _, double = cross_validate(X, V, LOWER, UPPER, candidates, n_splits=3, sample_weight=np.full(len(X), 2.0))
+    assert double[0]["msll"] != table[0]["msll"]
 
 
 def test_cross_validation_rejects_bad_arguments():
