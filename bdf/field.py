@@ -69,15 +69,33 @@ class Posterior:
             var = var + 1.0 / self.beta
         return mean, np.sqrt(var)
 
+    def compact(self) -> Posterior:
+        """Compute the variance density now and drop the M x M factors: what a cache keeps
+        (a few times the midpoint lattice instead of M^2 numbers per factorisation)."""
+        if self._variance is None:
+            self._variance = self._variance_density()
+        self._solutions = None
+        return self
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by the arrays of this posterior."""
+        held = self.weights.nbytes
+        if self._variance is not None:
+            held += self._variance[0].nbytes
+        if self._solutions is not None:
+            held += sum(s.factor.nbytes for s in {id(s): s for s in self._solutions}.values())
+        return held
+
     def _variance_density(self):
         # Sigma_c = (G + lam I)^-1 / beta_c; one density per distinct factorisation
         densities, columns = {}, []
         for sol in self._solutions:
             if id(sol) not in densities:
-                inv, info = sla.lapack.dpotri(sol.factor, lower=1)
+                inv, info = sla.lapack.dpotri(sol.factor, lower=0)
                 if info != 0:
                     raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
-                inv += np.tril(inv, -1).T  # dpotri fills the lower triangle only
+                inv += np.triu(inv, 1).T  # dpotri fills the upper triangle only
                 densities[id(sol)] = variance_density(self.grid, self.gamma, inv)
             columns.append(list(densities).index(id(sol)))
         return np.stack(list(densities.values()), axis=-1), columns
@@ -296,10 +314,22 @@ class BayesianDynamicField:
             arrays = {k.removeprefix("evidence_"): data[k] for k in data.files if k.startswith("evidence_")}
         time = params.pop("time_")
         field = cls(**params)
-        field._grid, field._gamma, field._alpha, field._beta = field._setup()
-        field.evidence_ = Evidence.from_arrays(arrays, field._grid)
-        field.time_ = time
-        return field
+        return field.set_evidence(
+            Evidence.from_arrays(arrays, HingeGrid(field.lower, field.upper, field.spacing)), time
+        )
+
+    def set_evidence(self, evidence: Evidence, time=None) -> BayesianDynamicField:
+        """Take ``evidence`` (made on this field's grid, e.g. stored per tile) as everything
+        learned. Returns self."""
+        self._grid, self._gamma, self._alpha, self._beta = self._setup()
+        if evidence.proj.shape != (self._grid.size, 3):
+            raise ValueError(
+                f"evidence for {len(evidence.proj)} hinges given to a field of {self._grid.size}"
+            )
+        self.evidence_ = evidence
+        self.time_ = time
+        self._posterior = None
+        return self
 
 
 _PARAMS = ("lower", "upper", "spacing", "gamma", "alpha", "beta", "cutoff", "half_life")

@@ -18,6 +18,12 @@ Stored format (version 1), all float64:
     count       ()                       sum of sample weights (decayed when forgetting)
     v_sum       (3,)                     sum of V per component
     v_sq        (3,)                     sum of V^2 per component
+
+As one blob (:meth:`Evidence.to_bytes`, what the map stores keep per tile): little-endian
+float64 values in the order count, v_sum, v_sq, proj (C order), density (C order), then,
+only if present, the lower triangle of the symmetric ``gram_noisy`` packed row by row
+(M (M + 1) / 2 values). Shapes follow from the tile's hinge grid; the length tells
+whether ``gram_noisy`` is there.
 """
 
 from __future__ import annotations
@@ -142,6 +148,37 @@ class Evidence:
         if self.gram_noisy is None:
             del out["gram_noisy"]
         return out
+
+    def to_bytes(self) -> bytes:
+        """The stored blob (layout in the module docstring)."""
+        parts = [[self.count], self.v_sum, self.v_sq, self.proj.ravel(), self.density.ravel()]
+        if self.gram_noisy is not None:
+            parts.append(self.gram_noisy[np.tril_indices(len(self.gram_noisy))])
+        return np.concatenate(parts).astype("<f8", copy=False).tobytes()
+
+    @classmethod
+    def from_bytes(cls, blob: bytes, grid: HingeGrid) -> Evidence:
+        values = np.frombuffer(blob, dtype="<f8").astype(np.float64)
+        M, n_density = grid.size, grid.midpoints().size
+        plain = 7 + 3 * M + n_density
+        if len(values) not in (plain, plain + M * (M + 1) // 2):
+            raise ValueError(
+                f"an evidence blob of {len(values)} values does not fit a grid of {M} hinges "
+                f"(expected {plain} or {plain + M * (M + 1) // 2})"
+            )
+        gram_noisy = None
+        if len(values) > plain:
+            gram_noisy = np.zeros((M, M))
+            gram_noisy[np.tril_indices(M)] = values[plain:]
+            gram_noisy += np.tril(gram_noisy, -1).T
+        return cls(
+            count=float(values[0]),
+            v_sum=values[1:4],
+            v_sq=values[4:7],
+            proj=values[7 : 7 + 3 * M].reshape(M, 3),
+            density=values[7 + 3 * M : plain].reshape(grid.midpoints().shape),
+            gram_noisy=gram_noisy,
+        )
 
     @classmethod
     def from_arrays(cls, arrays, grid: HingeGrid) -> Evidence:

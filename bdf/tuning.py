@@ -35,27 +35,33 @@ EMPTY_ALPHA, EMPTY_BETA = 1e-2, 1e2
 
 @dataclass
 class Solution:
-    """One factorisation ``G + lam I = L L^T`` and what it gives."""
+    """One factorisation ``G + lam I = U^T U`` and what it gives."""
 
     lam: float
-    factor: np.ndarray  # lower Cholesky factor
+    factor: np.ndarray  # upper Cholesky factor U, Fortran order (what LAPACK takes without a copy)
     weights: np.ndarray  # (M, 3) posterior means m for every component
     logdet: float  # ln|G + lam I|
     residual: np.ndarray  # (3,) R per component
 
 
-def solve(gram: np.ndarray, proj: np.ndarray, v_sq: np.ndarray, lam: float) -> Solution:
-    """Factor ``gram + lam I`` (float64 Cholesky) and solve for the three components at once."""
-    a = gram.copy()
+def solve(gram: np.ndarray, proj: np.ndarray, v_sq: np.ndarray, lam: float, out=None) -> Solution:
+    """Factor ``gram + lam I`` (float64 Cholesky, in place) and solve for the three components.
+
+    ``out``: an M x M buffer to factor in (a search reuses two instead of allocating,
+    and faulting in, a fresh M^2 array per step).
+    """
+    a = gram.copy() if out is None else out
+    if out is not None:
+        np.copyto(a, gram)
     a.flat[:: len(a) + 1] += lam
-    try:
-        factor = sla.cholesky(a, lower=True, check_finite=False)
-    except np.linalg.LinAlgError as exc:
+    # the transpose of a C-order symmetric matrix is itself in Fortran order: no copy
+    factor, info = sla.lapack.dpotrf(a.T, lower=0, overwrite_a=1, clean=1)
+    if info != 0:
         raise ValueError(
             f"the precision matrix is not positive definite (alpha/beta = {lam:.3g}); "
             "increase alpha or decrease beta"
-        ) from exc
-    weights = sla.cho_solve((factor, True), proj, check_finite=False)
+        )
+    weights, info = sla.lapack.dpotrs(factor, proj, lower=0)
     residual = np.maximum(v_sq - np.einsum("mc,mc->c", proj, weights), 1e-300)
     logdet = 2.0 * float(np.sum(np.log(np.diag(factor))))
     return Solution(lam, factor, weights, logdet, residual)
@@ -106,21 +112,29 @@ def fit_evidence(gram, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.n
     groups = [[0], [1], [2]] if (auto_b and not auto_a) else [[0, 1, 2]]
     alpha_v, beta_v, sols = np.empty(3), np.empty(3), [None] * 3
     for comps in groups:
+        # two buffers: the best factorisation so far stays in one, the next step uses the other
+        buffers, best = [np.empty_like(gram), np.empty_like(gram)], [np.inf, None]
 
-        def cost(log_lam, comps=comps):
-            sol = solve(gram, proj, v_sq, scale * np.exp(log_lam))
+        def cost(log_lam, comps=comps, buffers=buffers, best=best):
+            in_use = best[1] is not None and np.shares_memory(best[1].factor, buffers[0])
+            scratch = buffers[1] if in_use else buffers[0]
+            sol = solve(gram, proj, v_sq, scale * np.exp(log_lam), out=scratch)
             a, b = _hyper_for(sol, alpha, beta, count)
-            return -float(np.sum(log_evidence(sol, a, b, count)[comps]))
+            value = -float(np.sum(log_evidence(sol, a, b, count)[comps]))
+            if value < best[0]:
+                best[:] = value, sol
+            return value
 
         res = minimize_scalar(
             cost, bounds=(np.log(1e-10), np.log(1e4)), method="bounded", options={"xatol": 0.05}
         )  # 5% in lam: the evidence is flat there
-        sol = solve(gram, proj, v_sq, scale * np.exp(res.x))
+        sol = best[1]
         a, b = _hyper_for(sol, alpha, beta, count)
         alpha_v[comps], beta_v[comps] = a[comps], b[comps]
         for c in comps:
             sols[c] = sol
         log.debug("evidence fit for components %s: lam=%.4g in %d steps", comps, sol.lam, res.nfev)
+        del buffers[:]
     return alpha_v, beta_v, sols
 
 

@@ -1,0 +1,172 @@
+"""The map layer the routes call: uploads into tiles, queries blended from cached posteriors.
+
+The store holds the truth (statistics, versions, ledger); posteriors are derived data,
+kept per ``(region_id, tile, version)`` in a memory-bounded LRU and recomputed when a
+tile's version changes.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from bdf.field import Posterior
+from bdf.tiles import TileKey
+from service.store import MapStore, payload_digest
+
+log = logging.getLogger(__name__)
+
+
+class PosteriorCache:
+    """Least-recently-used posteriors, bounded by their memory (``max_mb``)."""
+
+    def __init__(self, max_mb: float = 512.0):
+        self.max_bytes = int(max_mb * 2**20)
+        self._items: OrderedDict[tuple, Posterior] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+        self.hits = self.misses = 0
+
+    def get(self, key: tuple) -> Posterior | None:
+        with self._lock:
+            post = self._items.get(key)
+            if post is None:
+                self.misses += 1
+                return None
+            self._items.move_to_end(key)
+            self.hits += 1
+            return post
+
+    def put(self, key: tuple, post: Posterior) -> None:
+        with self._lock:
+            if key in self._items:
+                return
+            self._items[key] = post
+            self._bytes += post.nbytes
+            while self._bytes > self.max_bytes and len(self._items) > 1:
+                _, old = self._items.popitem(last=False)
+                self._bytes -= old.nbytes
+
+    @property
+    def nbytes(self) -> int:
+        return self._bytes
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+@dataclass
+class Prediction:
+    mean: np.ndarray  # (n, 3) m/s
+    std: np.ndarray  # (n, 3) predictive std, m/s
+    known: np.ndarray  # (n,) some tile with data covers the point
+    version: int  # region version the answer was computed from
+
+
+class RegionMaps:
+    """Tiled maps over a :class:`MapStore`: exactly-once uploads, blended queries."""
+
+    def __init__(self, store: MapStore, cache_mb: float = 512.0):
+        self.store = store
+        self.cache = PosteriorCache(cache_mb)
+
+    def upload(
+        self,
+        region: str,
+        upload_id: str,
+        X,
+        V,
+        *,
+        input_noise_std=None,
+        sample_weight=None,
+        replace: bool = False,
+    ) -> dict:
+        """Apply observations (ENU metres, m/s) to a region once per ``upload_id``.
+
+        Rows with a non-finite value or outside the region are rejected and counted, the
+        rest accepted. ``replace``: the region's map becomes this data alone (a fit).
+        Returns the ledger result: accepted, rejected (by reason), tiles_updated,
+        region_version, replayed.
+        """
+        X, V = np.asarray(X, float), np.asarray(V, float)
+        if X.ndim != 2 or X.shape[1] != 3 or V.shape != X.shape:
+            raise ValueError(f"points and velocities must both be (n, 3), got {X.shape} and {V.shape}")
+        noise = None if input_noise_std is None else _noise_rows(input_noise_std, len(X))
+        weight = None if sample_weight is None else np.asarray(sample_weight, float)
+        if weight is not None and weight.shape != (len(X),):
+            raise ValueError(f"sample_weight must have shape ({len(X)},), got {weight.shape}")
+        digest = payload_digest("fit" if replace else "observations", X, V, noise, weight)
+        first = self.store.upload_result(region, upload_id, digest)
+        if first is not None:
+            return first
+        spec = self.store.region(region).spec
+
+        finite = np.isfinite(X).all(1) & np.isfinite(V).all(1)
+        if noise is not None:
+            finite &= np.isfinite(noise).all(1) & (noise >= 0).all(1)
+        if weight is not None:
+            finite &= np.isfinite(weight) & (weight >= 0)
+        inside = np.zeros(len(X), bool)
+        inside[finite] = spec.inside(X[finite])
+        keep = finite & inside
+        increments = spec.increments(
+            X[keep],
+            V[keep],
+            input_noise_std=None if noise is None else noise[keep],
+            sample_weight=None if weight is None else weight[keep],
+        )
+        summary = {
+            "accepted": int(keep.sum()),
+            "rejected": {"non_finite": int((~finite).sum()), "outside_region": int((finite & ~inside).sum())},
+        }
+        return self.store.apply(
+            region,
+            upload_id,
+            digest,
+            increments,
+            observations=int(keep.sum()),
+            replace=replace,
+            summary=summary,
+        )
+
+    def predict(self, region: str, X) -> Prediction:
+        """Blended mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region."""
+        spec = self.store.region(region).spec
+        X = np.asarray(X, float)
+        keys = list(spec.tiles_containing(X))  # validates X, names the outside rows
+        found = {}
+
+        def need(region_id: str, key: TileKey, version: int) -> bool:
+            found[key] = self.cache.get((region_id, key, version))
+            return found[key] is None
+
+        snap = self.store.snapshot(region, keys, need=need)
+        spec = snap.region.spec  # the snapshot's own (the name may have been re-created)
+        posteriors = {}
+        for key in keys:
+            tile = snap.tiles.get(key)
+            if tile is None:
+                continue  # no data: the prior answers
+            post = found.get(key)
+            if post is None:
+                post = spec.posterior(key, snap.evidence[key])
+                self.cache.put((snap.region.region_id, key, tile.version), post)
+            posteriors[key] = post
+        mean, std, known = spec.predict(X, posteriors)
+        return Prediction(mean, std, known, snap.region.version)
+
+
+def _noise_rows(value, n: int) -> np.ndarray:
+    """Input-noise std as (n, 3) from a number, (n,) or (n, 3); values are checked per row later."""
+    arr = np.asarray(value, float)
+    if arr.ndim == 0:
+        return np.full((n, 3), float(arr))
+    if arr.shape == (n,):
+        return np.repeat(arr[:, None], 3, axis=1)
+    if arr.shape != (n, 3):
+        raise ValueError(f"input_noise_std must be a number, ({n},) or ({n}, 3), got {arr.shape}")
+    return arr

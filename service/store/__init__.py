@@ -1,0 +1,46 @@
+"""Map storage: one interface, an embedded SQLite default and PostgreSQL for replicas."""
+
+from __future__ import annotations
+
+from service.store.base import (
+    MapStore,
+    RegionExists,
+    RegionInfo,
+    RegionNotFound,
+    Snapshot,
+    StoreError,
+    TileInfo,
+    UploadConflict,
+    payload_digest,
+)
+
+
+def open_store(url: str) -> MapStore:
+    """``sqlite:///path/to/dir-or-file`` or ``postgresql://user@host:port/db[?schema=name]``."""
+    if url.startswith("sqlite:///"):
+        from service.store.sqlite import SqliteStore
+
+        return SqliteStore(url.removeprefix("sqlite:///") or ".")
+    if url.startswith(("postgresql://", "postgres://")):
+        from service.store.postgres import PostgresStore
+
+        base, _, query = url.partition("?")
+        options = dict(part.split("=", 1) for part in query.split("&") if "=" in part)
+        schema = options.pop("schema", "bdf")
+        rest = "&".join(f"{k}={v}" for k, v in options.items())
+        return PostgresStore(base + (f"?{rest}" if rest else ""), schema=schema)
+    raise ValueError(f"a store URL starts with sqlite:/// or postgresql://, got {url!r}")
+
+
+__all__ = [
+    "MapStore",
+    "RegionExists",
+    "RegionInfo",
+    "RegionNotFound",
+    "Snapshot",
+    "StoreError",
+    "TileInfo",
+    "UploadConflict",
+    "open_store",
+    "payload_digest",
+]

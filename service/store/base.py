@@ -1,0 +1,371 @@
+"""The MapStore interface, shared by the SQLite and PostgreSQL backends.
+
+What is stored (schema version 1; both backends, same tables):
+
+    meta     key, value                          schema_version
+    regions  name, region_id, spec (JSON), version, observations, created_at, updated_at
+    tiles    region_id, key "i_j_k", version, count, points, stats (blob), format_version, updated_at
+    uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
+
+``tiles.stats`` is :meth:`bdf.stats.Evidence.to_bytes` (little-endian float64, layout in
+:mod:`bdf.stats`, ``format_version`` there). A tile row exists only once data reached the
+tile. Versions: every applied upload or fit bumps the region's version by one and stamps
+every tile it touched with the new version, so ``(region_id, key, version)`` names one
+state of a tile's statistics (``region_id`` is new for every created region, so a
+deleted and re-created name never reuses cache entries).
+
+Exactly once: ``apply`` adds the increments of all tiles, bumps the version and writes
+the ledger row in one transaction, under the region's row lock. A replay of an upload id
+with the same digest returns the first result; another digest raises :class:`UploadConflict`.
+Readers read in one snapshot (``snapshot``), so they never see half an upload.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+import uuid
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterable, Mapping
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bdf.stats import FORMAT_VERSION, Evidence
+from bdf.tiles import Increment, RegionSpec, TileKey, key_str, parse_key
+
+SCHEMA_VERSION = 1
+#: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
+WRITE_CHUNK = 16
+#: Upload ids are client idempotency keys: printable, bounded.
+MAX_UPLOAD_ID = 200
+
+
+class StoreError(Exception):
+    """Base of the store's errors."""
+
+
+class RegionNotFound(StoreError, LookupError):
+    pass
+
+
+class RegionExists(StoreError):
+    pass
+
+
+class UploadConflict(StoreError):
+    """An upload id already used for a different payload."""
+
+
+@dataclass(frozen=True)
+class RegionInfo:
+    spec: RegionSpec
+    region_id: str
+    version: int
+    observations: int
+    tiles: int
+    created_at: float
+    updated_at: float
+
+
+@dataclass(frozen=True)
+class TileInfo:
+    key: TileKey
+    version: int
+    count: float  # sum of sample weights
+    points: int  # observations that reached the tile
+    nbytes: int  # size of the stored statistics
+    updated_at: float
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """One consistent read of a region: its tiles, and the statistics asked for."""
+
+    region: RegionInfo
+    tiles: dict[TileKey, TileInfo]
+    evidence: dict[TileKey, Evidence] = field(default_factory=dict)
+
+
+def payload_digest(kind: str, *arrays: np.ndarray | None) -> str:
+    """sha256 of an upload's content (dtype, shape and bytes of each array, None marked)."""
+    h = hashlib.sha256(kind.encode())
+    for arr in arrays:
+        if arr is None:
+            h.update(b"\x00none")
+            continue
+        arr = np.ascontiguousarray(arr)
+        h.update(f"\x00{arr.dtype.str}{arr.shape}".encode())
+        h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def check_upload_id(upload_id: str) -> str:
+    if (
+        not isinstance(upload_id, str)
+        or not 0 < len(upload_id) <= MAX_UPLOAD_ID
+        or not upload_id.isprintable()
+    ):
+        raise ValueError(f"an upload id must be 1 to {MAX_UPLOAD_ID} printable characters, got {upload_id!r}")
+    return upload_id
+
+
+class MapStore(ABC):
+    """Regions, their tiles' statistics, and the upload ledger. Thread-safe; every method
+    is one transaction."""
+
+    #: a test hook called inside ``apply`` after each batch of tile rows (fault injection)
+    after_tile_write: Callable[[TileKey], None] | None = None
+
+    # -- backend primitives ------------------------------------------------------------------
+    @abstractmethod
+    def _write(self) -> AbstractContextManager:
+        """A write transaction; yields ``q(sql, params) -> rows`` (``?`` placeholders), with
+        ``q.many(sql, rows)`` for a batch of one statement."""
+
+    @abstractmethod
+    def _read(self) -> AbstractContextManager:
+        """A read-only transaction on one snapshot; yields ``q`` as :meth:`_write`."""
+
+    @abstractmethod
+    def _lock_region(self) -> str:
+        """SQL suffix that locks the selected region row for the transaction ('' if the
+        transaction already holds the database write lock)."""
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    def _schema(self, blob_type: str) -> list[str]:
+        return [
+            "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
+            """CREATE TABLE IF NOT EXISTS regions (
+                name TEXT PRIMARY KEY, region_id TEXT NOT NULL UNIQUE, spec TEXT NOT NULL,
+                version BIGINT NOT NULL, observations BIGINT NOT NULL,
+                created_at DOUBLE PRECISION NOT NULL, updated_at DOUBLE PRECISION NOT NULL)""",
+            f"""CREATE TABLE IF NOT EXISTS tiles (
+                region_id TEXT NOT NULL REFERENCES regions (region_id) ON DELETE CASCADE,
+                key TEXT NOT NULL, version BIGINT NOT NULL, count DOUBLE PRECISION NOT NULL,
+                points BIGINT NOT NULL, stats {blob_type} NOT NULL, format_version INTEGER NOT NULL,
+                updated_at DOUBLE PRECISION NOT NULL, PRIMARY KEY (region_id, key))""",
+            """CREATE TABLE IF NOT EXISTS uploads (
+                region_id TEXT NOT NULL REFERENCES regions (region_id) ON DELETE CASCADE,
+                upload_id TEXT NOT NULL, kind TEXT NOT NULL, digest TEXT NOT NULL,
+                result TEXT NOT NULL, applied_at DOUBLE PRECISION NOT NULL,
+                PRIMARY KEY (region_id, upload_id))""",
+        ]
+
+    def _init_schema(self, q) -> None:
+        rows = q("SELECT value FROM meta WHERE key = 'schema_version'")
+        if not rows:
+            q("INSERT INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+        elif int(rows[0][0]) != SCHEMA_VERSION:
+            raise StoreError(f"store schema version {rows[0][0]}, this code reads {SCHEMA_VERSION}")
+
+    # -- regions -------------------------------------------------------------------------------
+    def create_region(self, spec: RegionSpec) -> RegionInfo:
+        now = time.time()
+        with self._write() as q:
+            if q("SELECT 1 FROM regions WHERE name = ?", (spec.name,)):
+                raise RegionExists(f"region {spec.name!r} exists")
+            q(
+                "INSERT INTO regions (name, region_id, spec, version, observations, created_at, updated_at)"
+                " VALUES (?, ?, ?, 0, 0, ?, ?)",
+                (spec.name, uuid.uuid4().hex, spec.model_dump_json(), now, now),
+            )
+        return self.region(spec.name)
+
+    def region(self, name: str) -> RegionInfo:
+        with self._read() as q:
+            return self._region(q, name)
+
+    def list_regions(self) -> list[RegionInfo]:
+        with self._read() as q:
+            names = [r[0] for r in q("SELECT name FROM regions ORDER BY name")]
+            return [self._region(q, n) for n in names]
+
+    def delete_region(self, name: str) -> None:
+        with self._write() as q:
+            rows = q(f"SELECT region_id FROM regions WHERE name = ?{self._lock_region()}", (name,))
+            if not rows:
+                raise RegionNotFound(f"no region {name!r}")
+            q("DELETE FROM tiles WHERE region_id = ?", (rows[0][0],))
+            q("DELETE FROM uploads WHERE region_id = ?", (rows[0][0],))
+            q("DELETE FROM regions WHERE name = ?", (name,))
+
+    def _region(self, q, name: str) -> RegionInfo:
+        rows = q(
+            "SELECT r.spec, r.region_id, r.version, r.observations, r.created_at, r.updated_at,"
+            " (SELECT COUNT(*) FROM tiles t WHERE t.region_id = r.region_id)"
+            " FROM regions r WHERE r.name = ?",
+            (name,),
+        )
+        if not rows:
+            raise RegionNotFound(f"no region {name!r}")
+        spec, region_id, version, observations, created, updated, tiles = rows[0]
+        return RegionInfo(
+            RegionSpec.model_validate_json(spec),
+            region_id,
+            int(version),
+            int(observations),
+            int(tiles),
+            float(created),
+            float(updated),
+        )
+
+    # -- tiles -----------------------------------------------------------------------------------
+    def tiles(self, name: str) -> list[TileInfo]:
+        return list(self.snapshot(name, keys=()).tiles.values())
+
+    def snapshot(
+        self,
+        name: str,
+        keys: Iterable[TileKey] | None = None,
+        need: Callable[[str, TileKey, int], bool] | None = None,
+    ) -> Snapshot:
+        """The region, all its tile rows, and the statistics of ``keys`` (all if None) for
+        which ``need(region_id, key, version)`` is true (a cache says what it holds)."""
+        with self._read() as q:
+            region = self._region(q, name)
+            tiles = {}
+            for key, version, count, points, nbytes, updated in q(
+                "SELECT key, version, count, points, length(stats), updated_at"
+                " FROM tiles WHERE region_id = ?",
+                (region.region_id,),
+            ):
+                k = parse_key(key)
+                tiles[k] = TileInfo(k, int(version), float(count), int(points), int(nbytes), float(updated))
+            wanted = tiles if keys is None else [k for k in keys if k in tiles]
+            wanted = [k for k in wanted if need is None or need(region.region_id, k, tiles[k].version)]
+            evidence = {}
+            if wanted:
+                marks = ",".join("?" * len(wanted))
+                for key, blob, fmt in q(
+                    f"SELECT key, stats, format_version FROM tiles WHERE region_id = ? AND key IN ({marks})",
+                    (region.region_id, *[key_str(k) for k in wanted]),
+                ):
+                    k = parse_key(key)
+                    evidence[k] = _decode(region.spec, k, blob, fmt)
+        return Snapshot(region, dict(sorted(tiles.items())), evidence)
+
+    # -- uploads ---------------------------------------------------------------------------------
+    def upload_result(self, name: str, upload_id: str, digest: str) -> dict | None:
+        """The stored result of an applied upload id, None if unused; a different digest
+        raises :class:`UploadConflict`."""
+        with self._read() as q:
+            region = self._region(q, name)
+            return self._ledger(q, region.region_id, upload_id, digest)
+
+    def _ledger(self, q, region_id: str, upload_id: str, digest: str) -> dict | None:
+        rows = q(
+            "SELECT digest, result FROM uploads WHERE region_id = ? AND upload_id = ?",
+            (region_id, upload_id),
+        )
+        if not rows:
+            return None
+        if rows[0][0] != digest:
+            raise UploadConflict(f"upload id {upload_id!r} was already used for different data")
+        return {**json.loads(rows[0][1]), "replayed": True}
+
+    def apply(
+        self,
+        name: str,
+        upload_id: str,
+        digest: str,
+        increments: Mapping[TileKey, Increment],
+        *,
+        observations: int,
+        replace: bool = False,
+        summary: Mapping | None = None,
+    ) -> dict:
+        """Add ``increments`` to their tiles (``replace``: drop every tile first, a fit),
+        bump the version and record ``upload_id`` in the ledger, all in one transaction.
+
+        Returns the result recorded in the ledger (``summary`` plus upload_id,
+        region_version, tiles_updated, replayed); a replay returns the first one.
+        """
+        check_upload_id(upload_id)
+        now = time.time()
+        with self._write() as q:
+            rows = q(
+                f"SELECT region_id, version, spec FROM regions WHERE name = ?{self._lock_region()}", (name,)
+            )
+            if not rows:
+                raise RegionNotFound(f"no region {name!r}")
+            region_id, version, spec = (
+                rows[0][0],
+                int(rows[0][1]) + 1,
+                RegionSpec.model_validate_json(rows[0][2]),
+            )
+            first = self._ledger(q, region_id, upload_id, digest)
+            if first is not None:
+                return first
+            if replace:
+                q("DELETE FROM tiles WHERE region_id = ?", (region_id,))
+            keys = sorted(increments)
+            old = {}
+            if keys and not replace:
+                marks = ",".join("?" * len(keys))
+                for k, blob, fmt, points in q(
+                    "SELECT key, stats, format_version, points FROM tiles"
+                    f" WHERE region_id = ? AND key IN ({marks})",
+                    (region_id, *map(key_str, keys)),
+                ):
+                    key = parse_key(k)
+                    old[key] = (_decode(spec, key, blob, fmt), int(points))
+            for start in range(0, len(keys), WRITE_CHUNK):
+                rows = []
+                for key in keys[start : start + WRITE_CHUNK]:
+                    total, points = increments[key]
+                    if key in old:
+                        total, points = old[key][0] + total, old[key][1] + points
+                    rows.append(
+                        (
+                            region_id,
+                            key_str(key),
+                            version,
+                            total.count,
+                            points,
+                            total.to_bytes(),
+                            FORMAT_VERSION,
+                            now,
+                        )
+                    )
+                q.many(
+                    "INSERT INTO tiles"
+                    " (region_id, key, version, count, points, stats, format_version, updated_at)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (region_id, key) DO UPDATE SET"
+                    " version = excluded.version, count = excluded.count, points = excluded.points,"
+                    " stats = excluded.stats, format_version = excluded.format_version,"
+                    " updated_at = excluded.updated_at",
+                    rows,
+                )
+                if self.after_tile_write is not None:
+                    self.after_tile_write(keys[start + len(rows) - 1])
+            result = {
+                **(summary or {}),
+                "upload_id": upload_id,
+                "kind": "fit" if replace else "observations",
+                "region_version": version,
+                "tiles_updated": len(increments),
+            }
+            q(
+                "UPDATE regions SET version = ?, updated_at = ?,"
+                f" observations = {'' if replace else 'observations + '}? WHERE region_id = ?",
+                (version, now, int(observations), region_id),
+            )
+            q(
+                "INSERT INTO uploads (region_id, upload_id, kind, digest, result, applied_at)"
+                " VALUES (?, ?, ?, ?, ?, ?)",
+                (region_id, upload_id, result["kind"], digest, json.dumps(result), now),
+            )
+        return {**result, "replayed": False}
+
+
+def _decode(spec: RegionSpec, key: TileKey, blob, format_version) -> Evidence:
+    if int(format_version) != FORMAT_VERSION:
+        raise StoreError(
+            f"tile {key_str(key)} has statistics format {format_version}, this code reads {FORMAT_VERSION}"
+        )
+    return Evidence.from_bytes(bytes(blob), spec.tile_grid(key))

@@ -1,0 +1,73 @@
+"""PostgreSQL backend (psycopg 3): one map shared by several service replicas.
+
+Writes lock the region's row (``SELECT ... FOR UPDATE``), so uploads to one region apply
+one after another in every replica and a replayed upload id waits for, then sees, the
+first. Reads run in a ``REPEATABLE READ READ ONLY`` transaction: one snapshot.
+Tables live in the schema named by ``schema`` (default ``bdf``), created on first use.
+"""
+
+from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
+
+import psycopg
+
+from service.store.base import MapStore
+
+
+class PostgresStore(MapStore):
+    def __init__(self, url: str, *, schema: str = "bdf"):
+        if not schema.isidentifier():
+            raise ValueError(f"schema must be an identifier, got {schema!r}")
+        self.url, self.schema = url, schema
+        self._local = threading.local()
+        self._connections: list[psycopg.Connection] = []
+        self._lock = threading.Lock()
+        with self._write() as q:
+            q("SELECT pg_advisory_xact_lock(hashtext('bdf-maps schema'))")  # concurrent first opens
+            q(f"CREATE SCHEMA IF NOT EXISTS {schema}")
+            for statement in self._schema("BYTEA"):
+                q(statement)
+            # statistics are dense floats: pglz gains little and costs most of an upload's time
+            q("ALTER TABLE tiles ALTER COLUMN stats SET STORAGE EXTERNAL")
+            self._init_schema(q)
+
+    def _connection(self) -> psycopg.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None or conn.closed:
+            conn = psycopg.connect(self.url, options=f"-c search_path={self.schema}")
+            self._local.conn = conn
+            with self._lock:
+                self._connections.append(conn)
+        return conn
+
+    @contextmanager
+    def _transaction(self, first: str | None):
+        conn = self._connection()
+        with conn.transaction(), conn.cursor(binary=True) as cur:
+            if first:
+                cur.execute(first)
+
+            def q(sql, params=()):
+                cur.execute(sql.replace("?", "%s"), params)
+                return cur.fetchall() if cur.description else []
+
+            q.many = lambda sql, rows: cur.executemany(sql.replace("?", "%s"), rows)
+            yield q
+
+    def _write(self):
+        return self._transaction(None)
+
+    def _read(self):
+        return self._transaction("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ READ ONLY")
+
+    def _lock_region(self) -> str:
+        return " FOR UPDATE"
+
+    def close(self) -> None:
+        with self._lock:
+            for conn in self._connections:
+                conn.close()
+            self._connections.clear()
+        self._local = threading.local()

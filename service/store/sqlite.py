@@ -1,0 +1,82 @@
+"""SQLite backend: the embedded default, one database file, no server.
+
+WAL journal (readers never block the writer and read one snapshot), ``synchronous=FULL``
+(a committed upload survives a power cut, not only a killed process), and
+``BEGIN IMMEDIATE`` for writes, so concurrent writers queue on the database lock (up to
+``busy_timeout_s``) instead of failing on a lock upgrade.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+from service.store.base import MapStore
+
+FILE_NAME = "maps.sqlite3"
+
+
+class SqliteStore(MapStore):
+    def __init__(self, path, *, busy_timeout_s: float = 60.0):
+        """``path``: the database file, or a data directory to hold ``maps.sqlite3``."""
+        path = Path(path)
+        if path.is_dir() or path.suffix == "":
+            path.mkdir(parents=True, exist_ok=True)
+            path = path / FILE_NAME
+        self.path = path
+        self._timeout = busy_timeout_s
+        self._local = threading.local()
+        self._connections: list[sqlite3.Connection] = []
+        self._lock = threading.Lock()
+        with self._write() as q:
+            for statement in self._schema("BLOB"):
+                q(statement)
+            self._init_schema(q)
+
+    def _connection(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = sqlite3.connect(
+                self.path, timeout=self._timeout, isolation_level=None, check_same_thread=False
+            )
+            conn.execute("PRAGMA journal_mode=WAL")
+            conn.execute("PRAGMA synchronous=FULL")
+            conn.execute("PRAGMA foreign_keys=ON")
+            self._local.conn = conn
+            with self._lock:
+                self._connections.append(conn)
+        return conn
+
+    @contextmanager
+    def _transaction(self, begin: str):
+        conn = self._connection()
+        conn.execute(begin)
+
+        def q(sql, params=()):
+            return conn.execute(sql, params).fetchall()
+
+        q.many = conn.executemany
+        try:
+            yield q
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        conn.execute("COMMIT")
+
+    def _write(self):
+        return self._transaction("BEGIN IMMEDIATE")
+
+    def _read(self):
+        return self._transaction("BEGIN")
+
+    def _lock_region(self) -> str:
+        return ""  # BEGIN IMMEDIATE already holds the database's write lock
+
+    def close(self) -> None:
+        with self._lock:
+            for conn in self._connections:
+                conn.close()
+            self._connections.clear()
+        self._local = threading.local()

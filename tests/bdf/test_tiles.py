@@ -1,0 +1,188 @@
+import itertools
+
+import numpy as np
+import pytest
+
+from bdf import BayesianDynamicField, Evidence
+from bdf.tiles import RegionSpec, key_str, parse_key
+
+PARIS = {
+    "name": "paris",
+    "origin": {"lat": 48.84, "lon": 2.51, "alt_m": 0.0},
+    "bounds_m": {"min": [-40000, -40000, 0], "max": [40000, 40000, 6000]},
+    "tile_size_m": [10000, 10000, 6000],
+    "overlap_m": [1000, 1000, 0],
+    "spacing_m": [1000, 1000, 300],
+    "gamma": [5e-7, 5e-7, 5e-6],
+    "alpha": "auto",
+    "beta": "auto",
+}
+
+# a small region: 3 x 2 x 1 tiles of 100 m, 20 m overlap, hinges every 20 m
+SMALL = {
+    "name": "small",
+    "origin": {"lat": 48.0, "lon": 2.0},
+    "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
+    "tile_size_m": [100, 100, 60],
+    "overlap_m": [20, 20, 0],
+    "spacing_m": [20, 20, 20],
+    "gamma": [1 / 800, 1 / 800, 1 / 800],
+}
+
+
+def small_flow(X):
+    """Steepest at x = 50, 238 and y = 50, 129: inside tiles, so that a border cannot hide
+    a jump behind the field's own slope."""
+    return np.stack(
+        [10 * np.sin((X[:, 0] - 50) / 60), 5 * np.sin((X[:, 1] - 50) / 50), 0.02 * X[:, 2]], axis=1
+    )
+
+
+@pytest.fixture
+def small():
+    spec = RegionSpec.model_validate(SMALL)
+    rng = np.random.default_rng(3)
+    X = rng.uniform(spec.lower, spec.upper, (3000, 3))
+    V = small_flow(X) + 0.3 * rng.standard_normal(X.shape)
+    return spec, X, V
+
+
+def posteriors(spec, increments):
+    return {k: spec.posterior(k, inc.evidence) for k, inc in increments.items()}
+
+
+def test_spec_json_is_the_service_body():
+    spec = RegionSpec.model_validate(PARIS)
+    assert spec.model_dump(mode="json") == {
+        **PARIS,
+        "bounds_m": {"min": [-40000.0, -40000.0, 0.0], "max": [40000.0, 40000.0, 6000.0]},
+        "tile_size_m": [10000.0, 10000.0, 6000.0],
+        "overlap_m": [1000.0, 1000.0, 0.0],
+        "spacing_m": [1000.0, 1000.0, 300.0],
+    }
+    assert spec.tile_counts == (8, 8, 1)
+    grid = spec.tile_grid((3, 3, 0))
+    # grown box [-11000, 1000] per horizontal axis on the region's 1 km lattice, 0..6000 by 300
+    assert grid.shape == (13, 13, 21)
+    np.testing.assert_allclose(grid.origin, [-11000, -11000, 0])
+    assert parse_key(key_str((3, 1, 0))) == (3, 1, 0)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"name": "Paris!"}, "pattern"),
+        ({"bounds_m": {"min": [0, 0, 0], "max": [10, -1, 10]}}, "must exceed"),
+        ({"overlap_m": [6000, 0, 0]}, "at most half"),
+        ({"spacing_m": [10, 10, 10]}, "hinges"),
+        ({"gamma": [1, -1, 1]}, "greater than 0"),
+        ({"alpha": "aut"}, "alpha"),
+        ({"tile_size_m": [100, 100, 100], "overlap_m": [0, 0, 0]}, "tiles"),
+        ({"origin": {"lat": 91, "lon": 0}}, "lat"),
+        ({"extra": 1}, "extra"),
+    ],
+)
+def test_spec_rejects_bad_values(change, message):
+    with pytest.raises(ValueError, match=message):
+        RegionSpec.model_validate({**PARIS, **change})
+
+
+def test_points_reach_every_tile_whose_grown_box_holds_them(small):
+    spec, X, _ = small
+    groups = spec.tiles_containing(X)
+    for key in itertools.product(*(range(n) for n in spec.tile_counts)):
+        lo, hi = spec.core(key)
+        lo, hi = lo - spec.overlap_m, hi + np.array(spec.overlap_m)
+        expected = np.flatnonzero(np.all((X >= lo) & (X <= hi), axis=1))
+        np.testing.assert_array_equal(np.sort(groups.get(key, [])), expected)
+    with pytest.raises(ValueError, match="outside region 'small' bounds: rows \\[1\\]"):
+        spec.tiles_containing([[1, 1, 1], [301, 1, 1]])
+
+
+def test_one_tile_region_is_exactly_one_field(small):
+    _, X, V = small
+    one = RegionSpec.model_validate({**SMALL, "tile_size_m": [300, 200, 60]})
+    assert one.tile_counts == (1, 1, 1)
+    incs = one.increments(X, V)
+    mean, std, known = one.predict(X[:50], posteriors(one, incs))
+    field = one.tile_field((0, 0, 0)).fit(X, V)
+    ref_mean, ref_std = field.predict(X[:50], return_std=True)
+    np.testing.assert_allclose(mean, ref_mean, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(std, ref_std, rtol=1e-10)
+    assert known.all()
+
+
+def test_increments_are_additive(small):
+    spec, X, V = small
+    whole = spec.increments(X, V)
+    a, b = spec.increments(X[:1000], V[:1000]), spec.increments(X[1000:], V[1000:])
+    assert set(whole) == set(a) | set(b)
+    for key, inc in whole.items():
+        total = a[key].evidence + b[key].evidence
+        np.testing.assert_allclose(total.density, inc.evidence.density, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(total.proj, inc.evidence.proj, rtol=1e-12, atol=1e-12)
+        assert a[key].points + b[key].points == inc.points
+
+
+def test_weights_are_a_partition_of_unity(small):
+    spec, X, _ = small
+    total = np.zeros(len(X))
+    for key, idx in spec.tiles_containing(X).items():
+        total[idx] += spec.tile_weights(key, X[idx])
+    np.testing.assert_allclose(total, 1.0, atol=1e-12)
+
+
+def test_blended_mean_is_continuous_across_borders(small):
+    spec, X, V = small
+    post = posteriors(spec, spec.increments(X, V))
+    rng = np.random.default_rng(0)
+    inside, border = [], []
+    for _ in range(6):  # lines along x through the borders at x = 100 and 200, and along y (y = 100)
+        y, z = rng.uniform(10, 190), rng.uniform(5, 55)
+        t = np.arange(0.0, 300.0 + 1e-9, 1.0)
+        line = np.stack([t, np.full_like(t, y), np.full_like(t, z)], axis=1)
+        jumps = np.abs(np.diff(spec.predict(line, post)[0], axis=0)).max(axis=1)
+        near = np.minimum(np.abs(t[:-1] + 0.5 - 100), np.abs(t[:-1] + 0.5 - 200)) < 20
+        border.append(jumps[near].max())
+        inside.append(jumps[~near].max())
+        x = rng.uniform(10, 290)
+        t = np.arange(0.0, 200.0 + 1e-9, 1.0)
+        line = np.stack([np.full_like(t, x), t, np.full_like(t, z)], axis=1)
+        jumps = np.abs(np.diff(spec.predict(line, post)[0], axis=0)).max(axis=1)
+        near = np.abs(t[:-1] + 0.5 - 100) < 20
+        border.append(jumps[near].max())
+        inside.append(jumps[~near].max())
+    assert max(border) <= max(inside)
+    assert max(inside) < 0.5  # 1 m steps of a field varying on 50-60 m scales
+
+
+def test_variance_is_the_mixture_variance(small):
+    spec, X, V = small
+    post = posteriors(spec, spec.increments(X, V))
+    x = np.array([[105.0, 50.0, 30.0]])  # overlap of tiles (0,0,0) and (1,0,0)
+    mean, std, _ = spec.predict(x, post)
+    w = np.array([spec.tile_weights(k, x)[0] for k in [(0, 0, 0), (1, 0, 0)]])
+    assert 0 < w[0] < 1 and w.sum() == pytest.approx(1.0)
+    parts = [post[k].predict(x, return_std=True) for k in [(0, 0, 0), (1, 0, 0)]]
+    mu = sum(wi * m for wi, (m, _) in zip(w, parts, strict=True))
+    second = sum(wi * (s**2 + m**2) for wi, (m, s) in zip(w, parts, strict=True))
+    np.testing.assert_allclose(mean, mu, rtol=1e-12)
+    np.testing.assert_allclose(std, np.sqrt(second - mu**2), rtol=1e-9)
+
+
+def test_tiles_without_data_answer_with_the_prior(small):
+    spec, X, V = small
+    left = X[:, 0] < 50  # data only in the first tile column, away from its border
+    post = posteriors(spec, spec.increments(X[left], V[left]))
+    q = np.array([[20.0, 50.0, 30.0], [250.0, 150.0, 30.0]])
+    mean, std, known = spec.predict(q, post)
+    assert known.tolist() == [True, False]
+    np.testing.assert_array_equal(mean[1], 0.0)
+    key = (2, 1, 0)
+    empty = spec.tile_field(key).set_evidence(Evidence.zeros(spec.tile_grid(key)))
+    np.testing.assert_allclose(std[1], empty.predict(q[1:], return_std=True)[1][0], rtol=1e-10)
+    # and the tiled answer where data are agrees with a plain field over the same data
+    ref = BayesianDynamicField(**{k: v for k, v in spec.tile_field((0, 0, 0)).get_params().items()})
+    mine = left & (X[:, 1] <= 120)  # what reached tile (0, 0, 0): its core plus 20 m overlap
+    ref.fit(X[mine], V[mine])
+    np.testing.assert_allclose(mean[0], ref.predict(q[:1])[0], rtol=1e-10)
