@@ -28,6 +28,7 @@ demo: install
 
 bench: install
 	$(PY) bench/bench_core.py
+	$(PY) bench/bench_tiles.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -1,0 +1,322 @@
+"""The same suite on SQLite and PostgreSQL: exactly-once uploads, concurrency, crash safety."""
+
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from bdf.tiles import RegionSpec
+from service.maps import PosteriorCache, RegionMaps
+from service.store import RegionExists, RegionNotFound, UploadConflict, open_store, payload_digest
+
+SPEC = {
+    "name": "town",
+    "origin": {"lat": 48.0, "lon": 2.0},
+    "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
+    "tile_size_m": [100, 100, 60],
+    "overlap_m": [20, 20, 0],
+    "spacing_m": [25, 25, 20],
+    "gamma": [1 / 1250, 1 / 1250, 1 / 800],
+}
+
+
+def data(seed, n=200, band=False):
+    """Synthetic observations; ``band``: every point in exactly two tiles (x overlap of
+    columns 0 and 1, away from the y border)."""
+    rng = np.random.default_rng(seed)
+    if band:
+        X = np.stack(
+            [rng.uniform(81, 119, n), rng.choice([10.0, 50.0, 150.0, 190.0], n), rng.uniform(0, 60, n)],
+            axis=1,
+        )
+    else:
+        X = rng.uniform([0, 0, 0], [300, 200, 60], (n, 3))
+    V = np.stack([np.sin(X[:, 0] / 40), np.cos(X[:, 1] / 30), 0.01 * X[:, 2]], axis=1)
+    return X, V + 0.1 * rng.standard_normal(X.shape)
+
+
+def assert_evidence_equal(got, expected, rtol=1e-9):
+    assert set(got) == set(expected)
+    for key in expected:
+        a, b = got[key], expected[key]
+        scale = max(np.abs(b.density).max(), 1e-300)
+        np.testing.assert_allclose(a.density, b.density, rtol=rtol, atol=rtol * scale)
+        np.testing.assert_allclose(a.proj, b.proj, rtol=rtol, atol=rtol * np.abs(b.proj).max())
+        np.testing.assert_allclose([a.count, *a.v_sum, *a.v_sq], [b.count, *b.v_sum, *b.v_sq], rtol=rtol)
+
+
+@pytest.fixture
+def spec(store):
+    spec = RegionSpec.model_validate(SPEC)
+    store.create_region(spec)
+    return spec
+
+
+def test_regions_are_created_listed_and_deleted_with_their_tiles(store, spec):
+    with pytest.raises(RegionExists):
+        store.create_region(spec)
+    info = store.region("town")
+    assert (info.spec, info.version, info.tiles, info.observations) == (spec, 0, 0, 0)
+    X, V = data(0)
+    RegionMaps(store).upload("town", "u1", X, V)
+    assert store.region("town").tiles == 6
+    store.create_region(spec.model_copy(update={"name": "village"}))
+    assert [r.spec.name for r in store.list_regions()] == ["town", "village"]
+    store.delete_region("town")
+    with pytest.raises(RegionNotFound):
+        store.region("town")
+    with pytest.raises(RegionNotFound):
+        store.delete_region("town")
+    again = store.create_region(spec)  # a new region under an old name starts empty
+    assert (again.version, again.tiles, again.observations) == (0, 0, 0)
+    assert again.region_id != info.region_id
+    assert store.upload_result("town", "u1", "x") is None  # the old ledger went with the region
+
+
+def test_upload_adds_exactly_the_increments_and_stores_them_losslessly(store, spec):
+    maps = RegionMaps(store)
+    X, V = data(1, n=300)
+    w = np.random.default_rng(0).uniform(0.5, 2, len(X))
+    result = maps.upload("town", "a", X[:100], V[:100], sample_weight=w[:100])
+    assert result == {
+        "accepted": 100,
+        "rejected": {"non_finite": 0, "outside_region": 0},
+        "upload_id": "a",
+        "kind": "observations",
+        "region_version": 1,
+        "tiles_updated": len(spec.increments(X[:100], V[:100])),
+        "replayed": False,
+    }
+    maps.upload("town", "b", X[100:], V[100:], sample_weight=w[100:])
+    snap = store.snapshot("town")
+    expected = spec.increments(X, V, sample_weight=w)
+    assert_evidence_equal(snap.evidence, {k: inc.evidence for k, inc in expected.items()})
+    assert {k: t.points for k, t in snap.tiles.items()} == {k: inc.points for k, inc in expected.items()}
+    assert snap.region.version == 2 and snap.region.observations == 300
+    assert all(t.version in (1, 2) for t in snap.tiles.values())
+    blob = next(iter(expected.values())).evidence.to_bytes()
+    assert next(iter(snap.tiles.values())).nbytes == len(blob)
+
+
+def test_only_tiles_with_data_are_stored(store, spec):
+    X, V = data(2)
+    left = X[:, 0] < 50
+    RegionMaps(store).upload("town", "u", X[left], V[left])
+    assert sorted(store.snapshot("town").tiles) == [(0, 0, 0), (0, 1, 0)]
+
+
+def test_replay_returns_the_first_result_and_a_new_payload_is_a_conflict(store, spec):
+    maps = RegionMaps(store)
+    X, V = data(3)
+    first = maps.upload("town", "same", X, V)
+    before = store.snapshot("town")
+    assert maps.upload("town", "same", X, V) == {**first, "replayed": True}
+    # the store itself also refuses to apply twice, even if asked directly
+    increments = spec.increments(X, V)
+    digest = payload_digest("observations", X, V, None, None)
+    assert store.apply("town", "same", digest, increments, observations=len(X))["replayed"] is True
+    with pytest.raises(UploadConflict):
+        maps.upload("town", "same", X + 1.0, V)
+    with pytest.raises(UploadConflict):
+        maps.upload("town", "same", X, V, replace=True)
+    after = store.snapshot("town")
+    assert after.region.version == before.region.version == 1
+    assert_evidence_equal(after.evidence, before.evidence, rtol=0)
+
+
+def test_bad_rows_are_counted_and_never_stored(store, spec):
+    maps = RegionMaps(store)
+    X, V = data(4, n=50)
+    X[3, 1], V[7, 2], X[9] = np.nan, np.inf, [500.0, 10.0, 10.0]
+    result = maps.upload("town", "bad", X, V)
+    assert result["accepted"] == 47
+    assert result["rejected"] == {"non_finite": 2, "outside_region": 1}
+    keep = np.ones(50, bool)
+    keep[[3, 7, 9]] = False
+    expected = spec.increments(X[keep], V[keep])
+    assert_evidence_equal(store.snapshot("town").evidence, {k: i.evidence for k, i in expected.items()})
+    with pytest.raises(ValueError, match="both be"):
+        maps.upload("town", "shape", X[:, :2], V)
+    with pytest.raises(ValueError, match="upload id"):
+        maps.upload("town", "", X[keep], V[keep])
+    with pytest.raises(RegionNotFound):
+        maps.upload("nowhere", "x", X[keep], V[keep])
+    assert store.region("town").version == 1
+
+
+def test_fit_replaces_the_map(store, spec):
+    maps = RegionMaps(store)
+    X1, V1 = data(5)
+    X2, V2 = data(6, n=80)
+    maps.upload("town", "old", X1, V1)
+    result = maps.upload("town", "fit", X2, V2, replace=True)
+    assert result["kind"] == "fit" and result["region_version"] == 2
+    expected = spec.increments(X2, V2)
+    snap = store.snapshot("town")
+    assert_evidence_equal(snap.evidence, {k: i.evidence for k, i in expected.items()})
+    assert snap.region.observations == 80
+
+
+def test_queries_blend_cached_posteriors_and_follow_updates(store, spec):
+    maps = RegionMaps(store, cache_mb=64)
+    Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (400, 3))
+    empty = maps.predict("town", Q)
+    assert not empty.known.any() and np.all(empty.mean == 0) and empty.version == 0
+    X, V = data(7, n=400)
+    maps.upload("town", "a", X, V)
+    got = maps.predict("town", Q)
+    ref_mean, ref_std, _ = spec.predict(
+        Q, {k: spec.posterior(k, i.evidence) for k, i in spec.increments(X, V).items()}
+    )
+    np.testing.assert_allclose(got.mean, ref_mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got.std, ref_std, rtol=1e-9)
+    assert got.known.all() and got.version == 1
+    misses = maps.cache.misses
+    maps.predict("town", Q)
+    assert maps.cache.misses == misses and len(maps.cache) == 6  # warm: no recomputation
+    X2, V2 = data(8, n=100)
+    maps.upload("town", "b", X2, V2)
+    newer = maps.predict("town", Q)
+    ref_mean, _, _ = spec.predict(
+        Q,
+        {
+            k: spec.posterior(k, i.evidence)
+            for k, i in spec.increments(np.vstack([X, X2]), np.vstack([V, V2])).items()
+        },
+    )
+    np.testing.assert_allclose(newer.mean, ref_mean, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="outside region"):
+        maps.predict("town", [[400.0, 0.0, 0.0]])
+
+
+def test_posterior_cache_is_bounded_by_memory():
+    spec = RegionSpec.model_validate(SPEC)
+    X, V = data(10, n=600)
+    posts = {k: spec.posterior(k, i.evidence) for k, i in spec.increments(X, V).items()}
+    size = max(p.nbytes for p in posts.values())
+    cache = PosteriorCache(max_mb=2.5 * size / 2**20)
+    for k, p in posts.items():
+        cache.put(("r", k, 1), p)
+    assert len(cache) == 2 and cache.nbytes <= 2.5 * size
+    assert cache.get(("r", (0, 0, 0), 1)) is None  # the oldest went first
+    assert cache.get(("r", (2, 1, 0), 1)) is posts[(2, 1, 0)]
+
+
+# -- many processes -------------------------------------------------------------------------
+
+
+def _writer(url, seed, n_uploads):
+    store = open_store(url)
+    maps = RegionMaps(store)
+    for i in range(n_uploads):
+        X, V = data(1000 * seed + i, n=20, band=True)
+        maps.upload("town", f"w{seed}-{i}", X, V)
+    store.close()
+
+
+def _reader(url, stop, out):
+    """Every snapshot must show whole uploads only: each point counts in exactly two tiles."""
+    store = open_store(url)
+    reads = torn = 0
+    while not stop.is_set() or reads == 0:
+        snap = store.snapshot("town", keys=())
+        tile_points = sum(t.points for t in snap.tiles.values())
+        torn += (
+            tile_points != 2 * snap.region.observations
+            or snap.region.observations != 20 * snap.region.version
+        )
+        reads += 1
+    out.put((reads, torn))
+    store.close()
+
+
+def test_concurrent_writers_equal_one_batch_and_readers_never_see_half_an_upload(store_url):
+    spec = RegionSpec.model_validate(SPEC)
+    open_store(store_url).create_region(spec)
+    ctx = multiprocessing.get_context("spawn")
+    stop, out = ctx.Event(), ctx.Queue()
+    reader = ctx.Process(target=_reader, args=(store_url, stop, out))
+    reader.start()
+    writers = [ctx.Process(target=_writer, args=(store_url, seed, 50)) for seed in range(4)]
+    for p in writers:
+        p.start()
+    for p in writers:
+        p.join(timeout=300)
+        assert p.exitcode == 0
+    stop.set()
+    reads, torn = out.get(timeout=60)
+    reader.join(timeout=60)
+    assert reads > 0 and torn == 0
+
+    batches = [data(1000 * seed + i, n=20, band=True) for seed in range(4) for i in range(50)]
+    X, V = np.vstack([b[0] for b in batches]), np.vstack([b[1] for b in batches])
+    store = open_store(store_url)
+    snap = store.snapshot("town")
+    assert snap.region.version == 200 and snap.region.observations == 4000
+    expected = spec.increments(X, V)
+    assert_evidence_equal(snap.evidence, {k: i.evidence for k, i in expected.items()}, rtol=1e-9)
+    store.close()
+
+
+CRASHER = textwrap.dedent(
+    """
+    import os, sys, time
+    import numpy as np
+    from service.maps import RegionMaps
+    from service.store import open_store
+    from tests.service.test_store import data
+
+    store = open_store(sys.argv[1])
+
+    def stall(key):
+        print("half written", flush=True)
+        time.sleep(120)
+
+    store.after_tile_write = stall
+    X, V = data(42, n=2000)
+    X *= [2, 2, 1]
+    RegionMaps(store).upload(sys.argv[2], "crash", X, V)
+    """
+)
+
+
+def test_a_writer_killed_mid_upload_leaves_all_or_nothing(store_url):
+    # 6 x 4 tiles: an upload everywhere writes more than one batch of tile rows
+    spec = RegionSpec.model_validate(
+        {**SPEC, "name": "city", "bounds_m": {"min": [0, 0, 0], "max": [600, 400, 60]}}
+    )
+    store = open_store(store_url)
+    store.create_region(spec)
+    maps = RegionMaps(store)
+    X0, V0 = data(41, n=500)
+    X0 *= [2, 2, 1]
+    maps.upload("city", "base", X0, V0)
+    before = store.snapshot("city")
+
+    X, V = data(42, n=2000)
+    X *= [2, 2, 1]
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CRASHER, store_url, "city"],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=os.getcwd(),
+        env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)},
+    )
+    assert proc.stdout.readline().strip() == "half written"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+
+    after = store.snapshot("city")
+    assert after.region.version == 1 and after.region.observations == 500
+    assert_evidence_equal(after.evidence, before.evidence, rtol=0)
+    assert store.upload_result("city", "crash", payload_digest("observations", X, V, None, None)) is None
+    # the client retries: now it applies, once
+    assert maps.upload("city", "crash", X, V)["replayed"] is False
+    expected = spec.increments(np.vstack([X0, X]), np.vstack([V0, V]))
+    assert_evidence_equal(store.snapshot("city").evidence, {k: i.evidence for k, i in expected.items()})
+    store.close()
