@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 import time
 import uuid
 from abc import ABC, abstractmethod
@@ -134,8 +135,25 @@ class MapStore(ABC):
         """SQL suffix that locks the selected region row for the transaction ('' if the
         transaction already holds the database write lock)."""
 
-    @abstractmethod
-    def close(self) -> None: ...
+    def _init_connections(self) -> None:
+        """One connection per thread (connections are not shared across threads)."""
+        self._local = threading.local()
+        self._connections: list = []
+        self._lock = threading.Lock()
+
+    def _remember(self, conn):
+        self._local.conn = conn
+        with self._lock:
+            self._connections.append(conn)
+        return conn
+
+    def close(self) -> None:
+        """Close every connection this store opened, in all threads."""
+        with self._lock:
+            for conn in self._connections:
+                conn.close()
+            self._connections.clear()
+        self._local = threading.local()
 
     def _schema(self, blob_type: str) -> list[str]:
         return [

@@ -8,7 +8,6 @@ Tables live in the schema named by ``schema`` (default ``bdf``), created on firs
 
 from __future__ import annotations
 
-import threading
 from contextlib import contextmanager
 
 import psycopg
@@ -21,9 +20,7 @@ class PostgresStore(MapStore):
         if not schema.isidentifier():
             raise ValueError(f"schema must be an identifier, got {schema!r}")
         self.url, self.schema = url, schema
-        self._local = threading.local()
-        self._connections: list[psycopg.Connection] = []
-        self._lock = threading.Lock()
+        self._init_connections()
         with self._write() as q:
             q("SELECT pg_advisory_xact_lock(hashtext('bdf-maps schema'))")  # concurrent first opens
             q(f"CREATE SCHEMA IF NOT EXISTS {schema}")
@@ -36,10 +33,7 @@ class PostgresStore(MapStore):
     def _connection(self) -> psycopg.Connection:
         conn = getattr(self._local, "conn", None)
         if conn is None or conn.closed:
-            conn = psycopg.connect(self.url, options=f"-c search_path={self.schema}")
-            self._local.conn = conn
-            with self._lock:
-                self._connections.append(conn)
+            conn = self._remember(psycopg.connect(self.url, options=f"-c search_path={self.schema}"))
         return conn
 
     @contextmanager
@@ -64,10 +58,3 @@ class PostgresStore(MapStore):
 
     def _lock_region(self) -> str:
         return " FOR UPDATE"
-
-    def close(self) -> None:
-        with self._lock:
-            for conn in self._connections:
-                conn.close()
-            self._connections.clear()
-        self._local = threading.local()

@@ -9,7 +9,6 @@ WAL journal (readers never block the writer and read one snapshot), ``synchronou
 from __future__ import annotations
 
 import sqlite3
-import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,9 +26,7 @@ class SqliteStore(MapStore):
             path = path / FILE_NAME
         self.path = path
         self._timeout = busy_timeout_s
-        self._local = threading.local()
-        self._connections: list[sqlite3.Connection] = []
-        self._lock = threading.Lock()
+        self._init_connections()
         with self._write() as q:
             for statement in self._schema("BLOB"):
                 q(statement)
@@ -44,9 +41,7 @@ class SqliteStore(MapStore):
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute("PRAGMA synchronous=FULL")
             conn.execute("PRAGMA foreign_keys=ON")
-            self._local.conn = conn
-            with self._lock:
-                self._connections.append(conn)
+            self._remember(conn)
         return conn
 
     @contextmanager
@@ -73,10 +68,3 @@ class SqliteStore(MapStore):
 
     def _lock_region(self) -> str:
         return ""  # BEGIN IMMEDIATE already holds the database's write lock
-
-    def close(self) -> None:
-        with self._lock:
-            for conn in self._connections:
-                conn.close()
-            self._connections.clear()
-        self._local = threading.local()
