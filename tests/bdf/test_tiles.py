@@ -186,3 +186,20 @@ def test_tiles_without_data_answer_with_the_prior(small):
     mine = left & (X[:, 1] <= 120)  # what reached tile (0, 0, 0): its core plus 20 m overlap
     ref.fit(X[mine], V[mine])
     np.testing.assert_allclose(mean[0], ref.predict(q[:1])[0], rtol=1e-10)
+
+
+def test_stored_blob_round_trips_with_and_without_noisy_points(small):
+    spec, X, V = small
+    grid, gamma = spec.tile_grid((0, 0, 0)), np.array(spec.gamma)
+    noise = np.zeros((50, 3))
+    noise[:10] = 4.0  # ten noisy-input points: a dense (packed) Gram part
+    for evidence in (
+        Evidence.from_points(grid, gamma, X[:50], V[:50]),
+        Evidence.from_points(grid, gamma, X[:50], V[:50], noise),
+    ):
+        back = Evidence.from_bytes(evidence.to_bytes(), grid)
+        for name, value in evidence.to_arrays().items():
+            np.testing.assert_array_equal(back.to_arrays()[name], value)
+        assert (back.gram_noisy is None) == (evidence.gram_noisy is None)
+    with pytest.raises(ValueError, match="does not fit a grid"):
+        Evidence.from_bytes(evidence.to_bytes()[:-8], grid)
