@@ -49,17 +49,24 @@ def as_observations(X, V) -> tuple[np.ndarray, np.ndarray]:
     return X, V
 
 
+def noise_std_rows(value, n: int) -> np.ndarray:
+    """Input-noise std as (n, 3) from a number, (n,) or (n, 3); values unchecked (a caller
+    may reject bad rows instead of failing)."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        return np.full((n, 3), float(arr))
+    if arr.shape == (n,):
+        return np.repeat(arr[:, None], 3, axis=1)
+    if arr.shape != (n, 3):
+        raise ValueError(f"input_noise_std must be a number, shape ({n},) or ({n}, 3), got {arr.shape}")
+    return arr
+
+
 def as_noise_std(value, n: int) -> np.ndarray | None:
     """Per-point, per-axis input-noise std as (n, 3), or None when all zero."""
     if value is None:
         return None
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.ndim == 0:
-        arr = np.full((n, 3), float(arr))
-    elif arr.shape == (n,):
-        arr = np.repeat(arr[:, None], 3, axis=1)
-    elif arr.shape != (n, 3):
-        raise ValueError(f"input_noise_std must be a number, shape ({n},) or ({n}, 3), got {arr.shape}")
+    arr = noise_std_rows(value, n)
     bad = ~np.all(np.isfinite(arr) & (arr >= 0), axis=1)
     if bad.any():
         raise ValueError(f"input_noise_std must be finite and >= 0; bad {_bad_rows(bad)}")

@@ -31,7 +31,7 @@ from bdf import features
 from bdf._validate import _bad_rows, as_noise_std, as_observations, as_points, as_sample_weight
 from bdf.field import BayesianDynamicField, Posterior
 from bdf.frames import ENUFrame
-from bdf.grid import MAX_HINGES, HingeGrid
+from bdf.grid import HingeGrid
 from bdf.stats import Evidence
 from bdf.tuning import EMPTY_ALPHA, EMPTY_BETA
 
@@ -100,13 +100,7 @@ class RegionSpec(BaseModel):
         n = self.tile_counts
         if int(np.prod(n)) > MAX_TILES:
             raise ValueError(f"{int(np.prod(n))} tiles ({n} per axis) is more than {MAX_TILES}")
-        middle = tuple(int(c) // 2 for c in n)
-        hinges = np.floor((self._grown(middle)[1] - self._grown(middle)[0]) / self.spacing_m + 1e-9) + 3
-        if np.prod(hinges) > MAX_HINGES:
-            raise ValueError(
-                f"a tile would have about {int(np.prod(hinges))} hinges, more than {MAX_HINGES}: "
-                "use smaller tiles or a larger spacing"
-            )
+        self.tile_grid(tuple(int(c) // 2 for c in n))  # an inner tile: raises if it has too many hinges
         return self
 
     # -- geometry ---------------------------------------------------------------------------
@@ -153,9 +147,11 @@ class RegionSpec(BaseModel):
         """Rows of ``X`` (n, 3) inside the region's box (closed)."""
         return np.all((X >= self.lower) & (X <= self.upper), axis=1)
 
-    def tiles_containing(self, X: np.ndarray) -> dict[TileKey, np.ndarray]:
+    def tiles_containing(self, X) -> dict[TileKey, np.ndarray]:
         """Row indices of ``X`` per tile whose grown box holds them (up to 8 tiles a point)."""
-        X = self._inside_points(X)
+        return self._groups(self._inside_points(X))
+
+    def _groups(self, X: np.ndarray) -> dict[TileKey, np.ndarray]:
         size, overlap, n = np.array(self.tile_size_m), np.array(self.overlap_m), np.array(self.tile_counts)
         home = np.clip(np.floor((X - self.lower) / size).astype(np.int64), 0, n - 1)
         per_axis = []  # per axis: (tile index, member) for the home tile and its two neighbours
@@ -228,19 +224,23 @@ class RegionSpec(BaseModel):
         return self.tile_field(key).set_evidence(evidence).posterior_.compact()
 
     def predict(
-        self, X, posterior: Callable[[TileKey], Posterior | None] | Mapping[TileKey, Posterior]
+        self,
+        X,
+        posterior: Callable[[TileKey], Posterior | None] | Mapping[TileKey, Posterior],
+        groups: dict[TileKey, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Blended predictive mean (n, 3), std (n, 3) and ``known`` (n,) at ``X``.
 
         ``posterior(key)`` gives a tile's posterior, or None for a tile without data, which
         answers with the prior (mean 0). ``known`` is False where only such tiles cover.
+        ``groups``: :meth:`tiles_containing` of ``X`` if the caller already has it.
         """
         if isinstance(posterior, Mapping):
             posterior = posterior.get
         X = self._inside_points(X)
         parts, weight_sum = [], np.zeros(len(X))
         mean, known = np.zeros((len(X), 3)), np.zeros(len(X), bool)
-        for key, idx in self.tiles_containing(X).items():
+        for key, idx in (self._groups(X) if groups is None else groups).items():
             w = self.tile_weights(key, X[idx])
             idx, w = idx[w > 0], w[w > 0]
             post = posterior(key)

@@ -28,16 +28,32 @@ from clients.demo import PARIS_GAMMA, PARIS_SPACING_M
 PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
 
 
+def accuracy(V_test, V_train, mean, std) -> dict:
+    """RMSE, MSLL and 95% coverage: the accuracy columns of every benchmark table."""
+    return {
+        "RMSE": float(metrics.rmse(V_test, mean)),
+        "MSLL": float(metrics.msll(V_test, mean, std, V_train.mean(0), V_train.std(0))),
+        "cov95": float(metrics.coverage(V_test, mean, std)),
+    }
+
+
 def score(name, V_test, V_train, mean, std, train_s, query_s, note=""):
     return {
         "method": name,
         "train s": train_s,
         "query s": query_s,
-        "RMSE": float(metrics.rmse(V_test, mean)),
-        "MSLL": float(metrics.msll(V_test, mean, std, V_train.mean(0), V_train.std(0))),
-        "cov95": float(metrics.coverage(V_test, mean, std)),
+        **accuracy(V_test, V_train, mean, std),
         "note": note,
     }
+
+
+def publish(report: list[str], append: bool) -> None:
+    """Print the report and append it to bench/RESULTS.md."""
+    text = "\n".join(report)
+    print(text)
+    if append:
+        with open(Path(__file__).with_name("RESULTS.md"), "a") as fh:
+            fh.write(text + "\n")
 
 
 def best_of(repeat, fn):
@@ -233,11 +249,7 @@ def main():
         f"partial_fit + mean and std {std_ms:.2f} ms (medians of 200).",
         "",
     ]
-    text = "\n".join(report)
-    print(text)
-    if not args.no_append:
-        with open(Path(__file__).with_name("RESULTS.md"), "a") as fh:
-            fh.write(text + "\n")
+    publish(report, not args.no_append)
 
 
 if __name__ == "__main__":

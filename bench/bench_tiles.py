@@ -30,7 +30,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bdf import BayesianDynamicField, ingest, metrics
+from bench_core import accuracy, publish  # bench/ is on the path when run as a script
+
+from bdf import BayesianDynamicField, ingest
 from bdf.tiles import RegionSpec
 from service.maps import RegionMaps
 from service.store import open_store
@@ -56,14 +58,6 @@ def region_spec(lower, upper, spacing) -> RegionSpec:
     )
 
 
-def scores(V_test, V_train, mean, std) -> dict:
-    return {
-        "RMSE": float(metrics.rmse(V_test, mean)),
-        "MSLL": float(metrics.msll(V_test, mean, std, V_train.mean(0), V_train.std(0))),
-        "cov95": float(metrics.coverage(V_test, mean, std)),
-    }
-
-
 def run_backend(url, spec, obs, test, weight, n_uploads=0) -> dict:
     store = open_store(url)
     store.create_region(spec)
@@ -82,7 +76,7 @@ def run_backend(url, spec, obs, test, weight, n_uploads=0) -> dict:
     maps.predict("paris", q10k)
     warm_s = time.perf_counter() - t0
     pred = maps.predict("paris", Xte)
-    acc = scores(Vte, train.V, pred.mean, pred.std)
+    acc = accuracy(Vte, train.V, pred.mean, pred.std)
     tiles = store.tiles("paris")
     nbytes = np.array([t.nbytes for t in tiles])
 
@@ -115,7 +109,7 @@ def single_field(lower, upper, spacing, obs, test, weight) -> dict:
     field.fit(train.X, train.V, sample_weight=weight)
     mean, std = field.predict(obs.X[test], return_std=True)
     seconds = time.perf_counter() - t0
-    row = {"train+query s": seconds, "M": len(field.hinges), **scores(obs.V[test], train.V, mean, std)}
+    row = {"train+query s": seconds, "M": len(field.hinges), **accuracy(obs.V[test], train.V, mean, std)}
     return row, {"alpha": field.alpha_.tolist(), "beta": field.beta_.tolist()}
 
 
@@ -182,12 +176,7 @@ def main():
                 res = run_backend(f"sqlite:///{tmp}", pinned, obs, test, weight)
             rows.append({"map": f"tiled, SQLite, {grid_name}, region-wide alpha/beta", "M": m_tile, **res})
         print(table(rows[-3:]), flush=True)
-    report += ["", table(rows), ""]
-    text = "\n".join(report)
-    print(text)
-    if not args.no_append:
-        with open(Path(__file__).with_name("RESULTS.md"), "a") as fh:
-            fh.write(text + "\n")
+    publish([*report, "", table(rows), ""], not args.no_append)
 
 
 if __name__ == "__main__":

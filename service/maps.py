@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bdf._validate import noise_std_rows
 from bdf.field import Posterior
 from bdf.tiles import TileKey
 from service.store import MapStore, payload_digest
@@ -95,7 +96,7 @@ class RegionMaps:
         X, V = np.asarray(X, float), np.asarray(V, float)
         if X.ndim != 2 or X.shape[1] != 3 or V.shape != X.shape:
             raise ValueError(f"points and velocities must both be (n, 3), got {X.shape} and {V.shape}")
-        noise = None if input_noise_std is None else _noise_rows(input_noise_std, len(X))
+        noise = None if input_noise_std is None else noise_std_rows(input_noise_std, len(X))
         weight = None if sample_weight is None else np.asarray(sample_weight, float)
         if weight is not None and weight.shape != (len(X),):
             raise ValueError(f"sample_weight must have shape ({len(X)},), got {weight.shape}")
@@ -137,17 +138,18 @@ class RegionMaps:
         """Blended mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region."""
         spec = self.store.region(region).spec
         X = np.asarray(X, float)
-        keys = list(spec.tiles_containing(X))  # validates X, names the outside rows
+        groups = spec.tiles_containing(X)  # validates X, names the outside rows
         found = {}
 
         def need(region_id: str, key: TileKey, version: int) -> bool:
             found[key] = self.cache.get((region_id, key, version))
             return found[key] is None
 
-        snap = self.store.snapshot(region, keys, need=need)
-        spec = snap.region.spec  # the snapshot's own (the name may have been re-created)
+        snap = self.store.snapshot(region, groups, need=need)
+        if snap.region.spec != spec:  # the name was re-created in between: start again
+            return self.predict(region, X)
         posteriors = {}
-        for key in keys:
+        for key in groups:
             tile = snap.tiles.get(key)
             if tile is None:
                 continue  # no data: the prior answers
@@ -156,17 +158,5 @@ class RegionMaps:
                 post = spec.posterior(key, snap.evidence[key])
                 self.cache.put((snap.region.region_id, key, tile.version), post)
             posteriors[key] = post
-        mean, std, known = spec.predict(X, posteriors)
+        mean, std, known = spec.predict(X, posteriors, groups)
         return Prediction(mean, std, known, snap.region.version)
-
-
-def _noise_rows(value, n: int) -> np.ndarray:
-    """Input-noise std as (n, 3) from a number, (n,) or (n, 3); values are checked per row later."""
-    arr = np.asarray(value, float)
-    if arr.ndim == 0:
-        return np.full((n, 3), float(arr))
-    if arr.shape == (n,):
-        return np.repeat(arr[:, None], 3, axis=1)
-    if arr.shape != (n, 3):
-        raise ValueError(f"input_noise_std must be a number, ({n},) or ({n}, 3), got {arr.shape}")
-    return arr

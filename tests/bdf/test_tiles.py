@@ -74,7 +74,7 @@ def test_spec_json_is_the_service_body():
         ({"name": "Paris!"}, "pattern"),
         ({"bounds_m": {"min": [0, 0, 0], "max": [10, -1, 10]}}, "must exceed"),
         ({"overlap_m": [6000, 0, 0]}, "at most half"),
-        ({"spacing_m": [10, 10, 10]}, "hinges"),
+        ({"spacing_m": [10, 10, 10]}, "hinges"),  # 1,201 x 1,201 x 601 in one tile
         ({"gamma": [1, -1, 1]}, "greater than 0"),
         ({"alpha": "aut"}, "alpha"),
         ({"tile_size_m": [100, 100, 100], "overlap_m": [0, 0, 0]}, "tiles"),
