@@ -20,6 +20,7 @@ overlap on an axis the tiles meet with a hard border there.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from collections.abc import Callable, Mapping
 from typing import Annotated, Literal, NamedTuple
@@ -118,7 +119,7 @@ class RegionSpec(BaseModel):
         return tuple(int(c) for c in np.maximum(n, 1))
 
     def frame(self) -> ENUFrame:
-        return ENUFrame(self.origin.lat, self.origin.lon, self.origin.alt_m)
+        return _frame(self.origin.lat, self.origin.lon, self.origin.alt_m)
 
     def core(self, key: TileKey) -> tuple[np.ndarray, np.ndarray]:
         """The tile's own box (without overlap)."""
@@ -200,14 +201,26 @@ class RegionSpec(BaseModel):
         return X
 
     # -- learning and querying -------------------------------------------------------------
-    def increments(self, X, V, *, input_noise_std=None, sample_weight=None) -> dict[TileKey, Increment]:
-        """The evidence each tile gains from observations ``(X, V)`` (all inside the region)."""
+    def increments(
+        self,
+        X,
+        V,
+        *,
+        input_noise_std=None,
+        sample_weight=None,
+        progress: Callable[[float], None] | None = None,
+    ) -> dict[TileKey, Increment]:
+        """The evidence each tile gains from observations ``(X, V)`` (all inside the region).
+
+        ``progress(fraction)`` is called after each tile (long fits report it).
+        """
         X, V = as_observations(X, V)
         noise = as_noise_std(input_noise_std, len(X))
         weight = as_sample_weight(sample_weight, len(X))
         gamma = np.array(self.gamma)
         out = {}
-        for key, idx in self.tiles_containing(X).items():
+        groups = self.tiles_containing(X)
+        for done, (key, idx) in enumerate(groups.items(), start=1):
             evidence = Evidence.from_points(
                 self.tile_grid(key),
                 gamma,
@@ -217,6 +230,8 @@ class RegionSpec(BaseModel):
                 None if weight is None else weight[idx],
             )
             out[key] = Increment(evidence, len(idx))
+            if progress is not None:
+                progress(done / len(groups))
         return out
 
     def posterior(self, key: TileKey, evidence: Evidence) -> Posterior:
@@ -266,6 +281,12 @@ class RegionSpec(BaseModel):
         grid = self.tile_grid(key)
         norm = features.gather(grid, X, np.ones((*grid.shape, 1)), 2.0 * np.array(self.gamma))
         return norm / alpha + 1.0 / beta
+
+
+@functools.lru_cache(maxsize=64)
+def _frame(lat: float, lon: float, alt_m: float) -> ENUFrame:
+    """Frames are shared per origin: building a pyproj transformer costs milliseconds."""
+    return ENUFrame(lat, lon, alt_m)
 
 
 def key_str(key: TileKey) -> str:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -26,6 +27,46 @@ def _demo(args) -> int:
     return 0
 
 
+def _serve(args) -> int:
+    """Settings: flags over environment (BDF_*) over the TOML file (--config / BDF_CONFIG).
+
+    Flags travel as environment variables so that every uvicorn worker process builds the
+    same settings.
+    """
+    import uvicorn
+
+    from service.settings import Settings
+
+    if args.config:
+        os.environ["BDF_CONFIG"] = str(args.config)
+    for flag in ("host", "port", "workers", "store_url", "data_dir"):
+        value = getattr(args, flag)
+        if value is not None:
+            os.environ[f"BDF_{flag.upper()}"] = str(value)
+    settings = Settings()
+    settings.check_bind()
+    logging.basicConfig(level=settings.log_level.upper(), format="%(message)s", force=True)
+    log = logging.getLogger("bdf.service")
+    if settings.open:
+        log.warning(
+            "no tokens configured: the service is OPEN (every request has every scope) on %s; "
+            "for local development only",
+            settings.host,
+        )
+    log.info("store: %s", settings.store.split("@")[-1] if "@" in settings.store else settings.store)
+    uvicorn.run(
+        "service.app:create_app",
+        factory=True,
+        host=settings.host,
+        port=settings.port,
+        workers=settings.workers,
+        access_log=False,  # one structured line per request comes from the app
+        log_level=settings.log_level,
+        timeout_graceful_shutdown=60,
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bdf", description="bdf-maps: 3D velocity maps with uncertainty.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
@@ -42,6 +83,22 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="learn the Paris map, print its accuracy, write plots")
     demo.add_argument("--out", default="demo-output", help="folder for the plots (default: demo-output)")
     demo.set_defaults(run=_demo)
+
+    serve = sub.add_parser(
+        "serve",
+        help="run the HTTP service (uvicorn)",
+        description="Run the HTTP service. Every setting also reads BDF_<NAME> from the environment "
+        "and the TOML file named by --config or BDF_CONFIG (see service/settings.py).",
+    )
+    serve.add_argument("--host", help="address to bind (default 127.0.0.1; others need tokens)")
+    serve.add_argument("--port", type=int, help="port (default 8000)")
+    serve.add_argument("--workers", type=int, help="worker processes (default 1)")
+    serve.add_argument(
+        "--store-url", help="sqlite:///dir or postgresql://... (default: SQLite in --data-dir)"
+    )
+    serve.add_argument("--data-dir", help="folder of the default SQLite store (default ./bdf-data)")
+    serve.add_argument("--config", type=Path, help="TOML settings file")
+    serve.set_defaults(run=_serve)
     return parser
 
 

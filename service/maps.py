@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,6 +67,7 @@ class Prediction:
     std: np.ndarray  # (n, 3) predictive std, m/s
     known: np.ndarray  # (n,) some tile with data covers the point
     version: int  # region version the answer was computed from
+    region_id: str  # with the version, names the map state (ETag)
 
 
 class RegionMaps:
@@ -85,13 +87,14 @@ class RegionMaps:
         input_noise_std=None,
         sample_weight=None,
         replace: bool = False,
+        progress: Callable[[float], None] | None = None,
     ) -> dict:
         """Apply observations (ENU metres, m/s) to a region once per ``upload_id``.
 
         Rows with a non-finite value or outside the region are rejected and counted, the
         rest accepted. ``replace``: the region's map becomes this data alone (a fit).
         Returns the ledger result: accepted, rejected (by reason), tiles_updated,
-        region_version, replayed.
+        region_version, replayed. ``progress(fraction)`` follows the per-tile work.
         """
         X, V = np.asarray(X, float), np.asarray(V, float)
         if X.ndim != 2 or X.shape[1] != 3 or V.shape != X.shape:
@@ -114,11 +117,16 @@ class RegionMaps:
         inside = np.zeros(len(X), bool)
         inside[finite] = spec.inside(X[finite])
         keep = finite & inside
-        increments = spec.increments(
-            X[keep],
-            V[keep],
-            input_noise_std=None if noise is None else noise[keep],
-            sample_weight=None if weight is None else weight[keep],
+        increments = (
+            {}
+            if not keep.any()
+            else spec.increments(
+                X[keep],
+                V[keep],
+                input_noise_std=None if noise is None else noise[keep],
+                sample_weight=None if weight is None else weight[keep],
+                progress=None if progress is None else (lambda f: progress(0.9 * f)),
+            )
         )
         summary = {
             "accepted": int(keep.sum()),
@@ -159,4 +167,4 @@ class RegionMaps:
                 self.cache.put((snap.region.region_id, key, tile.version), post)
             posteriors[key] = post
         mean, std, known = spec.predict(X, posteriors, groups)
-        return Prediction(mean, std, known, snap.region.version)
+        return Prediction(mean, std, known, snap.region.version, snap.region.region_id)

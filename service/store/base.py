@@ -181,6 +181,11 @@ class MapStore(ABC):
         elif int(rows[0][0]) != SCHEMA_VERSION:
             raise StoreError(f"store schema version {rows[0][0]}, this code reads {SCHEMA_VERSION}")
 
+    def ping(self) -> None:
+        """One round trip to the database (readiness); raises if it is unreachable."""
+        with self._read() as q:
+            q("SELECT 1")
+
     # -- regions -------------------------------------------------------------------------------
     def create_region(self, spec: RegionSpec) -> RegionInfo:
         now = time.time()

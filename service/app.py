@@ -1,0 +1,504 @@
+"""The HTTP API (v1): regions, observations, fits, queries, grids, tubes, tiles.
+
+Routes stay thin: decoding and encoding live in :mod:`service.formats`, the maps in
+:mod:`service.maps` and :mod:`bdf.tiles`, storage in :mod:`service.store`. Every route
+declares its scope (``x-scope`` in the OpenAPI document). Work that takes CPU or the
+database runs in the thread pool, never on the event loop.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from typing import Annotated, Literal
+
+import numpy as np
+from fastapi import APIRouter, FastAPI, Header, Path, Query, Request, Response
+from fastapi.responses import JSONResponse
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import BaseModel
+from starlette.concurrency import run_in_threadpool
+
+from bdf.tiles import RegionSpec, key_str
+from service import formats, problems
+from service.auth import PUBLIC, require
+from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET
+from service.jobs import Jobs
+from service.maps import RegionMaps
+from service.problems import Problem
+from service.settings import Settings
+from service.store import MapStore, RegionInfo, open_store
+from service.telemetry import Metrics, RequestMiddleware
+
+log = logging.getLogger("bdf.service")
+NAME = r"^[a-z0-9][a-z0-9_-]{0,62}$"
+RegionName = Annotated[str, Path(pattern=NAME, description="region name")]
+ARROW_IN = {"content": {m: {"schema": {"type": "string", "format": "binary"}} for m in (ARROW, PARQUET)}}
+
+
+def _body_doc(model: type[BaseModel], binary: bool) -> dict:
+    content = {JSON: {"schema": model.model_json_schema(ref_template="#/components/schemas/{model}")}}
+    if binary:
+        content.update(ARROW_IN["content"])
+    return {"requestBody": {"required": True, "content": content}}
+
+
+def scoped(scope: str, **extra) -> dict:
+    """Route keyword arguments declaring its scope (enforced and documented)."""
+    out = {"openapi_extra": {"x-scope": scope, **extra}}
+    if scope != PUBLIC:
+        out["dependencies"] = [require(scope)]
+    return out
+
+
+class RegionView(BaseModel):
+    spec: RegionSpec
+    version: int
+    observations: int
+    tiles: int
+    created_at: float
+    updated_at: float
+
+
+class UploadResult(BaseModel):
+    accepted: int
+    rejected: dict[str, int]
+    upload_id: str
+    kind: Literal["observations", "fit"]
+    region_version: int
+    tiles_updated: int
+    replayed: bool
+
+
+class JobView(BaseModel):
+    id: str
+    region: str
+    upload_id: str
+    state: Literal["queued", "running", "succeeded", "failed"]
+    progress: float
+    result: UploadResult | None
+    error: str | None
+    created_at: float
+    finished_at: float | None
+
+
+def _view(info: RegionInfo) -> dict:
+    return {
+        "spec": info.spec.model_dump(mode="json"),
+        "version": info.version,
+        "observations": info.observations,
+        "tiles": info.tiles,
+        "created_at": info.created_at,
+        "updated_at": info.updated_at,
+    }
+
+
+def _etag(region_id: str, version: int) -> str:
+    return f'W/"{region_id}.{version}"'
+
+
+def _not_modified(request: Request, etag: str) -> bool:
+    header = request.headers.get("if-none-match")
+    if not header:
+        return False
+    tags = [t.strip().removeprefix("W/") for t in header.split(",")]
+    return "*" in tags or etag.removeprefix("W/") in tags
+
+
+def _floats(text: str, n: int, name: str) -> np.ndarray:
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise Problem(422, f"{name} must be {n} comma-separated numbers, got {text!r}") from None
+    if len(values) == 1 and n == 3:
+        values = np.repeat(values, 3)
+    if len(values) != n or not np.isfinite(values).all():
+        raise Problem(422, f"{name} must be {n} finite comma-separated numbers, got {text!r}")
+    return values
+
+
+def grid_axes(spec: RegionSpec, bbox: str | None, step: str, max_voxels: int):
+    """Axes ``lo + i * step`` up to ``hi`` (inclusive) of a bbox inside the region."""
+    step_v = _floats(step, 3, "step")
+    if np.any(step_v <= 0):
+        raise Problem(422, f"step must be positive, got {step!r}")
+    if bbox is None:
+        lo, hi = spec.lower, spec.upper
+    else:
+        box = _floats(bbox, 6, "bbox")
+        lo, hi = box[:3], box[3:]
+        if np.any(hi < lo):
+            raise Problem(422, f"bbox max {hi.tolist()} must not be below its min {lo.tolist()}")
+        if np.any(lo < spec.lower) or np.any(hi > spec.upper):
+            raise Problem(
+                422,
+                f"bbox {box.tolist()} leaves region {spec.name!r}, whose bounds are "
+                f"{spec.bounds_m.min} .. {spec.bounds_m.max} (ENU metres)",
+            )
+    counts = np.floor((hi - lo) / step_v + 1e-9).astype(np.int64) + 1
+    voxels = int(np.prod(counts))
+    if voxels > max_voxels:
+        raise Problem(
+            422, f"the grid would have {voxels} voxels ({counts.tolist()}); the limit is {max_voxels}"
+        )
+    return [lo[d] + step_v[d] * np.arange(counts[d]) for d in range(3)]
+
+
+def _mesh(axes) -> np.ndarray:
+    mesh = np.meshgrid(*axes, indexing="ij")
+    return np.stack([m.ravel() for m in mesh], axis=1)
+
+
+router = APIRouter(prefix="/v1")
+
+
+@router.post("/regions", status_code=201, response_model=RegionView, **scoped("admin"))
+def create_region(spec: RegionSpec, request: Request):
+    """Create a region from its spec; 409 if the name exists."""
+    return _view(request.app.state.maps.store.create_region(spec))
+
+
+@router.get("/regions", response_model=list[RegionView], **scoped("read"))
+def list_regions(request: Request):
+    return [_view(info) for info in request.app.state.maps.store.list_regions()]
+
+
+@router.get("/regions/{name}", response_model=RegionView, **scoped("read"))
+def get_region(name: RegionName, request: Request):
+    return _view(request.app.state.maps.store.region(name))
+
+
+@router.delete("/regions/{name}", status_code=204, **scoped("admin"))
+def delete_region(name: RegionName, request: Request):
+    request.app.state.maps.store.delete_region(name)
+    return Response(status_code=204)
+
+
+def _upload_id(key: str | None) -> str:
+    if not key:
+        raise Problem(400, "the Idempotency-Key header is required: a retry with the same key applies once")
+    if len(key) > 200 or not key.isprintable():
+        raise Problem(422, "Idempotency-Key must be 1 to 200 printable characters")
+    return key
+
+
+IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key")]
+
+
+@router.post(
+    "/regions/{name}/observations",
+    response_model=UploadResult,
+    **scoped("write", **_body_doc(formats.ObservationsBody, binary=True)),
+)
+async def post_observations(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
+    """Add observations to the map (exactly once per Idempotency-Key)."""
+    upload_id = _upload_id(idempotency_key)
+    body = await request.body()
+    app = request.app
+
+    def work():
+        obs = _observations(app, name, body, request.headers.get("content-type"))
+        result = app.state.maps.upload(name, upload_id, obs.X, obs.V, input_noise_std=obs.input_noise_std)
+        app.state.metrics.upload_applied(result)
+        return result
+
+    return await run_in_threadpool(work)
+
+
+def _observations(app, name: str, body: bytes, content_type: str | None) -> formats.Observations:
+    spec = app.state.maps.store.region(name).spec
+    settings: Settings = app.state.settings
+    return formats.read_observations(spec, body, formats.media_type(content_type), settings.max_points)
+
+
+@router.post(
+    "/regions/{name}/fit",
+    response_model=UploadResult,
+    responses={202: {"model": JobView, "description": "a large fit runs as a job"}},
+    **scoped("write", **_body_doc(formats.ObservationsBody, binary=True)),
+)
+async def post_fit(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
+    """Replace the map with this data. Large bodies run as a job (202); the old map keeps
+    answering queries until the new one commits."""
+    upload_id = _upload_id(idempotency_key)
+    body = await request.body()
+    app = request.app
+    obs = await run_in_threadpool(_observations, app, name, body, request.headers.get("content-type"))
+
+    def fit(progress=None):
+        result = app.state.maps.upload(
+            name,
+            upload_id,
+            obs.X,
+            obs.V,
+            input_noise_std=obs.input_noise_std,
+            replace=True,
+            progress=progress,
+        )
+        app.state.metrics.upload_applied(result)
+        return result
+
+    if len(obs.X) <= app.state.settings.fit_job_points:
+        return await run_in_threadpool(fit)
+    job = app.state.jobs.submit(name, upload_id, fit)
+    return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
+
+
+@router.get("/jobs/{job_id}", response_model=JobView, **scoped("write"))
+def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Request):
+    job = request.app.state.jobs.get(job_id)
+    if job is None:
+        raise Problem(404, f"no job {job_id!r} on this server (jobs are kept in memory per replica)")
+    return job.public()
+
+
+@router.post(
+    "/regions/{name}/query",
+    response_model=formats.QueryResult,
+    **scoped("read", **_body_doc(formats.QueryBody, binary=False)),
+)
+async def query(name: RegionName, request: Request):
+    """Predictive mean and std at points; Arrow in and out on request."""
+    body = await request.body()
+    out = formats.negotiate(request.headers.get("accept"), [JSON, ARROW])
+    app = request.app
+
+    def work():
+        info = app.state.maps.store.region(name)
+        if _not_modified(request, _etag(info.region_id, info.version)):
+            return Response(status_code=304, headers={"ETag": _etag(info.region_id, info.version)})
+        X = formats.read_query(
+            info.spec,
+            body,
+            formats.media_type(request.headers.get("content-type")),
+            app.state.settings.max_query_points,
+        )
+        pred = app.state.maps.predict(name, X)
+        headers = {"ETag": _etag(pred.region_id, pred.version)}
+        if out == ARROW:
+            columns = {
+                **formats.vector_columns("v", pred.mean),
+                **formats.vector_columns("std_", pred.std),
+                "known": pred.known,
+            }
+            return Response(formats.arrow_bytes(columns), media_type=ARROW, headers=headers)
+        content = {
+            "mean": pred.mean.tolist(),
+            "std": pred.std.tolist(),
+            "known": pred.known.tolist(),
+            "region_version": pred.version,
+        }
+        return JSONResponse(content, headers=headers)
+
+    return await run_in_threadpool(work)
+
+
+def _grid_prediction(request: Request, name: str, bbox: str | None, step: str):
+    """(axes, prediction reshaped to the grid) or a 304 response."""
+    app = request.app
+    info = app.state.maps.store.region(name)
+    if _not_modified(request, _etag(info.region_id, info.version)):
+        return None, Response(status_code=304, headers={"ETag": _etag(info.region_id, info.version)})
+    axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
+    return axes, app.state.maps.predict(name, _mesh(axes))
+
+
+BBox = Annotated[str | None, Query(description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")]
+Step = Annotated[str, Query(description="dx,dy,dz metres (or one number for all axes)")]
+
+
+@router.get(
+    "/regions/{name}/grid",
+    responses={200: {"content": {NPZ: {}, ARROW: {}}}},
+    **scoped("read"),
+)
+def grid(name: RegionName, request: Request, step: Step, bbox: BBox = None):
+    """Mean and std on the voxel grid ``bbox`` x ``step``: npz (arrays mean, std (nx, ny, nz,
+    3), known (nx, ny, nz), x, y, z), Arrow (one row per voxel, C order; ``shape`` in the
+    schema metadata), or JSON for small grids."""
+    out = formats.negotiate(request.headers.get("accept"), [JSON, NPZ, ARROW])
+    axes, pred = _grid_prediction(request, name, bbox, step)
+    if axes is None:
+        return pred
+    shape = tuple(len(a) for a in axes)
+    headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+    if out == NPZ:
+        body = formats.npz_bytes(
+            mean=pred.mean.reshape(*shape, 3),
+            std=pred.std.reshape(*shape, 3),
+            known=pred.known.reshape(shape),
+            x=axes[0],
+            y=axes[1],
+            z=axes[2],
+        )
+        return Response(body, media_type=NPZ, headers=headers)
+    X = _mesh(axes)
+    if out == ARROW:
+        columns = {
+            **formats.vector_columns("", X, ("x", "y", "z")),
+            **formats.vector_columns("v", pred.mean),
+            **formats.vector_columns("std_", pred.std),
+            "known": pred.known,
+        }
+        return Response(
+            formats.arrow_bytes(columns, {"shape": ",".join(map(str, shape))}),
+            media_type=ARROW,
+            headers=headers,
+        )
+    _json_size(len(X), request.app.state.settings)
+    content = {
+        "x": axes[0].tolist(),
+        "y": axes[1].tolist(),
+        "z": axes[2].tolist(),
+        "mean": pred.mean.reshape(*shape, 3).tolist(),
+        "std": pred.std.reshape(*shape, 3).tolist(),
+        "known": pred.known.reshape(shape).tolist(),
+        "region_version": pred.version,
+    }
+    return JSONResponse(content, headers=headers)
+
+
+def _json_size(voxels: int, settings: Settings) -> None:
+    if voxels > settings.max_json_voxels:
+        raise Problem(
+            422,
+            f"{voxels} voxels is too many for JSON (limit {settings.max_json_voxels}): "
+            f"ask for Accept: {NPZ} or {ARROW}",
+        )
+
+
+@router.get(
+    "/regions/{name}/tubes",
+    responses={200: {"content": {GEOJSON: {}, NPZ: {}, ARROW: {}}}},
+    **scoped("read"),
+)
+def tubes(
+    name: RegionName,
+    request: Request,
+    max_std_mps: Annotated[float, Query(gt=0, description="the tube bound on the predictive std, m/s")],
+    step: Step,
+    bbox: BBox = None,
+    component: Annotated[Literal["all", "e", "n", "u"], Query(description="whose std is bounded")] = "all",
+):
+    """The voxels whose predictive std is below ``max_std_mps`` (all components, or one),
+    where some tile has data, with their mean velocity: GeoJSON points (lon, lat, alt),
+    npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow."""
+    out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
+    axes, pred = _grid_prediction(request, name, bbox, step)
+    if axes is None:
+        return pred
+    shape = tuple(len(a) for a in axes)
+    std = pred.std if component == "all" else pred.std[:, ["e", "n", "u"].index(component), None]
+    inside = pred.known & (std < max_std_mps).all(axis=1)
+    X, idx = _mesh(axes), np.flatnonzero(inside)
+    headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+    if out == NPZ:
+        body = formats.npz_bytes(
+            points=X[idx],
+            mean=pred.mean[idx],
+            std=pred.std[idx],
+            mask=inside.reshape(shape),
+            x=axes[0],
+            y=axes[1],
+            z=axes[2],
+        )
+        return Response(body, media_type=NPZ, headers=headers)
+    if out == ARROW:
+        columns = {
+            **formats.vector_columns("", X[idx], ("x", "y", "z")),
+            **formats.vector_columns("v", pred.mean[idx]),
+            **formats.vector_columns("std_", pred.std[idx]),
+        }
+        return Response(formats.arrow_bytes(columns), media_type=ARROW, headers=headers)
+    _json_size(len(idx), request.app.state.settings)
+    spec = request.app.state.maps.store.region(name).spec
+    geo = spec.frame().to_geodetic(X[idx])
+    features = [
+        {
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": [lon, lat, alt]},
+            "properties": {"enu": x, "mean": m, "std": s},
+        }
+        for (lat, lon, alt), x, m, s in zip(
+            geo.tolist(), X[idx].tolist(), pred.mean[idx].tolist(), pred.std[idx].tolist(), strict=True
+        )
+    ]
+    content = {
+        "type": "FeatureCollection",
+        "features": features,
+        "properties": {"max_std_mps": max_std_mps, "component": component, "region_version": pred.version},
+    }
+    return JSONResponse(content, media_type=GEOJSON, headers=headers)
+
+
+@router.get("/regions/{name}/tiles", **scoped("read"))
+def tiles(name: RegionName, request: Request):
+    """The region's tiles that hold data: key, version, weighted count, points, bytes."""
+    snap = request.app.state.maps.store.snapshot(name, keys=())
+    return {
+        "region_version": snap.region.version,
+        "tiles": [
+            {
+                "key": key_str(t.key),
+                "version": t.version,
+                "count": t.count,
+                "points": t.points,
+                "bytes": t.nbytes,
+                "updated_at": t.updated_at,
+            }
+            for t in snap.tiles.values()
+        ],
+    }
+
+
+ops = APIRouter()
+
+
+@ops.get("/healthz", **scoped(PUBLIC))
+def healthz():
+    """Liveness: the process answers."""
+    return {"status": "ok"}
+
+
+@ops.get("/readyz", **scoped(PUBLIC))
+def readyz(request: Request):
+    """Readiness: the store answers."""
+    try:
+        request.app.state.maps.store.ping()
+    except Exception as exc:
+        raise Problem(503, f"the store is unreachable: {type(exc).__name__}") from exc
+    return {"status": "ready"}
+
+
+@ops.get("/metrics", **scoped(PUBLIC))
+def metrics(request: Request):
+    """Prometheus text format: requests and latency per route, cache, uploads."""
+    return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+def create_app(settings: Settings | None = None, store: MapStore | None = None) -> FastAPI:
+    """The ASGI app. ``store`` defaults to the one ``settings.store`` names."""
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        yield
+        app.state.jobs.shutdown()  # graceful: running fits finish and commit
+        app.state.maps.store.close()
+
+    app = FastAPI(
+        title="bdf-maps",
+        version="1",
+        description="3D velocity maps with calibrated uncertainty, tiled per region.",
+        lifespan=lifespan,
+    )
+    maps = RegionMaps(store or open_store(settings.store), cache_mb=settings.cache_mb)
+    app.state.settings = settings
+    app.state.maps = maps
+    app.state.jobs = Jobs()
+    app.state.metrics = Metrics(maps.cache)
+    problems.install(app)
+    app.add_middleware(RequestMiddleware, max_body_bytes=int(settings.max_body_mb * 2**20))
+    app.include_router(router)
+    app.include_router(ops)
+    return app

@@ -1,0 +1,206 @@
+"""Bodies in and out: JSON, Arrow IPC stream and Parquet in; JSON, Arrow, npz, GeoJSON out.
+
+Positions arrive in the region's ENU frame (``x, y, z`` metres) or in WGS84 (``lat, lon``
+degrees, ``alt_m`` metres above the ellipsoid). Velocities arrive as ``ve, vn, vu`` m/s in
+the local east/north/up axes of each point (what ADS-B reports); for WGS84 input they are
+rotated into the region's axes. Every velocity the service returns is in the region's
+ENU axes. Missing or non-finite values are kept as NaN so the upload counts and rejects
+their rows.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.ipc
+import pyarrow.parquet as pq
+from pydantic import BaseModel, ConfigDict, Field
+
+from bdf.tiles import RegionSpec
+from service.problems import Problem
+
+JSON = "application/json"
+ARROW = "application/vnd.apache.arrow.stream"
+PARQUET = "application/vnd.apache.parquet"
+NPZ = "application/x-npz"
+GEOJSON = "application/geo+json"
+PARQUET_ALIASES = (PARQUET, "application/x-parquet")
+
+Value = float | None  # null -> NaN: the row is rejected and counted, not the request
+Row3 = Annotated[list[Value], Field(min_length=3, max_length=3)]
+Frame = Literal["enu", "wgs84"]
+ENU_COLUMNS = ("x", "y", "z")
+WGS84_COLUMNS = ("lat", "lon", "alt_m")
+VELOCITY_COLUMNS = ("ve", "vn", "vu")
+
+
+class ObservationsBody(BaseModel):
+    """Observations for ``/observations`` and ``/fit`` (JSON form)."""
+
+    model_config = ConfigDict(extra="forbid")
+    frame: Frame = "enu"
+    points: list[Row3] = Field(description="[x, y, z] ENU metres, or [lat, lon, alt_m]")
+    velocities: list[Row3] = Field(description="[ve, vn, vu] m/s in each point's local ENU axes")
+    input_noise_std: float | list[Value] | list[Row3] | None = Field(
+        None, description="position noise std in metres: one number, one per point, or one per axis"
+    )
+
+
+class QueryBody(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    frame: Frame = "enu"
+    points: list[Row3]
+
+
+class QueryResult(BaseModel):
+    mean: list[list[float]] = Field(description="[ve, vn, vu] m/s, region ENU axes")
+    std: list[list[float]] = Field(description="predictive std per component, m/s")
+    known: list[bool] = Field(description="false where no tile has data (the answer is the prior)")
+    region_version: int
+
+
+@dataclass
+class Observations:
+    X: np.ndarray  # (n, 3) region ENU
+    V: np.ndarray  # (n, 3) region ENU axes
+    input_noise_std: np.ndarray | None
+
+
+def _array(rows, n_cols: int = 3) -> np.ndarray:
+    out = np.array(rows, dtype=float) if len(rows) else np.empty((0, n_cols))
+    return out.reshape(len(rows), n_cols) if n_cols > 1 else out
+
+
+def _to_region(spec: RegionSpec, frame: str, P: np.ndarray, V: np.ndarray | None):
+    if frame == "enu":
+        return P, V
+    with np.errstate(invalid="ignore"):
+        X = spec.frame().to_enu(P[:, 0], P[:, 1], P[:, 2])
+        X[~np.isfinite(P).all(1)] = np.nan
+        if V is not None:
+            V = spec.frame().rotate_velocity(P[:, 0], P[:, 1], V)
+    return X, V
+
+
+def _table(body: bytes, media: str) -> pa.Table:
+    try:
+        if media == ARROW:
+            return pa.ipc.open_stream(body).read_all()
+        return pq.read_table(io.BytesIO(body))
+    except (pa.ArrowInvalid, OSError) as exc:
+        kind = "an Arrow IPC stream" if media == ARROW else "a Parquet file"
+        raise Problem(400, f"the body is not {kind}: {exc}") from exc
+
+
+def _columns(table: pa.Table, names) -> np.ndarray:
+    out = np.empty((table.num_rows, len(names)))
+    for i, name in enumerate(names):
+        try:
+            out[:, i] = np.asarray(table.column(name).to_numpy(zero_copy_only=False), dtype=float)
+        except (pa.ArrowInvalid, TypeError, ValueError) as exc:
+            raise Problem(422, f"column {name!r} is not numeric: {exc}") from exc
+    return out
+
+
+def _table_positions(table: pa.Table) -> tuple[str, np.ndarray]:
+    names = set(table.column_names)
+    has_enu, has_wgs = set(ENU_COLUMNS) <= names, set(WGS84_COLUMNS) <= names
+    if has_enu == has_wgs:
+        raise Problem(
+            422,
+            f"the table needs the columns {list(ENU_COLUMNS)} (ENU) or {list(WGS84_COLUMNS)} (WGS84),"
+            f" exactly one of them; it has {sorted(names)}",
+        )
+    return ("enu", _columns(table, ENU_COLUMNS)) if has_enu else ("wgs84", _columns(table, WGS84_COLUMNS))
+
+
+def read_observations(spec: RegionSpec, body: bytes, media: str, max_points: int) -> Observations:
+    """Decode an upload or fit body (JSON, Arrow or Parquet) into region ENU arrays."""
+    if media == JSON:
+        obs = ObservationsBody.model_validate_json(body or b"{}")
+        if len(obs.points) != len(obs.velocities):
+            raise Problem(422, f"{len(obs.points)} points but {len(obs.velocities)} velocities")
+        frame, P, V = obs.frame, _array(obs.points), _array(obs.velocities)
+        noise = obs.input_noise_std
+        if isinstance(noise, list):
+            noise = _array(noise, 3 if noise and isinstance(noise[0], list) else 1)
+    elif media == ARROW or media in PARQUET_ALIASES:
+        table = _table(body, ARROW if media == ARROW else PARQUET)
+        missing = [c for c in VELOCITY_COLUMNS if c not in table.column_names]
+        if missing:
+            raise Problem(422, f"the table lacks the velocity columns {missing}")
+        frame, P = _table_positions(table)
+        V = _columns(table, VELOCITY_COLUMNS)
+        noise = (
+            _columns(table, ["input_noise_std"])[:, 0] if "input_noise_std" in table.column_names else None
+        )
+    else:
+        raise Problem(415, f"send {JSON}, {ARROW} or {PARQUET}, not {media or 'no Content-Type'}")
+    if len(P) == 0:
+        raise Problem(422, "the body holds no observations")
+    if len(P) > max_points:
+        raise Problem(422, f"{len(P)} observations in one request; the limit is {max_points}: split it")
+    X, V = _to_region(spec, frame, P, V)
+    return Observations(X, V, None if noise is None else np.asarray(noise, float))
+
+
+def read_query(spec: RegionSpec, body: bytes, media: str, max_points: int) -> np.ndarray:
+    """Decode query points (JSON or Arrow) into region ENU (n, 3)."""
+    if media == JSON:
+        query = QueryBody.model_validate_json(body or b"{}")
+        frame, P = query.frame, _array(query.points)
+    elif media == ARROW:
+        frame, P = _table_positions(_table(body, ARROW))
+    else:
+        raise Problem(415, f"send {JSON} or {ARROW}, not {media or 'no Content-Type'}")
+    if len(P) > max_points:
+        raise Problem(422, f"{len(P)} points in one query; the limit is {max_points}")
+    if not np.isfinite(P).all():
+        raise Problem(422, f"query points must be finite; rows {np.flatnonzero(~np.isfinite(P).all(1))[:5]}")
+    return _to_region(spec, frame, P, None)[0]
+
+
+def media_type(content_type: str | None) -> str:
+    return (content_type or "").split(";")[0].strip().lower()
+
+
+def negotiate(accept: str | None, offered: list[str]) -> str:
+    """The first of ``offered`` the Accept header admits (``offered[0]`` for none or ``*/*``)."""
+    if not accept:
+        return offered[0]
+    wanted = []
+    for part in accept.split(","):
+        media, *params = (p.strip() for p in part.split(";"))
+        if any(p.replace(" ", "") in ("q=0", "q=0.0") for p in params):
+            continue
+        wanted.append(media.lower())
+    for media in wanted:
+        if media in ("*/*", "application/*"):
+            return offered[0]
+        if media in offered:
+            return media
+    raise Problem(406, f"this resource is available as {', '.join(offered)}; Accept asked for {accept!r}")
+
+
+def arrow_bytes(columns: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> bytes:
+    table = pa.table(columns)
+    if metadata:
+        table = table.replace_schema_metadata(metadata)
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema) as writer:
+        writer.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+def npz_bytes(**arrays: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def vector_columns(prefix: str, values: np.ndarray, names=("e", "n", "u")) -> dict[str, np.ndarray]:
+    return {f"{prefix}{n}": np.ascontiguousarray(values[:, i]) for i, n in enumerate(names)}

@@ -1,0 +1,86 @@
+"""Service settings: environment variables ``BDF_*`` over a TOML file over the defaults.
+
+The TOML file is named by ``BDF_CONFIG`` (or ``bdf serve --config``). Tokens map a secret
+to its scopes, e.g. ``BDF_TOKENS='{"s3cret": ["read", "write"]}'`` or, in TOML::
+
+    [tokens]
+    s3cret = ["read", "write", "admin"]
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+Scope = Literal["read", "write", "admin"]
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="BDF_", extra="forbid")
+
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    workers: int = Field(
+        1, ge=1, le=64, description="uvicorn worker processes (PostgreSQL for more than one)"
+    )
+    data_dir: Path = Field(Path("bdf-data"), description="where the default SQLite store lives")
+    store_url: str | None = Field(
+        None, description="sqlite:///dir or postgresql://...; default: SQLite in data_dir"
+    )
+    cache_mb: float = Field(512.0, gt=0, description="memory for cached tile posteriors, per worker")
+    tokens: dict[SecretStr, list[Scope]] = Field(default_factory=dict, description="bearer token -> scopes")
+    max_body_mb: float = Field(256.0, gt=0, description="largest request body (413 above)")
+    max_points: int = Field(2_000_000, ge=1, description="observations per upload or fit request")
+    max_query_points: int = Field(200_000, ge=1, description="points per query request")
+    max_grid_voxels: int = Field(4_000_000, ge=1, description="voxels per grid or tube request")
+    max_json_voxels: int = Field(20_000, ge=1, description="voxels a JSON grid may hold (binary above)")
+    fit_job_points: int = Field(100_000, ge=0, description="fits with more rows run as background jobs")
+    log_level: str = "info"
+
+    @classmethod
+    def settings_customise_sources(
+        cls, settings_cls, init_settings, env_settings, dotenv_settings, file_secret_settings
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources = [init_settings, env_settings]
+        config = os.environ.get("BDF_CONFIG")
+        if config:
+            if not Path(config).is_file():
+                raise ValueError(f"BDF_CONFIG names {config!r}, which is not a file")
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=config))
+        return tuple(sources)
+
+    @property
+    def store(self) -> str:
+        return self.store_url or f"sqlite:///{self.data_dir}"
+
+    @property
+    def open(self) -> bool:
+        """No tokens: every request has every scope (local development only)."""
+        return not self.tokens
+
+    def check_bind(self) -> None:
+        """Refuse to serve without tokens anywhere but on a loopback address."""
+        if self.open and not is_loopback(self.host):
+            raise ValueError(
+                f"refusing to listen on {self.host!r} without tokens: configure BDF_TOKENS "
+                "(or [tokens] in the config file), or bind to 127.0.0.1"
+            )
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

@@ -1,0 +1,508 @@
+"""The HTTP API through a real uvicorn server on 127.0.0.1 (``bdf serve`` in a subprocess)."""
+
+import io
+import json
+import threading
+import time
+
+import httpx
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from bdf.tiles import RegionSpec
+from service.app import create_app
+from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_bytes
+from service.settings import Settings
+from tests.service.test_store import SPEC, data
+
+NAME = SPEC["name"]
+
+
+def library(spec: RegionSpec, X, V, Xq):
+    """The library's blended prediction from all the data at once."""
+    posts = {k: spec.posterior(k, inc.evidence) for k, inc in spec.increments(X, V).items()}
+    return spec.predict(Xq, posts)
+
+
+def arrow_table(columns: dict) -> bytes:
+    return arrow_bytes({k: np.asarray(v, float) for k, v in columns.items()})
+
+
+def parquet_table(columns: dict) -> bytes:
+    buf = io.BytesIO()
+    pq.write_table(pa.table({k: np.asarray(v, float) for k, v in columns.items()}), buf)
+    return buf.getvalue()
+
+
+def enu_columns(X, V):
+    return dict(x=X[:, 0], y=X[:, 1], z=X[:, 2], ve=V[:, 0], vn=V[:, 1], vu=V[:, 2])
+
+
+@pytest.fixture
+def server(live_server):
+    return live_server()
+
+
+@pytest.fixture
+def client(server):
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        assert c.post("/v1/regions", json=SPEC).status_code == 201
+        yield c
+
+
+def test_chunked_uploads_in_three_formats_replay_and_query_equal_the_library(client, server):
+    X, V = data(0, n=900)
+    spec = RegionSpec.model_validate(SPEC)
+    chunks = [
+        (
+            "application/json",
+            json.dumps({"points": X[:300].tolist(), "velocities": V[:300].tolist()}).encode(),
+        ),
+        (ARROW, arrow_table(enu_columns(X[300:600], V[300:600]))),
+        (PARQUET, parquet_table(enu_columns(X[600:], V[600:]))),
+    ]
+    versions = []
+    for i, (media, body) in enumerate(chunks):
+        r = client.post(
+            f"/v1/regions/{NAME}/observations",
+            content=body,
+            headers={"Content-Type": media, "Idempotency-Key": f"chunk-{i}"},
+        )
+        assert r.status_code == 200, r.text
+        assert r.json()["accepted"] == 300 and not r.json()["replayed"]
+        versions.append(r.json()["region_version"])
+    assert versions == [1, 2, 3]
+    # a replayed chunk returns the first answer and changes nothing
+    media, body = chunks[1]
+    r = client.post(
+        f"/v1/regions/{NAME}/observations",
+        content=body,
+        headers={"Content-Type": media, "Idempotency-Key": "chunk-1"},
+    )
+    assert r.json()["replayed"] and r.json()["region_version"] == 2
+    info = client.get(f"/v1/regions/{NAME}").json()
+    assert (info["version"], info["observations"], info["tiles"]) == (3, 900, 6)
+    # the same key for other data is a conflict
+    r = client.post(
+        f"/v1/regions/{NAME}/observations",
+        content=chunks[0][1],
+        headers={"Content-Type": "application/json", "Idempotency-Key": "chunk-1"},
+    )
+    assert r.status_code == 409 and r.headers["content-type"] == "application/problem+json"
+
+    Xq = np.random.default_rng(5).uniform([0, 0, 0], [300, 200, 60], (500, 3))
+    mean, std, known = library(spec, X, V, Xq)
+    r = client.post(f"/v1/regions/{NAME}/query", json={"points": Xq.tolist()})
+    got = r.json()
+    np.testing.assert_allclose(got["mean"], mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got["std"], std, rtol=1e-9)
+    assert got["known"] == known.tolist() and got["region_version"] == 3
+    # Arrow in and out
+    r = client.post(
+        f"/v1/regions/{NAME}/query",
+        content=arrow_table(dict(x=Xq[:, 0], y=Xq[:, 1], z=Xq[:, 2])),
+        headers={"Content-Type": ARROW, "Accept": ARROW},
+    )
+    table = pa.ipc.open_stream(r.content).read_all()
+    np.testing.assert_allclose(
+        np.stack([table[c].to_numpy() for c in ("ve", "vn", "vu")], 1), mean, rtol=1e-9, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.stack([table[c].to_numpy() for c in ("std_e", "std_n", "std_u")], 1), std, rtol=1e-9
+    )
+
+    # grid (npz) on the same lattice the library evaluates
+    r = client.get(
+        f"/v1/regions/{NAME}/grid",
+        params={"bbox": "0,0,0,300,200,60", "step": "20,25,30"},
+        headers={"Accept": NPZ},
+    )
+    assert r.status_code == 200 and r.headers["content-type"] == NPZ
+    grid = np.load(io.BytesIO(r.content))
+    axes = [np.arange(0, 301, 20.0), np.arange(0, 201, 25.0), np.arange(0, 61, 30.0)]
+    for got_axis, axis in zip((grid["x"], grid["y"], grid["z"]), axes, strict=True):
+        np.testing.assert_array_equal(got_axis, axis)
+    mesh = np.stack([m.ravel() for m in np.meshgrid(*axes, indexing="ij")], 1)
+    g_mean, g_std, _ = library(spec, X, V, mesh)
+    shape = tuple(len(a) for a in axes)
+    np.testing.assert_allclose(grid["mean"], g_mean.reshape(*shape, 3), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(grid["std"], g_std.reshape(*shape, 3), rtol=1e-9)
+
+    # tubes: exactly the voxels whose three stds are below the bound
+    bound = float(np.quantile(g_std.max(1), 0.3))
+    params = {"bbox": "0,0,0,300,200,60", "step": "20,25,30", "max_std_mps": bound}
+    r = client.get(f"/v1/regions/{NAME}/tubes", params=params, headers={"Accept": NPZ})
+    tube = np.load(io.BytesIO(r.content))
+    expected = g_std.max(1) < bound
+    assert 0 < expected.sum() < len(expected)
+    np.testing.assert_array_equal(tube["mask"].ravel(), expected)
+    np.testing.assert_allclose(tube["points"], mesh[expected])
+    np.testing.assert_allclose(tube["mean"], g_mean[expected], rtol=1e-9, atol=1e-12)
+    r = client.get(f"/v1/regions/{NAME}/tubes", params=params)
+    assert r.headers["content-type"] == GEOJSON
+    features = r.json()["features"]
+    assert len(features) == expected.sum()
+    lat, lon, alt = spec.frame().to_geodetic(mesh[expected][:1])[0]
+    np.testing.assert_allclose(features[0]["geometry"]["coordinates"], [lon, lat, alt], rtol=1e-12)
+    # one named component: a superset of the all-component tube
+    r = client.get(f"/v1/regions/{NAME}/tubes", params={**params, "component": "u"}, headers={"Accept": NPZ})
+    np.testing.assert_array_equal(np.load(io.BytesIO(r.content))["mask"].ravel(), g_std[:, 2] < bound)
+
+    tiles = client.get(f"/v1/regions/{NAME}/tiles").json()
+    assert tiles["region_version"] == 3 and sum(t["points"] for t in tiles["tiles"]) >= 900
+
+
+def test_wgs84_bodies_equal_enu_bodies(client):
+    X, V = data(1, n=300)
+    spec = RegionSpec.model_validate(SPEC)
+    frame = spec.frame()
+    geo = frame.to_geodetic(X)
+    # ADS-B style: velocities in each point's local axes; the service rotates them back
+    to_local = np.linalg.inv(
+        np.stack(
+            [frame.rotate_velocity(geo[:, 0], geo[:, 1], np.tile(e, (len(geo), 1))) for e in np.eye(3)], -1
+        )
+    )
+    V_local = np.einsum("nij,nj->ni", to_local, V)
+    client.post("/v1/regions", json={**SPEC, "name": "geo"})
+    r = client.post(
+        "/v1/regions/geo/observations",
+        json={"frame": "wgs84", "points": geo.tolist(), "velocities": V_local.tolist()},
+        headers={"Idempotency-Key": "g"},
+    )
+    assert r.json()["accepted"] == 300
+    client.post(
+        f"/v1/regions/{NAME}/observations",
+        json={"points": X.tolist(), "velocities": V.tolist()},
+        headers={"Idempotency-Key": "e"},
+    )
+    Xq = X[:50] + 1.0
+    a = client.post(f"/v1/regions/{NAME}/query", json={"points": Xq.tolist()}).json()
+    b = client.post(
+        "/v1/regions/geo/query", json={"frame": "wgs84", "points": frame.to_geodetic(Xq).tolist()}
+    ).json()
+    np.testing.assert_allclose(b["mean"], a["mean"], atol=1e-6)
+    np.testing.assert_allclose(b["std"], a["std"], rtol=1e-6)
+
+
+def test_rejected_rows_are_counted_and_never_stored(client):
+    X, V = data(2, n=10)
+    X[1, 0] = 1e6  # outside
+    V[2, 1] = np.nan
+    points, velocities = X.tolist(), V.tolist()
+    velocities[3][0] = None
+    r = client.post(
+        f"/v1/regions/{NAME}/observations",
+        content=json.dumps({"points": points, "velocities": velocities}),
+        headers={"Content-Type": "application/json", "Idempotency-Key": "bad-rows"},
+    )
+    assert r.json()["accepted"] == 7
+    assert r.json()["rejected"] == {"non_finite": 2, "outside_region": 1}
+    assert client.get(f"/v1/regions/{NAME}").json()["observations"] == 7
+
+
+def test_etag_and_not_modified(client):
+    X, V = data(3, n=200)
+    body = {"points": X.tolist(), "velocities": V.tolist()}
+    client.post(f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "1"})
+    grid = (f"/v1/regions/{NAME}/grid", {"step": "50"})
+    tubes = (f"/v1/regions/{NAME}/tubes", {"step": "50", "max_std_mps": 5})
+    etags = {}
+    for url, params in (grid, tubes):
+        r = client.get(url, params=params, headers={"Accept": NPZ})
+        etags[url] = r.headers["etag"]
+        again = client.get(url, params=params, headers={"Accept": NPZ, "If-None-Match": r.headers["etag"]})
+        assert again.status_code == 304 and again.content == b""
+    q = client.post(f"/v1/regions/{NAME}/query", json={"points": [[1, 1, 1]]})
+    assert q.headers["etag"] == etags[grid[0]]
+    r = client.post(
+        f"/v1/regions/{NAME}/query",
+        json={"points": [[1, 1, 1]]},
+        headers={"If-None-Match": q.headers["etag"]},
+    )
+    assert r.status_code == 304
+    client.post(f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "2"})
+    r = client.get(grid[0], params=grid[1], headers={"Accept": NPZ, "If-None-Match": etags[grid[0]]})
+    assert r.status_code == 200 and r.headers["etag"] != etags[grid[0]]
+
+
+def test_small_fit_replaces_and_large_fit_runs_as_a_job(live_server):
+    server = live_server(env={"BDF_FIT_JOB_POINTS": "500"})
+    spec = RegionSpec.model_validate(SPEC)
+    X, V = data(4, n=400)
+    X2, V2 = data(5, n=3000)
+    Xq = X[:40]
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        c.post("/v1/regions", json=SPEC)
+        c.post(
+            f"/v1/regions/{NAME}/observations",
+            json={"points": X2[:100].tolist(), "velocities": V2[:100].tolist()},
+            headers={"Idempotency-Key": "old"},
+        )
+        r = c.post(
+            f"/v1/regions/{NAME}/fit",
+            json={"points": X.tolist(), "velocities": V.tolist()},
+            headers={"Idempotency-Key": "fit-1"},
+        )
+        assert r.status_code == 200 and r.json()["kind"] == "fit"
+        assert c.get(f"/v1/regions/{NAME}").json()["observations"] == 400
+        got = c.post(f"/v1/regions/{NAME}/query", json={"points": Xq.tolist()}).json()
+        np.testing.assert_allclose(got["mean"], library(spec, X, V, Xq)[0], rtol=1e-9, atol=1e-12)
+
+        r = c.post(
+            f"/v1/regions/{NAME}/fit",
+            content=arrow_table(enu_columns(X2, V2)),
+            headers={"Content-Type": ARROW, "Idempotency-Key": "fit-2"},
+        )
+        assert r.status_code == 202 and r.headers["location"] == f"/v1/jobs/{r.json()['id']}"
+        seen = set()
+        while True:
+            # the old map answers until the new one commits: every answer is one of the two
+            q = c.post(f"/v1/regions/{NAME}/query", json={"points": Xq.tolist()}).json()
+            seen.add(q["region_version"])
+            job = c.get(r.headers["location"]).json()
+            if job["state"] in ("succeeded", "failed"):
+                break
+            time.sleep(0.02)
+        assert job["state"] == "succeeded" and job["progress"] == 1.0, job
+        assert job["result"]["accepted"] == 3000 and job["result"]["region_version"] == 3
+        assert seen <= {2, 3}
+        got = c.post(f"/v1/regions/{NAME}/query", json={"points": Xq.tolist()}).json()
+        np.testing.assert_allclose(got["mean"], library(spec, X2, V2, Xq)[0], rtol=1e-9, atol=1e-12)
+        assert c.get("/v1/jobs/" + "0" * 32).status_code == 404
+
+
+def test_limits_and_errors_are_problem_json(live_server):
+    server = live_server(
+        env={
+            "BDF_MAX_BODY_MB": "0.5",
+            "BDF_MAX_POINTS": "1000",
+            "BDF_MAX_GRID_VOXELS": "5000",
+            "BDF_MAX_JSON_VOXELS": "100",
+        }
+    )
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        c.post("/v1/regions", json=SPEC)
+        X, V = data(6, n=1001)
+        obs = f"/v1/regions/{NAME}/observations"
+        cases = [
+            (c.post(obs, content=b"x" * (2**20), headers={"Idempotency-Key": "k"}), 413, "0.5 MiB"),
+            (
+                c.post(
+                    obs,
+                    content=arrow_table(enu_columns(X, V)),
+                    headers={"Content-Type": ARROW, "Idempotency-Key": "k"},
+                ),
+                422,
+                "limit is 1000",
+            ),
+            (c.post(obs, json={"points": [[0, 0, 0]], "velocities": [[0, 0, 0]]}), 400, "Idempotency-Key"),
+            (
+                c.post(obs, content=b"a,b", headers={"Content-Type": "text/csv", "Idempotency-Key": "k"}),
+                415,
+                "application/json",
+            ),
+            (
+                c.post(obs, content=b"junk", headers={"Content-Type": ARROW, "Idempotency-Key": "k"}),
+                400,
+                "Arrow",
+            ),
+            (
+                c.post(
+                    obs,
+                    content=arrow_table({"x": [1], "y": [1], "ve": [1], "vn": [1], "vu": [1]}),
+                    headers={"Content-Type": ARROW, "Idempotency-Key": "k"},
+                ),
+                422,
+                "columns",
+            ),
+            (
+                c.post(obs, json={"points": [[0, 0, 0]], "velocities": []}, headers={"Idempotency-Key": "k"}),
+                422,
+                "1 points but 0 velocities",
+            ),
+            (
+                c.post(
+                    "/v1/regions/nope/observations",
+                    json={"points": [[0, 0, 0]], "velocities": [[0, 0, 0]]},
+                    headers={"Idempotency-Key": "k"},
+                ),
+                404,
+                "nope",
+            ),
+            (c.post(f"/v1/regions/{NAME}/query", json={"points": [[1e7, 0, 0]]}), 422, "outside region"),
+            (
+                c.post(
+                    f"/v1/regions/{NAME}/query", json={"points": [[0, 0, 0]]}, headers={"Accept": "text/html"}
+                ),
+                406,
+                "available as",
+            ),
+            (c.get(f"/v1/regions/{NAME}/grid", params={"step": "1"}), 422, "limit is 5000"),
+            (c.get(f"/v1/regions/{NAME}/grid", params={"step": "30"}), 422, "too many for JSON"),
+            (
+                c.get(f"/v1/regions/{NAME}/grid", params={"step": "30", "bbox": "0,0,0,1,1,1000"}),
+                422,
+                "leaves region",
+            ),
+            (c.get(f"/v1/regions/{NAME}/grid", params={"step": "-1"}), 422, "positive"),
+            (c.get(f"/v1/regions/{NAME}/grid", params={"step": "a,b"}), 422, "comma-separated"),
+            (
+                c.get(f"/v1/regions/{NAME}/tubes", params={"step": "30", "max_std_mps": "-1"}),
+                422,
+                "max_std_mps",
+            ),
+            (c.get("/v1/regions/Bad%20Name"), 422, "pattern"),
+            (
+                c.post("/v1/regions", json={**SPEC, "tile_size_m": [1, 1, 1], "overlap_m": [0, 0, 0]}),
+                422,
+                "more than 100000",
+            ),
+            (c.post("/v1/regions", json={**SPEC, "colour": "red"}), 422, "colour"),
+            (c.post("/v1/regions", json=SPEC), 409, "exists"),
+        ]
+        for r, status, phrase in cases:
+            assert r.status_code == status, (r.request.url, r.text)
+            assert r.headers["content-type"] == "application/problem+json", r.request.url
+            assert phrase in r.json()["detail"], (r.request.url, r.json())
+        # nothing of it reached the map
+        info = c.get(f"/v1/regions/{NAME}").json()
+        assert (info["version"], info["observations"]) == (0, 0)
+
+
+TOKENS = {"tok-read": ["read"], "tok-write": ["write"], "tok-admin": ["admin"]}
+
+
+def test_every_route_declares_its_scope_and_enforces_it(live_server):
+    """Walks all routes of the OpenAPI document: no token, a wrong token, each scope."""
+    server = live_server(env={"BDF_TOKENS": json.dumps(TOKENS)})
+    paths = create_app(Settings(data_dir="unused-never-created", store_url="sqlite:///:memory:")).openapi()[
+        "paths"
+    ]
+    routes = [(m.upper(), p, op["x-scope"]) for p, ops in paths.items() for m, op in ops.items()]
+    assert {scope for *_, scope in routes} == {"public", "read", "write", "admin"}
+    assert len(routes) == 14
+    fill = {"{name}": NAME, "{job_id}": "0" * 32}
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        for method, path, scope in routes:
+            url = path
+            for k, v in fill.items():
+                url = url.replace(k, v)
+            attempts = {
+                "none": {},
+                "wrong": {"Authorization": "Bearer nope"},
+                "basic": {"Authorization": "Basic tok-admin"},
+            }
+            attempts.update({s: {"Authorization": f"Bearer tok-{s}"} for s in ("read", "write", "admin")})
+            for who, headers in attempts.items():
+                status = c.request(method, url, headers=headers).status_code
+                if scope == "public":
+                    assert status == 200, (method, path, who, status)
+                elif who == scope:
+                    assert status not in (401, 403), (method, path, who, status)
+                elif who in ("none", "wrong", "basic"):
+                    assert status == 401, (method, path, who, status)
+                else:
+                    assert status == 403, (method, path, who, status)
+    assert "tok-" not in server.log()  # tokens never reach the logs
+
+
+def test_serve_refuses_a_public_address_without_tokens_and_warns_when_open(tmp_path, live_server):
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "clients.cli",
+            "serve",
+            "--host",
+            "0.0.0.0",
+            "--data-dir",
+            str(tmp_path / "d"),
+        ],
+        capture_output=True,
+        text=True,
+        env={"PATH": "/usr/bin:/bin"},
+        timeout=60,
+    )
+    assert out.returncode == 2 and "refusing to listen on '0.0.0.0' without tokens" in out.stderr
+    server = live_server()
+    assert "OPEN" in server.log()
+    with pytest.raises(ValueError, match="refusing"):
+        Settings(host="10.1.2.3").check_bind()
+    Settings(host="10.1.2.3", tokens={"t": ["read"]}).check_bind()
+    Settings(host="::1").check_bind()
+
+
+def test_metrics_health_and_request_logs(client, server):
+    X, V = data(7, n=100)
+    client.post(
+        f"/v1/regions/{NAME}/observations",
+        json={"points": X.tolist(), "velocities": V.tolist()},
+        headers={"Idempotency-Key": "m"},
+    )
+    for _ in range(3):
+        client.post(f"/v1/regions/{NAME}/query", json={"points": X[:5].tolist()})
+    assert client.get("/healthz").json() == {"status": "ok"}
+    assert client.get("/readyz").json() == {"status": "ready"}
+    text = client.get("/metrics").text
+    metrics = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            metrics[name] = float(value)
+    assert (
+        metrics['bdf_http_requests_total{method="POST",route="/v1/regions/{name}/query",status="200"}'] == 3
+    )
+    assert (
+        metrics['bdf_http_request_duration_seconds_count{method="POST",route="/v1/regions/{name}/query"}']
+        == 3
+    )
+    assert metrics['bdf_uploads_applied_total{kind="observations"}'] == 1
+    assert metrics['bdf_observations_total{outcome="accepted"}'] == 100
+    assert metrics["bdf_posterior_cache_misses_total"] > 0
+    assert metrics["bdf_posterior_cache_hits_total"] >= 2 * metrics["bdf_posterior_cache_misses_total"]
+    lines = [json.loads(line) for line in server.log().splitlines() if line.startswith("{")]
+    queries = [line for line in lines if line["route"] == "/v1/regions/{name}/query"]
+    assert len(queries) == 3 and all(
+        q["status"] == 200 and q["region"] == NAME and q["ms"] > 0 for q in queries
+    )
+
+
+def test_graceful_shutdown_finishes_an_upload_in_flight(live_server):
+    """SIGTERM while an upload's body is still arriving: the upload completes and commits."""
+    server = live_server()
+    X, V = data(8, n=100_000)
+    body = arrow_table(enu_columns(X, V))
+    half_sent, result = threading.Event(), {}
+
+    def slow_body():
+        yield body[: len(body) // 2]
+        half_sent.set()
+        time.sleep(1.0)  # the server gets SIGTERM now, with this request in flight
+        yield body[len(body) // 2 :]
+
+    def upload():
+        r = httpx.post(
+            f"{server.url}/v1/regions/{NAME}/observations",
+            content=slow_body(),
+            headers={"Content-Type": ARROW, "Idempotency-Key": "big"},
+            timeout=120,
+        )
+        result["status"], result["body"] = r.status_code, r.json()
+
+    httpx.post(f"{server.url}/v1/regions", json=SPEC)
+    thread = threading.Thread(target=upload)
+    thread.start()
+    assert half_sent.wait(30)
+    time.sleep(0.2)
+    assert server.stop() in (0, -15)  # uvicorn re-raises the signal once it has shut down
+    thread.join(60)
+    assert result["status"] == 200 and result["body"]["accepted"] == 100_000
+    restarted = live_server()
+    info = httpx.get(f"{restarted.url}/v1/regions/{NAME}").json()
+    assert (info["version"], info["observations"]) == (1, 100_000)
