@@ -50,6 +50,14 @@ class _Blocks:
         radius = np.sqrt(np.log(1.0 / cutoff) / k.min(axis=0))
         reach = np.ceil(radius / lattice.step).astype(int)
         shape = np.array(lattice.shape)
+        if len(X) < 2 * MIN_POINTS_PER_BLOCK or np.all(2 * reach + 1 >= shape):
+            # every window would be the whole lattice, or too few points to split: one block
+            self.order = np.arange(len(X))
+            self.bounds = np.array([0, len(X)])
+            self.width = shape
+            self.start = np.zeros((len(X), 3), np.int64)
+            self._factors(lattice, X, k)
+            return
         cells = np.floor((X - lattice.origin) / lattice.step).astype(np.int64)
         cells = np.clip(cells, -1, shape - 1)
         # grow blocks until they hold enough points to amortise a BLAS call each
@@ -70,8 +78,12 @@ class _Blocks:
         # exist, so no padding is needed and no window is wider than the lattice.
         self.width = np.minimum(edge + 2 * reach + 1, shape)
         self.start = np.clip(blocks[self.order] * edge - reach, 0, shape - self.width)
-        t = (X[self.order] - lattice.origin) / lattice.step - self.start  # in lattice steps
-        scale = k[self.order] * lattice.step**2
+        self._factors(lattice, X[self.order], k[self.order])
+
+    def _factors(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
+        """Per axis, ``exp(-k (x - g)^2)`` for the lattice points g of each point's window."""
+        t = (X - lattice.origin) / lattice.step - self.start  # in lattice steps
+        scale = k * lattice.step**2
         self.factors = []
         for d in range(3):
             q = t[:, d, None] - np.arange(self.width[d])
@@ -121,6 +133,19 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
         sorted_out[rows] = np.einsum("nxc,nx->nc", txc, fx[rows])
     out[blocks.order] = sorted_out
     return out
+
+
+def gather_grid(lattice: Lattice, axes, T, k) -> np.ndarray:
+    """:func:`gather` at every point of the grid ``axes[0] x axes[1] x axes[2]``, shape
+    (nx, ny, nz, C). The weight is separable, so this is three small contractions with
+    per-axis kernel matrices instead of one product per point; it keeps every lattice
+    term (no cutoff), so it differs from :func:`gather` by less than the cutoff."""
+    k = np.broadcast_to(np.asarray(k, float), (3,))
+    K = [
+        np.exp(-k[d] * (np.asarray(axes[d], float)[:, None] - lattice.axis(d)[None, :]) ** 2)
+        for d in range(3)
+    ]
+    return np.einsum("xi,yj,zk,ijkc->xyzc", *K, np.asarray(T), optimize="optimal")
 
 
 def gram(lattice: Lattice, X, k, amplitude, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:

@@ -59,6 +59,16 @@ class Posterior:
         )
         return np.maximum(var[:, columns] / self.beta, 0.0)
 
+    def predict_grid(self, axes) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and predictive variance (noise included) on the grid ``axes`` (three 1-D
+        arrays), each (nx, ny, nz, 3); separable, see :func:`features.gather_grid`."""
+        if self._variance is None:
+            self._variance = self._variance_density()
+        densities, columns = self._variance
+        mean = features.gather_grid(self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma)
+        var = features.gather_grid(self.grid.midpoints(), axes, densities, 2.0 * self.gamma)[..., columns]
+        return mean, np.maximum(var / self.beta, 0.0) + 1.0 / self.beta
+
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """Mean (N, 3), and the std if asked: predictive, or epistemic without ``1/beta``."""
         mean = self.mean(X)

@@ -178,19 +178,22 @@ class RegionSpec(BaseModel):
 
     def tile_weights(self, key: TileKey, X: np.ndarray) -> np.ndarray:
         """Unnormalised partition-of-unity weight of the tile at ``X`` (n,), see module doc."""
+        return np.prod([self._axis_weight(key, d, X[:, d]) for d in range(3)], axis=0)
+
+    def _axis_weight(self, key: TileKey, d: int, x: np.ndarray) -> np.ndarray:
+        """The tile's weight along axis ``d`` (the weight is a product over axes)."""
         lo, hi = self.core(key)
-        n = np.array(self.tile_counts)
-        w = np.ones(len(X))
-        for d in range(3):
-            o, x = self.overlap_m[d], X[:, d]
-            if o > 0:  # ramps only towards neighbours: the region's outer faces keep weight 1
-                if key[d] > 0:
-                    w *= _ramp((x - lo[d] + o) / (2 * o))
-                if key[d] < n[d] - 1:
-                    w *= _ramp((hi[d] + o - x) / (2 * o))
-            else:  # hard border: each point belongs to the tile whose core holds it
-                home = np.clip(np.floor((x - self.lower[d]) / self.tile_size_m[d]), 0, n[d] - 1)
-                w *= home == key[d]
+        n = self.tile_counts[d]
+        o = self.overlap_m[d]
+        w = np.ones(len(x))
+        if o > 0:  # ramps only towards neighbours: the region's outer faces keep weight 1
+            if key[d] > 0:
+                w *= _ramp((x - lo[d] + o) / (2 * o))
+            if key[d] < n - 1:
+                w *= _ramp((hi[d] + o - x) / (2 * o))
+        else:  # hard border: each point belongs to the tile whose core holds it
+            home = np.clip(np.floor((x - self.lower[d]) / self.tile_size_m[d]), 0, n - 1)
+            w *= home == key[d]
         return w
 
     def _inside_points(self, X) -> np.ndarray:
@@ -274,12 +277,72 @@ class RegionSpec(BaseModel):
             var[idx] += w[:, None] * (v + (mu - mean[idx]) ** 2)
         return mean, np.sqrt(var / weight_sum[:, None]), known
 
-    def _prior_variance(self, key: TileKey, X: np.ndarray) -> np.ndarray:
-        """``1/beta + phi^T phi / alpha`` per component: a tile that has seen nothing."""
+    def predict_grid(
+        self, axes, posterior: Callable[[TileKey], Posterior | None] | Mapping[TileKey, Posterior]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]`` (inside the region):
+        mean and std (nx, ny, nz, 3), known (nx, ny, nz). Kernels and blending weights are
+        separable, so each tile costs a few small contractions on its part of the grid."""
+        if isinstance(posterior, Mapping):
+            posterior = posterior.get
+        axes = [np.asarray(a, float).ravel() for a in axes]
+        for d, a in enumerate(axes):
+            if (
+                len(a) == 0
+                or not np.all(np.isfinite(a))
+                or a.min() < self.lower[d]
+                or a.max() > self.upper[d]
+            ):
+                raise ValueError(f"grid axis {d} must be finite, non-empty and inside region {self.name!r}")
+        shape = tuple(len(a) for a in axes)
+        mean, weight_sum, known = np.zeros((*shape, 3)), np.zeros(shape), np.zeros(shape, bool)
+        parts = []
+        for key in self.tiles_overlapping([a.min() for a in axes], [a.max() for a in axes]):
+            lo, hi = self._grown(key)
+            sel, w_axes = [], []
+            for d in range(3):
+                idx = np.flatnonzero((axes[d] >= lo[d]) & (axes[d] <= hi[d]))
+                w = self._axis_weight(key, d, axes[d][idx])
+                sel.append(idx[w > 0])
+                w_axes.append(w[w > 0])
+            if min(len(i) for i in sel) == 0:
+                continue
+            block = np.ix_(*sel)
+            w = w_axes[0][:, None, None] * w_axes[1][None, :, None] * w_axes[2][None, None, :]
+            sub = [axes[d][sel[d]] for d in range(3)]
+            post = posterior(key)
+            if post is None:
+                mu, var = np.zeros((*w.shape, 3)), self._prior_variance(key, grid_axes=sub)
+            else:
+                mu, var = post.predict_grid(sub)
+                known[block] = True
+            mean[block] += w[..., None] * mu
+            weight_sum[block] += w
+            parts.append((block, w, mu, var))
+        mean /= weight_sum[..., None]
+        var = np.zeros((*shape, 3))
+        for block, w, mu, v in parts:
+            var[block] += w[..., None] * (v + (mu - mean[block]) ** 2)
+        return mean, np.sqrt(var / weight_sum[..., None]), known
+
+    def tiles_overlapping(self, lo, hi) -> list[TileKey]:
+        """Keys of the tiles whose grown box meets the box ``lo .. hi``."""
+        size, overlap, n = np.array(self.tile_size_m), np.array(self.overlap_m), np.array(self.tile_counts)
+        first = np.clip(np.floor((np.asarray(lo) - overlap - self.lower) / size).astype(int), 0, n - 1)
+        last = np.clip(np.floor((np.asarray(hi) + overlap - self.lower) / size).astype(int), 0, n - 1)
+        return list(itertools.product(*(range(int(a), int(b) + 1) for a, b in zip(first, last, strict=True))))
+
+    def _prior_variance(self, key: TileKey, X: np.ndarray | None = None, grid_axes=None) -> np.ndarray:
+        """``1/beta + phi^T phi / alpha`` per component: a tile that has seen nothing (at
+        points ``X``, or on the grid ``grid_axes``)."""
         alpha = EMPTY_ALPHA if self.alpha == "auto" else np.broadcast_to(np.asarray(self.alpha), (3,))
         beta = EMPTY_BETA if self.beta == "auto" else np.broadcast_to(np.asarray(self.beta), (3,))
         grid = self.tile_grid(key)
-        norm = features.gather(grid, X, np.ones((*grid.shape, 1)), 2.0 * np.array(self.gamma))
+        ones, k = np.ones((*grid.shape, 1)), 2.0 * np.array(self.gamma)
+        if grid_axes is None:
+            norm = features.gather(grid, X, ones, k)
+        else:
+            norm = features.gather_grid(grid, grid_axes, ones, k)
         return norm / alpha + 1.0 / beta
 
 

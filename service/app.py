@@ -12,6 +12,7 @@ import logging
 from contextlib import asynccontextmanager
 from typing import Annotated, Literal
 
+import anyio
 import numpy as np
 from fastapi import APIRouter, FastAPI, Header, Path, Query, Request, Response
 from fastapi.responses import JSONResponse
@@ -24,7 +25,7 @@ from service import formats, problems
 from service.auth import PUBLIC, require
 from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET
 from service.jobs import Jobs
-from service.maps import RegionMaps
+from service.maps import Prediction, RegionMaps
 from service.problems import Problem
 from service.settings import Settings
 from service.store import MapStore, RegionInfo, open_store
@@ -300,7 +301,9 @@ def _grid_prediction(request: Request, name: str, bbox: str | None, step: str):
     if _not_modified(request, _etag(info.region_id, info.version)):
         return None, Response(status_code=304, headers={"ETag": _etag(info.region_id, info.version)})
     axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
-    return axes, app.state.maps.predict(name, _mesh(axes))
+    pred = app.state.maps.predict_grid(name, axes)
+    flat = (pred.mean.reshape(-1, 3), pred.std.reshape(-1, 3), pred.known.ravel())
+    return axes, Prediction(*flat, pred.version, pred.region_id)
 
 
 BBox = Annotated[str | None, Query(description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")]
@@ -482,6 +485,8 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        # requests compute in this many threads at once; more only fight over the GIL
+        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.threads
         yield
         app.state.jobs.shutdown()  # graceful: running fits finish and commit
         app.state.maps.store.close()

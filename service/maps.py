@@ -147,17 +147,37 @@ class RegionMaps:
         spec = self.store.region(region).spec
         X = np.asarray(X, float)
         groups = spec.tiles_containing(X)  # validates X, names the outside rows
+        posteriors, info = self._posteriors(region, spec, groups)
+        if posteriors is None:  # the name was re-created in between: start again
+            return self.predict(region, X)
+        mean, std, known = spec.predict(X, posteriors, groups)
+        return Prediction(mean, std, known, info.version, info.region_id)
+
+    def predict_grid(self, region: str, axes) -> Prediction:
+        """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
+        (nx, ny, nz, 3) and (nx, ny, nz)."""
+        spec = self.store.region(region).spec
+        keys = spec.tiles_overlapping([np.min(a) for a in axes], [np.max(a) for a in axes])
+        posteriors, info = self._posteriors(region, spec, keys)
+        if posteriors is None:
+            return self.predict_grid(region, axes)
+        mean, std, known = spec.predict_grid(axes, posteriors)
+        return Prediction(mean, std, known, info.version, info.region_id)
+
+    def _posteriors(self, region: str, spec, keys):
+        """Posteriors of those ``keys`` that hold data, from one snapshot (cache first), and
+        the region's info; ``(None, info)`` if the region no longer has ``spec``."""
         found = {}
 
         def need(region_id: str, key: TileKey, version: int) -> bool:
             found[key] = self.cache.get((region_id, key, version))
             return found[key] is None
 
-        snap = self.store.snapshot(region, groups, need=need)
-        if snap.region.spec != spec:  # the name was re-created in between: start again
-            return self.predict(region, X)
+        snap = self.store.snapshot(region, keys, need=need)
+        if snap.region.spec != spec:
+            return None, snap.region
         posteriors = {}
-        for key in groups:
+        for key in keys:
             tile = snap.tiles.get(key)
             if tile is None:
                 continue  # no data: the prior answers
@@ -166,5 +186,4 @@ class RegionMaps:
                 post = spec.posterior(key, snap.evidence[key])
                 self.cache.put((snap.region.region_id, key, tile.version), post)
             posteriors[key] = post
-        mean, std, known = spec.predict(X, posteriors, groups)
-        return Prediction(mean, std, known, snap.region.version, snap.region.region_id)
+        return posteriors, snap.region

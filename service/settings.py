@@ -37,6 +37,9 @@ class Settings(BaseSettings):
     store_url: str | None = Field(
         None, description="sqlite:///dir or postgresql://...; default: SQLite in data_dir"
     )
+    threads: int = Field(
+        2, ge=1, le=256, description="requests computing at once per worker (more queue, not thrash)"
+    )
     cache_mb: float = Field(512.0, gt=0, description="memory for cached tile posteriors, per worker")
     tokens: dict[SecretStr, list[Scope]] = Field(default_factory=dict, description="bearer token -> scopes")
     max_body_mb: float = Field(256.0, gt=0, description="largest request body (413 above)")

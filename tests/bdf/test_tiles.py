@@ -203,3 +203,23 @@ def test_stored_blob_round_trips_with_and_without_noisy_points(small):
         assert (back.gram_noisy is None) == (evidence.gram_noisy is None)
     with pytest.raises(ValueError, match="does not fit a grid"):
         Evidence.from_bytes(evidence.to_bytes()[:-8], grid)
+
+
+@pytest.mark.parametrize("overlap", [[20, 20, 0], [0, 0, 0]])
+def test_grid_prediction_equals_point_prediction(small, overlap):
+    """The separable grid path against the per-point path, with a tile left empty (prior)."""
+    _, X, V = small
+    spec = RegionSpec.model_validate({**SMALL, "overlap_m": overlap})
+    keep = X[:, 0] < 170  # the tiles (2, *, 0) get no data
+    posts = posteriors(spec, spec.increments(X[keep], V[keep]))
+    axes = [np.linspace(3, 300, 23), np.linspace(0, 197, 17), np.array([0.0, 31.5, 60.0])]
+    mean, std, known = spec.predict_grid(axes, posts)
+    mesh = np.stack([m.ravel() for m in np.meshgrid(*axes, indexing="ij")], axis=1)
+    m, s, k = spec.predict(mesh, posts)
+    assert mean.shape == (23, 17, 3, 3) and known.shape == (23, 17, 3)
+    assert 0 < (~k).sum() < len(k)  # both data and prior answers are on the grid
+    np.testing.assert_allclose(mean.reshape(-1, 3), m, rtol=1e-9, atol=1e-9 * np.abs(m).max())
+    np.testing.assert_allclose(std.reshape(-1, 3), s, rtol=1e-9)
+    np.testing.assert_array_equal(known.ravel(), k)
+    with pytest.raises(ValueError, match="inside region"):
+        spec.predict_grid([axes[0] + 10, axes[1], axes[2]], posts)

@@ -33,65 +33,17 @@ def store(store_url):
     s.close()
 
 
-class LiveServer:
-    """``bdf serve`` in a subprocess on 127.0.0.1 (a real uvicorn), its log in a file."""
-
-    def __init__(self, tmp_path, env: dict, args=()):
-        import socket
-        import subprocess
-        import sys
-        import time
-
-        import httpx
-
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            self.port = sock.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log_path = tmp_path / f"server-{self.port}.log"
-        full_env = {k: v for k, v in os.environ.items() if not k.startswith("BDF_")}
-        full_env.update({"BDF_DATA_DIR": str(tmp_path / "data"), "BDF_LOG_LEVEL": "info", **env})
-        cmd = [sys.executable, "-m", "clients.cli", "serve", "--port", str(self.port), *args]
-        with open(self.log_path, "wb") as log:
-            self.proc = subprocess.Popen(cmd, env=full_env, stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 30
-        while True:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"the server exited ({self.proc.returncode}):\n{self.log()}")
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                self.stop()
-                raise RuntimeError(f"the server did not start:\n{self.log()}")
-            time.sleep(0.1)
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-    def stop(self) -> int:
-        import signal
-        import subprocess
-
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        return self.proc.returncode
-
-
 @pytest.fixture
 def live_server(tmp_path):
-    """A factory: ``live_server(env={...}, args=[...])`` starts a server, stopped at teardown."""
+    """A factory: ``live_server(env={...}, args=[...])`` starts ``bdf serve`` on 127.0.0.1
+    (data in ``tmp_path/data``, logging at info), stopped at teardown."""
+    from clients.local import LocalService
+
     servers = []
 
     def start(env=None, args=()):
-        servers.append(LiveServer(tmp_path, env or {}, args))
+        log = tmp_path / f"server-{len(servers)}.log"
+        servers.append(LocalService(tmp_path / "data", {"BDF_LOG_LEVEL": "info", **(env or {})}, args, log))
         return servers[-1]
 
     yield start

@@ -1,0 +1,72 @@
+"""A service on this machine for demos, benchmarks and tests: ``bdf serve`` in a subprocess
+on 127.0.0.1, started on a free port, ready when it returns, stopped with SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+
+class LocalService:
+    """``with LocalService(data_dir) as svc: httpx.get(svc.url + "/healthz")``.
+
+    ``env``: extra ``BDF_*`` settings; the caller's ``BDF_*`` variables are not inherited,
+    so the service sees exactly what is asked for. The log goes to ``log_path``.
+    """
+
+    def __init__(
+        self, data_dir, env: dict | None = None, args=(), log_path=None, start_timeout_s: float = 60
+    ):
+        data_dir = Path(data_dir)
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            self.port = sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = Path(log_path or data_dir / f"server-{self.port}.log")
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        full_env = {k: v for k, v in os.environ.items() if not k.startswith("BDF_")}
+        full_env.update({"BDF_DATA_DIR": str(data_dir), **(env or {})})
+        cmd = [sys.executable, "-m", "clients.cli", "serve", "--port", str(self.port), *args]
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(cmd, env=full_env, stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + start_timeout_s
+        while not self._healthy():
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"the service exited ({self.proc.returncode}):\n{self.log()}")
+            if time.monotonic() > deadline:
+                self.stop()
+                raise RuntimeError(f"the service did not start within {start_timeout_s} s:\n{self.log()}")
+            time.sleep(0.1)
+
+    def _healthy(self) -> bool:
+        try:
+            return httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, timeout_s: float = 60) -> int:
+        """SIGTERM (graceful: requests in flight finish), then SIGKILL after ``timeout_s``."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+    def __enter__(self) -> LocalService:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
