@@ -29,6 +29,7 @@ demo: install
 bench: install
 	$(PY) bench/bench_core.py
 	$(PY) bench/bench_tiles.py
+	$(PY) bench/bench_service.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 
 #: Hyperparameters used for "auto" while a field holds no data (the paper's values).
 EMPTY_ALPHA, EMPTY_BETA = 1e-2, 1e2
+#: "auto" beta stays below this (noise std >= 1 mm/s): a component observed as exactly
+#: constant (vertical speed 0 everywhere) would otherwise get beta -> inf and std -> 0.
+MAX_AUTO_BETA = 1e6
 
 
 @dataclass
@@ -84,6 +87,8 @@ def _hyper_for(sol: Solution, alpha, beta, count: float):
     """alpha, beta (3,) implied by ``sol.lam`` and whichever of them is fixed."""
     if isinstance(beta, str):
         beta = count / sol.residual if isinstance(alpha, str) else alpha / sol.lam
+        # the evidence is concave in beta, so the constrained optimum is the bound
+        beta = np.minimum(beta, MAX_AUTO_BETA)
     beta = np.broadcast_to(np.asarray(beta, float), (3,))
     return sol.lam * beta, beta
 

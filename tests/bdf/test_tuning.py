@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from bdf import BayesianDynamicField
 from bdf.tuning import cross_validate
 from tests.bdf.conftest import LOWER, UPPER, flow
 
@@ -31,3 +32,16 @@ def test_cross_validation_rejects_bad_arguments():
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], score="r2")
     with pytest.raises(ValueError, match="2 groups cannot fill 3 folds"):
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], n_splits=3, groups=np.arange(10) % 2)
+
+
+def test_auto_beta_is_bounded_for_a_constant_component():
+    """Vertical speed exactly 0 everywhere: the noise std stops at 1 mm/s, not 1e-150."""
+    from bdf.tuning import MAX_AUTO_BETA
+
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 100, (400, 3))
+    V = np.stack([np.sin(X[:, 0] / 20), np.cos(X[:, 1] / 20), np.zeros(len(X))], axis=1)
+    f = BayesianDynamicField([0, 0, 0], [100, 100, 100], 20, 1 / 400, alpha="auto", beta="auto").fit(X, V)
+    assert f.beta_[2] == MAX_AUTO_BETA and f.beta_[0] < MAX_AUTO_BETA
+    _, std = f.predict(X[:5], return_std=True)
+    assert np.all(std[:, 2] >= MAX_AUTO_BETA**-0.5) and np.all(std[:, 2] < 1e-2)

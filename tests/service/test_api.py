@@ -41,8 +41,9 @@ def enu_columns(X, V):
 
 
 @pytest.fixture
-def server(live_server):
-    return live_server()
+def server(live_server, store_url):
+    """A server on each store backend (SQLite, and PostgreSQL where configured)."""
+    return live_server(env={"BDF_STORE_URL": store_url})
 
 
 @pytest.fixture
