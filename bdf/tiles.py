@@ -113,7 +113,7 @@ class RegionSpec(BaseModel):
     def upper(self) -> np.ndarray:
         return np.array(self.bounds_m.max, float)
 
-    @property
+    @functools.cached_property  # a tuple: equality of specs still compares fields only
     def tile_counts(self) -> tuple[int, int, int]:
         n = np.ceil((self.upper - self.lower) / np.array(self.tile_size_m) - 1e-9).astype(int)
         return tuple(int(c) for c in np.maximum(n, 1))
@@ -182,15 +182,15 @@ class RegionSpec(BaseModel):
 
     def _axis_weight(self, key: TileKey, d: int, x: np.ndarray) -> np.ndarray:
         """The tile's weight along axis ``d`` (the weight is a product over axes)."""
-        lo, hi = self.core(key)
-        n = self.tile_counts[d]
-        o = self.overlap_m[d]
+        n, o, size = self.tile_counts[d], self.overlap_m[d], self.tile_size_m[d]
+        lo = self.bounds_m.min[d] + key[d] * size
+        hi = min(lo + size, self.bounds_m.max[d])
         w = np.ones(len(x))
         if o > 0:  # ramps only towards neighbours: the region's outer faces keep weight 1
             if key[d] > 0:
-                w *= _ramp((x - lo[d] + o) / (2 * o))
+                w *= _ramp((x - lo + o) / (2 * o))
             if key[d] < n - 1:
-                w *= _ramp((hi[d] + o - x) / (2 * o))
+                w *= _ramp((hi + o - x) / (2 * o))
         else:  # hard border: each point belongs to the tile whose core holds it
             home = np.clip(np.floor((x - self.lower[d]) / self.tile_size_m[d]), 0, n - 1)
             w *= home == key[d]
