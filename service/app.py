@@ -34,13 +34,12 @@ from service.telemetry import Metrics, RequestMiddleware
 log = logging.getLogger("bdf.service")
 NAME = r"^[a-z0-9][a-z0-9_-]{0,62}$"
 RegionName = Annotated[str, Path(pattern=NAME, description="region name")]
-ARROW_IN = {"content": {m: {"schema": {"type": "string", "format": "binary"}} for m in (ARROW, PARQUET)}}
 
 
-def _body_doc(model: type[BaseModel], binary: bool) -> dict:
+def _body_doc(model: type[BaseModel], binary: tuple[str, ...]) -> dict:
+    """The request body in OpenAPI: the JSON model and the binary media types also taken."""
     content = {JSON: {"schema": model.model_json_schema(ref_template="#/components/schemas/{model}")}}
-    if binary:
-        content.update(ARROW_IN["content"])
+    content.update({m: {"schema": {"type": "string", "format": "binary"}} for m in binary})
     return {"requestBody": {"required": True, "content": content}}
 
 
@@ -189,7 +188,7 @@ IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key")]
 @router.post(
     "/regions/{name}/observations",
     response_model=UploadResult,
-    **scoped("write", **_body_doc(formats.ObservationsBody, binary=True)),
+    **scoped("write", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
 async def post_observations(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
     """Add observations to the map (exactly once per Idempotency-Key)."""
@@ -216,7 +215,7 @@ def _observations(app, name: str, body: bytes, content_type: str | None) -> form
     "/regions/{name}/fit",
     response_model=UploadResult,
     responses={202: {"model": JobView, "description": "a large fit runs as a job"}},
-    **scoped("write", **_body_doc(formats.ObservationsBody, binary=True)),
+    **scoped("write", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
 async def post_fit(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
     """Replace the map with this data. Large bodies run as a job (202); the old map keeps
@@ -256,7 +255,7 @@ def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Re
 @router.post(
     "/regions/{name}/query",
     response_model=formats.QueryResult,
-    **scoped("read", **_body_doc(formats.QueryBody, binary=False)),
+    **scoped("read", **_body_doc(formats.QueryBody, binary=(ARROW,))),
 )
 async def query(name: RegionName, request: Request):
     """Predictive mean and std at points; Arrow in and out on request."""

@@ -376,12 +376,10 @@ def test_limits_and_errors_are_problem_json(live_server):
 TOKENS = {"tok-read": ["read"], "tok-write": ["write"], "tok-admin": ["admin"]}
 
 
-def test_every_route_declares_its_scope_and_enforces_it(live_server):
+def test_every_route_declares_its_scope_and_enforces_it(live_server, tmp_path):
     """Walks all routes of the OpenAPI document: no token, a wrong token, each scope."""
     server = live_server(env={"BDF_TOKENS": json.dumps(TOKENS)})
-    paths = create_app(Settings(data_dir="unused-never-created", store_url="sqlite:///:memory:")).openapi()[
-        "paths"
-    ]
+    paths = create_app(Settings(store_url=f"sqlite:///{tmp_path / 'openapi'}")).openapi()["paths"]
     routes = [(m.upper(), p, op["x-scope"]) for p, ops in paths.items() for m, op in ops.items()]
     assert {scope for *_, scope in routes} == {"public", "read", "write", "admin"}
     assert len(routes) == 14
