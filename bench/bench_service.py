@@ -14,15 +14,15 @@ generator is asyncio + httpx in this process (it shares the 2 cores with the ser
 
 from __future__ import annotations
 
-import argparse
 import asyncio
+import contextlib
 import datetime
+import json
 import os
 import platform
 import sys
 import tempfile
 import time
-import uuid
 from pathlib import Path
 
 import httpx
@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import publish  # bench/ is on the path when run as a script
-from bench_tiles import GRIDS, region_spec, table
+from bench_tiles import GRIDS, arguments, postgres_schema, region_spec, table
 
 from bdf import ingest
 from clients.local import LocalService
@@ -83,12 +83,7 @@ def query_bodies(points, n, fmt, seed=0):
         if fmt == "arrow":
             bodies.append((arrow_points(X), {"Content-Type": ARROW, "Accept": ARROW}))
         else:
-            bodies.append(
-                (
-                    httpx.Request("POST", "/", json={"points": X.tolist()}).content,
-                    {"Content-Type": "application/json"},
-                )
-            )
+            bodies.append((json.dumps({"points": X.tolist()}).encode(), {"Content-Type": "application/json"}))
     return bodies
 
 
@@ -182,12 +177,9 @@ def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], 
 
 
 def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--postgres", default=os.environ.get("BDF_TEST_POSTGRES_URL"), help="PostgreSQL URL")
+    parser = arguments(__doc__)
     parser.add_argument("--seconds", type=float, default=10.0, help="duration of each concurrent query run")
-    parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
+    parser.add_argument("--threads", type=int, default=2, help="the service's compute threads (BDF_THREADS)")
     args = parser.parse_args()
 
     obs, lower, upper = ingest.load_paris()
@@ -197,28 +189,18 @@ def main():
         f"## HTTP service, {datetime.date.today()}",
         "",
         f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
-        f"{os.cpu_count()} cores; one uvicorn worker; the load generator shares the machine. "
-        "Paris map of bench_tiles (core grid), "
+        f"{os.cpu_count()} cores; one uvicorn worker with {args.threads} compute threads; the load "
+        "generator shares the machine. Paris map of bench_tiles (core grid), "
         f"fitted over HTTP from {int((~test).sum())} rows in one Arrow body. Targets: 1,000-point query p50 "
         "< 20 ms with Arrow; 100x100x30 grid < 300 ms warm.",
     ]
-    backends = [("SQLite", {})]
-    if args.postgres:
-        backends.append(
-            ("PostgreSQL", {"BDF_STORE_URL": f"{args.postgres}?schema=bench_{uuid.uuid4().hex[:8]}"})
-        )
-    for name, env in backends:
-        with tempfile.TemporaryDirectory() as tmp:
-            try:
-                rows, fit_s = run({"BDF_LOG_LEVEL": "warning", **env}, tmp, spec, obs, test, args.seconds)
-            finally:
-                if "BDF_STORE_URL" in env:
-                    import psycopg
-
-                    with psycopg.connect(args.postgres, autocommit=True) as conn:
-                        conn.execute(
-                            f"DROP SCHEMA IF EXISTS {env['BDF_STORE_URL'].split('schema=')[1]} CASCADE"
-                        )
+    backends = ["SQLite", "PostgreSQL"] if args.postgres else ["SQLite"]
+    for name in backends:
+        env = {"BDF_LOG_LEVEL": "warning", "BDF_THREADS": str(args.threads)}
+        with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+            if name == "PostgreSQL":
+                env["BDF_STORE_URL"] = stack.enter_context(postgres_schema(args.postgres))
+            rows, fit_s = run(env, tmp, spec, obs, test, args.seconds)
         report += ["", f"{name}: fit over HTTP {fit_s:.2f} s", "", table(rows)]
         print(table(rows), flush=True)
     publish([*report, ""], not args.no_append)

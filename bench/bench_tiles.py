@@ -17,6 +17,7 @@ each (tracks as they arrive), applied one after another after the accuracy run.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import os
 import platform
@@ -126,13 +127,30 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def main():
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+def arguments(doc: str) -> argparse.ArgumentParser:
+    """The options the store benchmarks share: --postgres URL, --no-append."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--postgres", default=os.environ.get("BDF_TEST_POSTGRES_URL"), help="PostgreSQL URL")
-    parser.add_argument("--uploads", type=int, default=50, help="1,000-point uploads to time")
     parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
+    return parser
+
+
+@contextlib.contextmanager
+def postgres_schema(url: str):
+    """A store URL on a fresh schema of the server at ``url``; the schema is dropped after."""
+    schema = f"bench_{uuid.uuid4().hex[:8]}"
+    try:
+        yield f"{url}?schema={schema}"
+    finally:
+        import psycopg
+
+        with psycopg.connect(url, autocommit=True) as conn:
+            conn.execute(f"DROP SCHEMA IF EXISTS {schema} CASCADE")
+
+
+def main():
+    parser = arguments(__doc__)
+    parser.add_argument("--uploads", type=int, default=50, help="1,000-point uploads to time")
     args = parser.parse_args()
 
     obs, lower, upper = ingest.load_paris()
@@ -161,14 +179,8 @@ def main():
             res = run_backend(f"sqlite:///{tmp}", spec, obs, test, weight, args.uploads)
             rows.append({"map": f"tiled, SQLite, {grid_name}", "M": m_tile, **res})
         if args.postgres:
-            schema = f"bench_{uuid.uuid4().hex[:8]}"
-            try:
-                res = run_backend(f"{args.postgres}?schema={schema}", spec, obs, test, weight, args.uploads)
-            finally:
-                import psycopg
-
-                with psycopg.connect(args.postgres, autocommit=True) as conn:
-                    conn.execute(f"DROP SCHEMA IF EXISTS {schema} CASCADE")
+            with postgres_schema(args.postgres) as url:
+                res = run_backend(url, spec, obs, test, weight, args.uploads)
             rows.append({"map": f"tiled, PostgreSQL, {grid_name}", "M": m_tile, **res})
         if hyper is not None:  # the same tiles with region-wide alpha, beta (the single field's evidence fit)
             pinned = spec.model_copy(update=hyper)

@@ -34,8 +34,7 @@ def _serve(args) -> int:
     same settings.
     """
     # Requests are the unit of parallelism: one BLAS thread each (set before numpy loads;
-    # worker processes inherit it). Measured: 16 concurrent queries on 2 cores ran 3x slower
-    # in total with OpenBLAS's own threads competing for the cores.
+    # worker processes inherit it), so BLAS threads do not compete with request threads.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     import uvicorn

@@ -25,7 +25,7 @@ from service import formats, problems
 from service.auth import PUBLIC, require
 from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET
 from service.jobs import Jobs
-from service.maps import Prediction, RegionMaps
+from service.maps import RegionMaps
 from service.problems import Problem
 from service.settings import Settings
 from service.store import MapStore, RegionInfo, open_store
@@ -273,7 +273,7 @@ async def query(name: RegionName, request: Request):
             formats.media_type(request.headers.get("content-type")),
             app.state.settings.max_query_points,
         )
-        pred = app.state.maps.predict(name, X)
+        pred = app.state.maps.predict(name, X, spec=info.spec)
         headers = {"ETag": _etag(pred.region_id, pred.version)}
         if out == ARROW:
             columns = {
@@ -294,15 +294,14 @@ async def query(name: RegionName, request: Request):
 
 
 def _grid_prediction(request: Request, name: str, bbox: str | None, step: str):
-    """(axes, prediction reshaped to the grid) or a 304 response."""
+    """(spec, axes, prediction on the grid), or (None, None, a 304 response)."""
     app = request.app
     info = app.state.maps.store.region(name)
-    if _not_modified(request, _etag(info.region_id, info.version)):
-        return None, Response(status_code=304, headers={"ETag": _etag(info.region_id, info.version)})
+    etag = _etag(info.region_id, info.version)
+    if _not_modified(request, etag):
+        return None, None, Response(status_code=304, headers={"ETag": etag})
     axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
-    pred = app.state.maps.predict_grid(name, axes)
-    flat = (pred.mean.reshape(-1, 3), pred.std.reshape(-1, 3), pred.known.ravel())
-    return axes, Prediction(*flat, pred.version, pred.region_id)
+    return info.spec, axes, app.state.maps.predict_grid(name, axes, spec=info.spec)
 
 
 BBox = Annotated[str | None, Query(description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")]
@@ -319,42 +318,36 @@ def grid(name: RegionName, request: Request, step: Step, bbox: BBox = None):
     3), known (nx, ny, nz), x, y, z), Arrow (one row per voxel, C order; ``shape`` in the
     schema metadata), or JSON for small grids."""
     out = formats.negotiate(request.headers.get("accept"), [JSON, NPZ, ARROW])
-    axes, pred = _grid_prediction(request, name, bbox, step)
+    _, axes, pred = _grid_prediction(request, name, bbox, step)
     if axes is None:
         return pred
-    shape = tuple(len(a) for a in axes)
+    shape = pred.known.shape
     headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
     if out == NPZ:
         body = formats.npz_bytes(
-            mean=pred.mean.reshape(*shape, 3),
-            std=pred.std.reshape(*shape, 3),
-            known=pred.known.reshape(shape),
-            x=axes[0],
-            y=axes[1],
-            z=axes[2],
+            mean=pred.mean, std=pred.std, known=pred.known, x=axes[0], y=axes[1], z=axes[2]
         )
         return Response(body, media_type=NPZ, headers=headers)
-    X = _mesh(axes)
     if out == ARROW:
         columns = {
-            **formats.vector_columns("", X, ("x", "y", "z")),
-            **formats.vector_columns("v", pred.mean),
-            **formats.vector_columns("std_", pred.std),
-            "known": pred.known,
+            **formats.vector_columns("", _mesh(axes), ("x", "y", "z")),
+            **formats.vector_columns("v", pred.mean.reshape(-1, 3)),
+            **formats.vector_columns("std_", pred.std.reshape(-1, 3)),
+            "known": pred.known.ravel(),
         }
         return Response(
             formats.arrow_bytes(columns, {"shape": ",".join(map(str, shape))}),
             media_type=ARROW,
             headers=headers,
         )
-    _json_size(len(X), request.app.state.settings)
+    _json_size(pred.known.size, request.app.state.settings)
     content = {
         "x": axes[0].tolist(),
         "y": axes[1].tolist(),
         "z": axes[2].tolist(),
-        "mean": pred.mean.reshape(*shape, 3).tolist(),
-        "std": pred.std.reshape(*shape, 3).tolist(),
-        "known": pred.known.reshape(shape).tolist(),
+        "mean": pred.mean.tolist(),
+        "std": pred.std.tolist(),
+        "known": pred.known.tolist(),
         "region_version": pred.version,
     }
     return JSONResponse(content, headers=headers)
@@ -386,20 +379,20 @@ def tubes(
     where some tile has data, with their mean velocity: GeoJSON points (lon, lat, alt),
     npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow."""
     out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
-    axes, pred = _grid_prediction(request, name, bbox, step)
+    spec, axes, pred = _grid_prediction(request, name, bbox, step)
     if axes is None:
         return pred
-    shape = tuple(len(a) for a in axes)
-    std = pred.std if component == "all" else pred.std[:, ["e", "n", "u"].index(component), None]
-    inside = pred.known & (std < max_std_mps).all(axis=1)
-    X, idx = _mesh(axes), np.flatnonzero(inside)
+    bounded = pred.std if component == "all" else pred.std[..., ["e", "n", "u"].index(component), None]
+    inside = pred.known & (bounded < max_std_mps).all(axis=-1)
+    idx = np.flatnonzero(inside)
+    X, mean, std = _mesh(axes)[idx], pred.mean.reshape(-1, 3)[idx], pred.std.reshape(-1, 3)[idx]
     headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
     if out == NPZ:
         body = formats.npz_bytes(
-            points=X[idx],
-            mean=pred.mean[idx],
-            std=pred.std[idx],
-            mask=inside.reshape(shape),
+            points=X,
+            mean=mean,
+            std=std,
+            mask=inside,
             x=axes[0],
             y=axes[1],
             z=axes[2],
@@ -407,14 +400,13 @@ def tubes(
         return Response(body, media_type=NPZ, headers=headers)
     if out == ARROW:
         columns = {
-            **formats.vector_columns("", X[idx], ("x", "y", "z")),
-            **formats.vector_columns("v", pred.mean[idx]),
-            **formats.vector_columns("std_", pred.std[idx]),
+            **formats.vector_columns("", X, ("x", "y", "z")),
+            **formats.vector_columns("v", mean),
+            **formats.vector_columns("std_", std),
         }
         return Response(formats.arrow_bytes(columns), media_type=ARROW, headers=headers)
     _json_size(len(idx), request.app.state.settings)
-    spec = request.app.state.maps.store.region(name).spec
-    geo = spec.frame().to_geodetic(X[idx])
+    geo = spec.frame().to_geodetic(X)
     features = [
         {
             "type": "Feature",
@@ -422,7 +414,7 @@ def tubes(
             "properties": {"enu": x, "mean": m, "std": s},
         }
         for (lat, lon, alt), x, m, s in zip(
-            geo.tolist(), X[idx].tolist(), pred.mean[idx].tolist(), pred.std[idx].tolist(), strict=True
+            geo.tolist(), X.tolist(), mean.tolist(), std.tolist(), strict=True
         )
     ]
     content = {
@@ -502,7 +494,9 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     app.state.jobs = Jobs()
     app.state.metrics = Metrics(maps.cache)
     problems.install(app)
-    app.add_middleware(RequestMiddleware, max_body_bytes=int(settings.max_body_mb * 2**20))
+    app.add_middleware(
+        RequestMiddleware, max_body_bytes=int(settings.max_body_mb * 2**20), metrics=app.state.metrics
+    )
     app.include_router(router)
     app.include_router(ops)
     return app

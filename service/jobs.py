@@ -7,6 +7,7 @@ loses data: re-posting the fit with the same Idempotency-Key replays or redoes i
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -34,7 +35,7 @@ class Job:
     finished_at: float | None = None
 
     def public(self) -> dict:
-        return {k: v for k, v in self.__dict__.items()}
+        return dataclasses.asdict(self)
 
 
 class Jobs:

@@ -17,7 +17,7 @@ import numpy as np
 
 from bdf._validate import noise_std_rows
 from bdf.field import Posterior
-from bdf.tiles import TileKey
+from bdf.tiles import RegionSpec, TileKey
 from service.store import MapStore, payload_digest
 
 log = logging.getLogger(__name__)
@@ -142,21 +142,24 @@ class RegionMaps:
             summary=summary,
         )
 
-    def predict(self, region: str, X) -> Prediction:
-        """Blended mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region."""
-        spec = self.store.region(region).spec
+    def predict(self, region: str, X, spec: RegionSpec | None = None) -> Prediction:
+        """Blended mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region.
+
+        ``spec``: the region's spec if the caller has read it (the snapshot checks it).
+        """
+        spec = spec or self.store.region(region).spec
         X = np.asarray(X, float)
         groups = spec.tiles_containing(X)  # validates X, names the outside rows
         posteriors, info = self._posteriors(region, spec, groups)
         if posteriors is None:  # the name was re-created in between: start again
-            return self.predict(region, X)
+            return self.predict(region, X)  # without the stale spec
         mean, std, known = spec.predict(X, posteriors, groups)
         return Prediction(mean, std, known, info.version, info.region_id)
 
-    def predict_grid(self, region: str, axes) -> Prediction:
+    def predict_grid(self, region: str, axes, spec: RegionSpec | None = None) -> Prediction:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
         (nx, ny, nz, 3) and (nx, ny, nz)."""
-        spec = self.store.region(region).spec
+        spec = spec or self.store.region(region).spec
         keys = spec.tiles_overlapping([np.min(a) for a in axes], [np.max(a) for a in axes])
         posteriors, info = self._posteriors(region, spec, keys)
         if posteriors is None:

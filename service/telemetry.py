@@ -65,8 +65,8 @@ class _CacheCollector:
 
 
 class RequestMiddleware:
-    def __init__(self, app, max_body_bytes: int):
-        self.app, self.max_body_bytes = app, max_body_bytes
+    def __init__(self, app, max_body_bytes: int, metrics: Metrics):
+        self.app, self.max_body_bytes, self.metrics = app, max_body_bytes, metrics
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -103,10 +103,8 @@ class RequestMiddleware:
 
     def _record(self, scope, status: int, seconds: float) -> None:
         route = getattr(scope.get("route"), "path", "unmatched")
-        metrics: Metrics | None = getattr(scope["app"].state, "metrics", None) if "app" in scope else None
-        if metrics is not None:
-            metrics.requests.labels(route, scope["method"], str(status)).inc()
-            metrics.latency.labels(route, scope["method"]).observe(seconds)
+        self.metrics.requests.labels(route, scope["method"], str(status)).inc()
+        self.metrics.latency.labels(route, scope["method"]).observe(seconds)
         if access_log.isEnabledFor(logging.INFO):
             line = {
                 "method": scope["method"],
