@@ -274,7 +274,7 @@ async def query(name: RegionName, request: Request):
             app.state.settings.max_query_points,
         )
         pred = app.state.maps.predict(name, X, spec=info.spec)
-        headers = {"ETag": _etag(pred.region_id, pred.version)}
+        headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
         if out == ARROW:
             columns = {
                 **formats.vector_columns("v", pred.mean),

@@ -1,0 +1,611 @@
+"""Python SDK for the bdf-maps service: numpy in and out, Arrow or npz on the wire.
+
+``BDFClient`` is synchronous and ``AsyncBDFClient`` has the same methods as coroutines.
+Each endpoint is written once, as a generator that yields requests (or pauses) and
+receives responses; the two clients only differ in how they send and sleep. Failed
+connections and 5xx answers are retried with exponential backoff: uploads carry an
+``Idempotency-Key`` derived from the data and chunk index, so a retry never counts twice.
+
+>>> with BDFClient("http://127.0.0.1:8000") as bdf:          # doctest: +SKIP
+...     bdf.upload("paris", X, V)
+...     pred = bdf.query("paris", X[:10])
+...     pred.mean, pred.std
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import io
+import json
+import sys
+import time
+from collections.abc import Callable, Generator, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import httpx
+import numpy as np
+import pyarrow as pa
+import pyarrow.ipc
+
+from bdf.tiles import RegionSpec
+
+JSON = "application/json"
+ARROW = "application/vnd.apache.arrow.stream"
+NPZ = "application/x-npz"
+GEOJSON = "application/geo+json"
+RETRY_STATUS = frozenset({500, 502, 503, 504})
+Frame = Literal["enu", "wgs84"]
+
+
+class BDFError(Exception):
+    """An error answer of the service (its problem+json), or a failure to reach it.
+
+    ``status`` is the HTTP status (0 when the service could not be reached), ``detail``
+    the service's explanation, ``problem`` the whole problem+json document.
+    """
+
+    def __init__(self, status: int, title: str, detail: str, problem: dict | None = None):
+        super().__init__(f"{status} {title}: {detail}" if status else detail)
+        self.status, self.title, self.detail = status, title, detail
+        self.problem = problem or {}
+
+
+@dataclass(frozen=True)
+class Region:
+    spec: RegionSpec
+    version: int
+    observations: int
+    tiles: int
+    created_at: float
+    updated_at: float
+
+
+@dataclass(frozen=True)
+class UploadResult:
+    """What an upload (all its chunks) did; ``rejected`` counts rows per reason."""
+
+    accepted: int
+    rejected: dict[str, int]
+    region_version: int
+    tiles_updated: int
+    chunks: int
+    replayed_chunks: int
+    upload_ids: list[str] = field(repr=False)
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Mean and std (n, 3) in m/s, region ENU axes; ``known`` False where no tile has data."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    known: np.ndarray
+    region_version: int
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A voxel grid: axes x (nx,), y (ny,), z (nz,); mean and std (nx, ny, nz, 3)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    known: np.ndarray
+    region_version: int
+
+    @property
+    def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.x, self.y, self.z
+
+
+@dataclass(frozen=True)
+class Tubes:
+    """Voxels inside the tube: points, mean, std (k, 3); ``mask`` (nx, ny, nz) on the axes."""
+
+    points: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    mask: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    region_version: int
+
+
+@dataclass(frozen=True)
+class _Request:
+    method: str
+    path: str
+    accept: str = JSON
+    params: dict | None = None
+    content: bytes | None = None
+    content_type: str | None = None
+    idempotency_key: str | None = None
+
+    def headers(self) -> dict[str, str]:
+        out = {"accept": self.accept}
+        if self.content_type:
+            out["content-type"] = self.content_type
+        if self.idempotency_key:
+            out["idempotency-key"] = self.idempotency_key
+        return out
+
+
+@dataclass(frozen=True)
+class _Pause:
+    seconds: float
+
+
+Call = Generator[_Request | _Pause, httpx.Response, Any]
+
+
+def _arrow(columns: dict[str, np.ndarray]) -> bytes:
+    table = pa.table(columns)
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema) as writer:
+        writer.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+def _read_arrow(body: bytes) -> pa.Table:
+    return pa.ipc.open_stream(body).read_all()
+
+
+def _stack(table: pa.Table, names) -> np.ndarray:
+    return np.stack([table.column(n).to_numpy() for n in names], axis=1).astype(float)
+
+
+def _points(X, name: str = "X") -> np.ndarray:
+    X = np.asarray(X, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3), got {X.shape}")
+    return X
+
+
+def _position_columns(X: np.ndarray, frame: Frame) -> dict[str, np.ndarray]:
+    if frame not in ("enu", "wgs84"):
+        raise ValueError(f"frame must be 'enu' or 'wgs84', got {frame!r}")
+    names = ("x", "y", "z") if frame == "enu" else ("lat", "lon", "alt_m")
+    return {n: np.ascontiguousarray(X[:, i]) for i, n in enumerate(names)}
+
+
+def _csv(values, n: int, name: str) -> str:
+    values = np.atleast_1d(np.asarray(values, dtype=float)).ravel()
+    if len(values) == 1 and n == 3:
+        values = np.repeat(values, 3)
+    if len(values) != n:
+        raise ValueError(f"{name} needs {n} numbers, got {len(values)}")
+    return ",".join(repr(float(v)) for v in values)
+
+
+def _grid_params(step, bbox) -> dict[str, str]:
+    params = {"step": _csv(step, 3, "step")}
+    if bbox is not None:
+        params["bbox"] = _csv(bbox, 6, "bbox")
+    return params
+
+
+def _npz(body: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(body)) as data:
+        return {k: data[k] for k in data.files}
+
+
+def _version(response: httpx.Response) -> int:
+    return int(response.headers["x-region-version"])
+
+
+def _json_body(body) -> dict:
+    return {"content": json.dumps(body).encode(), "content_type": JSON}
+
+
+def _observations_body(X, V, noise, frame: Frame) -> bytes:
+    columns = {
+        **_position_columns(X, frame),
+        **{c: np.ascontiguousarray(V[:, j]) for j, c in enumerate(("ve", "vn", "vu"))},
+    }
+    if noise is not None:
+        columns["input_noise_std"] = noise
+    return _arrow(columns)
+
+
+def _observations(X, V, noise):
+    X, V = _points(X), _points(V, "V")
+    if len(X) != len(V):
+        raise ValueError(f"{len(X)} positions but {len(V)} velocities")
+    if len(X) == 0:
+        raise ValueError("no observations to send")
+    if noise is not None:
+        try:
+            noise = np.broadcast_to(np.asarray(noise, dtype=float), (len(X),)).copy()
+        except ValueError:
+            raise ValueError(
+                f"input_noise_std must be one number or one per point ({len(X)}), got shape {np.shape(noise)}"
+            ) from None
+    return X, V, noise
+
+
+def _upload_key(X, V, noise, chunk_size: int, kind: str) -> str:
+    """Same data, same keys: a rerun of an interrupted upload skips the chunks already applied."""
+    h = hashlib.sha256(kind.encode())
+    for a in (X, V, noise):
+        if a is not None:
+            h.update(np.ascontiguousarray(a).tobytes())
+    h.update(str(chunk_size).encode())
+    return h.hexdigest()[:32]
+
+
+def _progress_bar(total: int, desc: str, enabled: bool | None):
+    """A tqdm bar on a terminal (``enabled=None``), never when output is piped."""
+    from tqdm.auto import tqdm
+
+    disable = (not sys.stderr.isatty()) if enabled is None else not enabled
+    return tqdm(total=total, desc=desc, unit="obs", unit_scale=True, disable=disable)
+
+
+class _Endpoints:
+    """The endpoints, once for both clients; ``_run`` sends (sync) or returns a coroutine."""
+
+    _run: Callable[[Call], Any]
+
+    # -- regions ------------------------------------------------------------------------------
+    def regions(self) -> list[Region]:
+        return self._run(self._json("GET", "/v1/regions", parse=lambda js: [_region(r) for r in js]))
+
+    def region(self, name: str) -> Region:
+        return self._run(self._json("GET", f"/v1/regions/{name}", parse=_region))
+
+    def create_region(self, spec: RegionSpec | dict) -> Region:
+        spec = spec if isinstance(spec, RegionSpec) else RegionSpec.model_validate(spec)
+        body = spec.model_dump(mode="json")
+        return self._run(self._json("POST", "/v1/regions", json=body, parse=_region))
+
+    def delete_region(self, name: str) -> None:
+        return self._run(self._json("DELETE", f"/v1/regions/{name}", parse=lambda js: None))
+
+    def tiles(self, name: str) -> dict:
+        """``{"region_version", "tiles": [{"key", "version", "count", "points", "bytes", ...}]}``."""
+        return self._run(self._json("GET", f"/v1/regions/{name}/tiles"))
+
+    def health(self) -> bool:
+        """True when the service answers and its store is reachable."""
+        return self._run(self._json("GET", "/readyz", parse=lambda js: js.get("status") == "ready"))
+
+    def job(self, job_id: str) -> dict:
+        return self._run(self._json("GET", f"/v1/jobs/{job_id}"))
+
+    # -- data ---------------------------------------------------------------------------------
+    def upload(
+        self,
+        name: str,
+        X,
+        V,
+        *,
+        input_noise_std=None,
+        frame: Frame = "enu",
+        chunk_size: int = 200_000,
+        key: str | None = None,
+        progress: bool | None = None,
+    ) -> UploadResult:
+        """Add observations: positions ``X`` (n, 3) ENU metres or lat, lon, alt_m with
+        ``frame="wgs84"``; velocities ``V`` (n, 3) east, north, up m/s. Sent in chunks of
+        ``chunk_size`` with keys ``{key}-{i}``; ``key`` defaults to a hash of the data, so
+        running the same upload again applies nothing twice."""
+        return self._run(self._upload(name, X, V, input_noise_std, frame, chunk_size, key, progress))
+
+    def fit(
+        self,
+        name: str,
+        X,
+        V,
+        *,
+        input_noise_std=None,
+        frame: Frame = "enu",
+        key: str | None = None,
+        wait: bool = True,
+        poll_s: float = 0.5,
+        progress: bool | None = None,
+    ) -> UploadResult | dict:
+        """Replace the region's map with these observations (one request). A large fit runs
+        as a job on the server: with ``wait`` the client polls it and returns its result;
+        without, it returns the job (``{"id", "state", "progress", ...}``)."""
+        return self._run(self._fit(name, X, V, input_noise_std, frame, key, wait, poll_s, progress))
+
+    # -- maps ---------------------------------------------------------------------------------
+    def query(self, name: str, X, *, frame: Frame = "enu", transport: Literal["arrow", "json"] = "arrow"):
+        """Predictive mean and std at points ``X`` (n, 3); returns :class:`Prediction`."""
+        return self._run(self._query(name, _points(X), frame, transport))
+
+    def grid(self, name: str, step, bbox=None) -> Grid:
+        """Mean and std on the voxel grid ``bbox`` (xmin, ymin, zmin, xmax, ymax, zmax; default
+        the region) with ``step`` metres (one number or three), as npz."""
+        return self._run(self._grid(name, step, bbox))
+
+    def tubes(
+        self,
+        name: str,
+        max_std_mps: float,
+        step,
+        bbox=None,
+        component: Literal["all", "e", "n", "u"] = "all",
+    ) -> Tubes:
+        """The voxels whose predictive std (of all components, or one) is below ``max_std_mps``."""
+        return self._run(self._tubes(name, max_std_mps, step, bbox, component, NPZ))
+
+    def tubes_geojson(self, name: str, max_std_mps: float, step, bbox=None, component: str = "all") -> dict:
+        """The tube as a GeoJSON FeatureCollection of points (lon, lat, alt)."""
+        return self._run(self._tubes(name, max_std_mps, step, bbox, component, GEOJSON))
+
+    # -- the calls ----------------------------------------------------------------------------
+    def _json(self, method: str, path: str, *, json=None, parse=lambda js: js) -> Call:
+        body = {} if json is None else _json_body(json)
+        response = yield _Request(method, path, **body)
+        return parse(response.json() if response.content else None)
+
+    def _upload(self, name, X, V, noise, frame, chunk_size, key, progress) -> Call:
+        X, V, noise = _observations(X, V, noise)
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        key = key or _upload_key(X, V, noise, chunk_size, "observations")
+        results = []
+        with _progress_bar(len(X), f"upload {name}", progress) as bar:
+            for i, start in enumerate(range(0, len(X), chunk_size)):
+                part = slice(start, start + chunk_size)
+                response = yield _Request(
+                    "POST",
+                    f"/v1/regions/{name}/observations",
+                    content=_observations_body(
+                        X[part], V[part], None if noise is None else noise[part], frame
+                    ),
+                    content_type=ARROW,
+                    idempotency_key=f"{key}-{i}",
+                )
+                results.append(response.json())
+                bar.update(len(X[part]))
+        return _summary(results)
+
+    def _fit(self, name, X, V, noise, frame, key, wait, poll_s, progress) -> Call:
+        X, V, noise = _observations(X, V, noise)
+        response = yield _Request(
+            "POST",
+            f"/v1/regions/{name}/fit",
+            content=_observations_body(X, V, noise, frame),
+            content_type=ARROW,
+            idempotency_key=key or _upload_key(X, V, noise, len(X), "fit"),
+        )
+        if response.status_code != 202:
+            return _summary([response.json()])
+        job = response.json()
+        if not wait:
+            return job
+        with _progress_bar(100, f"fit {name}", progress) as bar:
+            while job["state"] in ("queued", "running"):
+                yield _Pause(poll_s)
+                job = (yield _Request("GET", f"/v1/jobs/{job['id']}")).json()
+                bar.update(round(100 * job["progress"]) - bar.n)
+        if job["state"] == "failed":
+            raise BDFError(500, "fit job failed", job.get("error") or "unknown error", job)
+        return _summary([job["result"]])
+
+    def _query(self, name, X, frame, transport) -> Call:
+        path = f"/v1/regions/{name}/query"
+        if transport == "json":
+            response = yield _Request("POST", path, **_json_body({"frame": frame, "points": X.tolist()}))
+            js = response.json()
+            return Prediction(
+                np.array(js["mean"], float).reshape(-1, 3),
+                np.array(js["std"], float).reshape(-1, 3),
+                np.array(js["known"], bool),
+                js["region_version"],
+            )
+        if transport != "arrow":
+            raise ValueError(f"transport must be 'arrow' or 'json', got {transport!r}")
+        response = yield _Request(
+            "POST", path, accept=ARROW, content=_arrow(_position_columns(X, frame)), content_type=ARROW
+        )
+        table = _read_arrow(response.content)
+        return Prediction(
+            _stack(table, ("ve", "vn", "vu")),
+            _stack(table, ("std_e", "std_n", "std_u")),
+            table.column("known").to_numpy(zero_copy_only=False).astype(bool),
+            _version(response),
+        )
+
+    def _grid(self, name, step, bbox) -> Call:
+        params = _grid_params(step, bbox)
+        response = yield _Request("GET", f"/v1/regions/{name}/grid", accept=NPZ, params=params)
+        a = _npz(response.content)
+        return Grid(a["x"], a["y"], a["z"], a["mean"], a["std"], a["known"], _version(response))
+
+    def _tubes(self, name, max_std_mps, step, bbox, component, media) -> Call:
+        params = {**_grid_params(step, bbox), "max_std_mps": repr(float(max_std_mps)), "component": component}
+        response = yield _Request("GET", f"/v1/regions/{name}/tubes", accept=media, params=params)
+        if media == GEOJSON:
+            return response.json()
+        a = _npz(response.content)
+        return Tubes(a["points"], a["mean"], a["std"], a["mask"], a["x"], a["y"], a["z"], _version(response))
+
+
+def _region(js: dict) -> Region:
+    return Region(**{**js, "spec": RegionSpec.model_validate(js["spec"])})
+
+
+def _summary(results: Iterable[dict]) -> UploadResult:
+    results = list(results)
+    rejected: dict[str, int] = {}
+    for r in results:
+        for reason, n in r["rejected"].items():
+            rejected[reason] = rejected.get(reason, 0) + n
+    return UploadResult(
+        accepted=sum(r["accepted"] for r in results),
+        rejected=rejected,
+        region_version=max(r["region_version"] for r in results),
+        tiles_updated=sum(r["tiles_updated"] for r in results),
+        chunks=len(results),
+        replayed_chunks=sum(bool(r["replayed"]) for r in results),
+        upload_ids=[r["upload_id"] for r in results],
+    )
+
+
+def _raise_for_problem(response: httpx.Response) -> None:
+    if response.status_code < 400:
+        return
+    try:
+        problem = response.json()
+    except ValueError:
+        problem = {}
+    if not isinstance(problem, dict):
+        problem = {}
+    raise BDFError(
+        response.status_code,
+        problem.get("title", response.reason_phrase),
+        problem.get("detail", response.text[:300]),
+        problem,
+    )
+
+
+def _backoff(retries: int, backoff_s: float) -> list[float]:
+    """Pauses before each retry: ``backoff_s`` doubling, ``retries`` of them."""
+    if retries < 0 or backoff_s < 0:
+        raise ValueError(f"retries and backoff_s must not be negative, got {retries}, {backoff_s}")
+    return [backoff_s * 2**i for i in range(retries)]
+
+
+def _unreachable(url, exc: Exception) -> BDFError:
+    return BDFError(0, "unreachable", f"cannot reach the bdf service at {url}: {type(exc).__name__}: {exc}")
+
+
+def _headers(token: str | None) -> dict[str, str]:
+    return {"authorization": f"Bearer {token}"} if token else {}
+
+
+class BDFClient(_Endpoints):
+    """Synchronous client. ``token``: a bearer token of the needed scope (none for an open
+    local service). Use as a context manager, or call :meth:`close`."""
+
+    def __init__(
+        self,
+        url: str = "http://127.0.0.1:8000",
+        token: str | None = None,
+        *,
+        timeout_s: float = 120.0,
+        retries: int = 4,
+        backoff_s: float = 0.25,
+        transport: httpx.BaseTransport | None = None,
+    ):
+        self.url = url.rstrip("/")
+        self._delays = _backoff(retries, backoff_s)
+        self._http = httpx.Client(
+            base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
+        )
+
+    def _send(self, request: _Request) -> httpx.Response:
+        delays = iter(self._delays)
+        while True:
+            try:
+                response = self._http.send(_build(self._http, request))
+                if response.status_code not in RETRY_STATUS:
+                    _raise_for_problem(response)
+                    return response
+                failure = None
+            except httpx.TransportError as exc:
+                response, failure = None, exc
+            delay = next(delays, None)
+            if delay is None:
+                if failure is not None:
+                    raise _unreachable(self.url, failure) from failure
+                _raise_for_problem(response)
+            time.sleep(delay)
+
+    def _run(self, call: Call):
+        try:
+            step = next(call)
+            while True:
+                if isinstance(step, _Pause):
+                    time.sleep(step.seconds)
+                    step = call.send(None)
+                else:
+                    step = call.send(self._send(step))
+        except StopIteration as done:
+            return done.value
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> BDFClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class AsyncBDFClient(_Endpoints):
+    """The same methods as :class:`BDFClient`, as coroutines (``await client.query(...)``)."""
+
+    def __init__(
+        self,
+        url: str = "http://127.0.0.1:8000",
+        token: str | None = None,
+        *,
+        timeout_s: float = 120.0,
+        retries: int = 4,
+        backoff_s: float = 0.25,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ):
+        self.url = url.rstrip("/")
+        self._delays = _backoff(retries, backoff_s)
+        self._http = httpx.AsyncClient(
+            base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
+        )
+
+    async def _send(self, request: _Request) -> httpx.Response:
+        delays = iter(self._delays)
+        while True:
+            try:
+                response = await self._http.send(_build(self._http, request))
+                if response.status_code not in RETRY_STATUS:
+                    _raise_for_problem(response)
+                    return response
+                failure = None
+            except httpx.TransportError as exc:
+                response, failure = None, exc
+            delay = next(delays, None)
+            if delay is None:
+                if failure is not None:
+                    raise _unreachable(self.url, failure) from failure
+                _raise_for_problem(response)
+            await asyncio.sleep(delay)
+
+    async def _run(self, call: Call):
+        try:
+            step = next(call)
+            while True:
+                if isinstance(step, _Pause):
+                    await asyncio.sleep(step.seconds)
+                    step = call.send(None)
+                else:
+                    step = call.send(await self._send(step))
+        except StopIteration as done:
+            return done.value
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def __aenter__(self) -> AsyncBDFClient:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.aclose()
+
+
+def _build(http: httpx.Client | httpx.AsyncClient, request: _Request) -> httpx.Request:
+    return http.build_request(
+        request.method,
+        request.path,
+        params=request.params,
+        content=request.content,
+        headers=request.headers(),
+    )
