@@ -1,0 +1,221 @@
+"""The cost of flying through the velocity map, from one voxel grid of mean and std.
+
+A route's cost is ``∫ (1 + risk(x) + flow(x, direction)) ds`` along it (metres):
+
+* ``risk``: ``w_risk * s(x) / max_std_mps`` where ``s`` is the largest of the three
+  predictive stds (the tube holds the points where ``s < max_std_mps``), or, with
+  ``risk="exceedance"``, ``w_risk * P(some component deviates from the mean by more
+  than margin_mps)`` under the Gaussian predictive; with a soft tube, plus
+  ``w_tube * max(0, s / max_std_mps - 1)``.
+* ``flow``: ``w_flow * c(x) * |cruise * direction - mean(x)| / cruise``, the mismatch
+  between the vehicle's velocity and the local mean flow, weighted by the confidence
+  ``c = b^2 / (b^2 + s^2)`` (``b = max_std_mps``): where the map knows nothing, the
+  mean (the prior, 0) is not held against the route.
+
+Every term is at least 0, so the cost is at least the length: the straight-line length is
+an admissible heuristic for OMPL's informed planners. Per-voxel fields are computed once
+and interpolated trilinearly, vectorised over all samples of all segments; a segment is
+sampled every ``sample_m`` (half the smallest grid step by default).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from scipy.special import erfc
+
+#: Columns of the per-voxel field table.
+S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
+
+
+@dataclass(frozen=True)
+class CostWeights:
+    """How a route is scored (see the module docstring)."""
+
+    max_std_mps: float
+    risk: float = 1.0
+    flow: float = 0.5
+    cruise_mps: float = 30.0
+    tube: Literal["hard", "soft", "off"] = "hard"
+    tube_penalty: float = 10.0
+    risk_kind: Literal["std", "exceedance"] = "std"
+    margin_mps: float = 5.0
+
+    def __post_init__(self):
+        for name in ("max_std_mps", "cruise_mps", "margin_mps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("risk", "flow", "tube_penalty"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"the weight {name} must not be negative, got {getattr(self, name)}")
+        if self.tube not in ("hard", "soft", "off"):
+            raise ValueError(f"tube must be 'hard', 'soft' or 'off', got {self.tube!r}")
+        if self.risk_kind not in ("std", "exceedance"):
+            raise ValueError(f"risk_kind must be 'std' or 'exceedance', got {self.risk_kind!r}")
+
+
+@dataclass(frozen=True)
+class CostMap:
+    """Trilinear cost fields on the grid ``axes`` (each increasing, evenly spaced).
+
+    ``mean`` and ``std`` are (nx, ny, nz, 3) m/s, as the service's grid endpoint gives them.
+    """
+
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray]
+    mean: np.ndarray
+    std: np.ndarray
+    weights: CostWeights
+    sample_m: float | None = None
+    table: np.ndarray = field(init=False, repr=False)  # (nx * ny * nz, 6) per-voxel fields
+
+    def __post_init__(self):
+        axes = tuple(np.asarray(a, float) for a in self.axes)
+        shape = tuple(len(a) for a in axes)
+        if len(axes) != 3 or min(shape) < 2:
+            raise ValueError(f"the grid needs three axes of at least 2 values, got sizes {shape}")
+        for d, a in enumerate(axes):
+            steps = np.diff(a)
+            if not (steps > 0).all() or not np.allclose(steps, steps[0], rtol=1e-9):
+                raise ValueError(f"grid axis {d} must be evenly spaced and increasing")
+        mean, std = np.asarray(self.mean, float), np.asarray(self.std, float)
+        if mean.shape != (*shape, 3) or std.shape != (*shape, 3):
+            raise ValueError(f"mean and std must have shape {(*shape, 3)}, got {mean.shape}, {std.shape}")
+        if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std >= 0).all()):
+            raise ValueError("mean and std must be finite and std non-negative")
+        object.__setattr__(self, "axes", axes)
+        if self.sample_m is None:
+            object.__setattr__(self, "sample_m", 0.5 * min(a[1] - a[0] for a in axes))
+        if not self.sample_m > 0:
+            raise ValueError(f"sample_m must be positive, got {self.sample_m}")
+        object.__setattr__(self, "table", _voxel_fields(mean, std, self.weights).reshape(-1, 6))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(len(a) for a in self.axes)
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.array([a[0] for a in self.axes])
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.array([a[-1] for a in self.axes])
+
+    @property
+    def step(self) -> np.ndarray:
+        return np.array([a[1] - a[0] for a in self.axes])
+
+    def fields(self, X) -> np.ndarray:
+        """(n, 6) interpolated per-voxel fields: s, risk, confidence, mean e/n/u.
+
+        Points outside the grid take the value at the nearest face (the planner's space is
+        the grid's box, so this only matters for callers probing outside it).
+        """
+        X = np.asarray(X, float).reshape(-1, 3)
+        lower, inv_step, top, offsets = self._lookup
+        u = (X - lower) * inv_step
+        base = np.minimum(np.maximum(u.astype(np.int64), 0), top)  # u >= 0 inside: int() floors
+        f = np.minimum(np.maximum(u - base, 0.0), 1.0)
+        g = 1.0 - f
+        wx = np.stack([g[:, 0], f[:, 0]], 1)[:, :, None]
+        wyz = np.stack([g[:, 1] * g[:, 2], g[:, 1] * f[:, 2], f[:, 1] * g[:, 2], f[:, 1] * f[:, 2]], 1)
+        weights = (wx * wyz[:, None, :]).reshape(-1, 8)  # corner order: x bit, y bit, z bit
+        corners = self.table[(base @ self._strides)[:, None] + offsets]
+        return np.einsum("nk,nkf->nf", weights, corners)
+
+    @functools.cached_property
+    def _strides(self) -> np.ndarray:
+        _, ny, nz = self.shape
+        return np.array([ny * nz, nz, 1])
+
+    @functools.cached_property
+    def _lookup(self):
+        bits = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
+        return self.lower, 1.0 / self.step, np.array(self.shape) - 2, bits @ self._strides
+
+    def max_std(self, X) -> np.ndarray:
+        """Interpolated ``s``: the largest of the three stds, m/s."""
+        return self.fields(X)[:, S]
+
+    def samples(self, P0, P1):
+        """Sample points of segments ``P0[k] -> P1[k]``: (points, segment of each, its
+        position along the segment in [0, 1], lengths, direction per segment)."""
+        P0, P1 = np.asarray(P0, float).reshape(-1, 3), np.asarray(P1, float).reshape(-1, 3)
+        delta = P1 - P0
+        length = np.linalg.norm(delta, axis=1)
+        n = np.ceil(length / self.sample_m).astype(np.int64) + 1
+        seg = np.repeat(np.arange(len(P0)), n)
+        first = np.cumsum(n) - n
+        t = (np.arange(n.sum()) - first[seg]) / np.maximum(n[seg] - 1, 1)
+        direction = delta / np.maximum(length, 1e-300)[:, None]
+        return P0[seg] + t[:, None] * delta[seg], seg, t, length, direction
+
+    def segment_costs(self, P0, P1) -> np.ndarray:
+        """Cost of each segment ``P0[k] -> P1[k]`` (trapezoid rule on the samples), metres."""
+        X, seg, _, length, direction = self.samples(P0, P1)
+        f = self.integrand(self.fields(X), direction[seg])
+        n = np.bincount(seg, minlength=len(length))
+        first = np.cumsum(n) - n
+        ends = f[first] + f[first + n - 1]
+        inner_sum = np.bincount(seg, weights=f, minlength=len(length)) - ends
+        # trapezoid with n samples and n - 1 equal intervals
+        return length * (0.5 * ends + inner_sum) / np.maximum(n - 1, 1)
+
+    def integrand(self, F: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Cost per metre at samples with fields ``F`` flying along unit ``direction``."""
+        w = self.weights
+        mismatch = np.linalg.norm(w.cruise_mps * direction - F[:, MEAN], axis=1) / w.cruise_mps
+        return 1.0 + F[:, RISK] + w.flow * F[:, CONFIDENCE] * mismatch
+
+    def segments_in_tube(self, P0, P1) -> np.ndarray:
+        """True per segment when every sample has ``s <= max_std_mps``."""
+        X, seg, *_ = self.samples(P0, P1)
+        bad = self.max_std(X) > self.weights.max_std_mps
+        return np.bincount(seg, weights=bad, minlength=len(np.atleast_2d(P0))) == 0
+
+
+def _voxel_fields(mean: np.ndarray, std: np.ndarray, w: CostWeights) -> np.ndarray:
+    s = std.max(axis=-1)
+    ratio = s / w.max_std_mps
+    if w.risk_kind == "std":
+        risk = w.risk * ratio
+    else:
+        with np.errstate(divide="ignore"):
+            p_inside = 1.0 - erfc(w.margin_mps / (np.sqrt(2.0) * std))  # per component
+        risk = w.risk * (1.0 - np.prod(p_inside, axis=-1))
+    if w.tube == "soft":
+        risk = risk + w.tube_penalty * np.maximum(ratio - 1.0, 0.0)
+    confidence = 1.0 / (1.0 + ratio**2)
+    return np.concatenate([s[..., None], risk[..., None], confidence[..., None], mean], axis=-1)
+
+
+def path_metrics(costmap: CostMap, waypoints) -> dict[str, float]:
+    """Length, flight time, std along the path, tube fraction, integrated risk, flow mismatch."""
+    P = np.asarray(waypoints, float)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 2:
+        raise ValueError(f"a path needs at least 2 waypoints of 3 coordinates, got shape {P.shape}")
+    w = costmap.weights
+    X, seg, _, length, direction = costmap.samples(P[:-1], P[1:])
+    F = costmap.fields(X)
+    # each sample stands for the stretch of path around it (trapezoid weights)
+    n = np.bincount(seg, minlength=len(length))
+    ds = (length / np.maximum(n - 1, 1))[seg]
+    first = np.cumsum(n) - n
+    ds[first] *= 0.5
+    ds[first + n - 1] *= 0.5
+    total = float(length.sum())
+    s = F[:, S]
+    mismatch = np.linalg.norm(w.cruise_mps * direction[seg] - F[:, MEAN], axis=1)
+    return {
+        "length_m": total,
+        "flight_time_s": total / w.cruise_mps,
+        "max_std_mps": float(s.max()),
+        "mean_std_mps": float((s * ds).sum() / max(total, 1e-300)),
+        "in_tube_fraction": float(((s <= w.max_std_mps) * ds).sum() / max(total, 1e-300)),
+        "integrated_risk_m": float((F[:, RISK] * ds).sum()),
+        "flow_mismatch_mps": float((F[:, CONFIDENCE] * mismatch * ds).sum() / max(total, 1e-300)),
+        "cost_m": float(costmap.segment_costs(P[:-1], P[1:]).sum()),
+    }

@@ -1,0 +1,208 @@
+"""Plan a risk-aware route and its shortest-path baseline on a region served by bdf-maps.
+
+One binary grid request fetches mean and std for the planning box; both routes are planned
+in fresh worker processes (OMPL holds the GIL and seeds once per process); the std along
+each route is then checked against the service's exact predictions, every ``check_m``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from bdf.tiles import RegionSpec
+from clients.sdk import BDFClient
+from planner.costmap import CostMap, CostWeights, path_metrics
+from planner.search import Box, Problem, Solution, solve
+
+log = logging.getLogger(__name__)
+MAX_VOXELS = 400_000
+
+
+@dataclass
+class Route:
+    """One route: waypoints in region ENU and WGS84 (lat, lon, alt_m), its metrics."""
+
+    name: str
+    enu: np.ndarray
+    wgs84: np.ndarray
+    metrics: dict[str, float]
+    solution: Solution | None  # None for the straight line
+
+
+@dataclass
+class RoutePlan:
+    region: RegionSpec
+    costmap: CostMap
+    route: Route | None  # None when the planner found no path in the budget
+    baseline: Route
+    status: str
+
+    def geojson(self) -> dict:
+        """Both routes as GeoJSON LineStrings ([lon, lat, alt_m]) with their metrics."""
+        features = []
+        for r in (self.route, self.baseline):
+            if r is None:
+                continue
+            coordinates = [[lon, lat, alt] for lat, lon, alt in r.wgs84.tolist()]
+            properties = {"name": r.name, "region": self.region.name, **r.metrics}
+            if r.solution is not None:
+                properties.update(planner_status=r.solution.status, solve_s=r.solution.solve_s)
+            features.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "LineString", "coordinates": coordinates},
+                    "properties": properties,
+                }
+            )
+        return {"type": "FeatureCollection", "features": features}
+
+    def table(self) -> str:
+        """The two routes' metrics side by side."""
+        rows = [
+            (k, self.route.metrics.get(k) if self.route else None, self.baseline.metrics[k])
+            for k in self.baseline.metrics
+        ]
+        width = max(len(k) for k, *_ in rows)
+        lines = [f"{'':<{width}}  {'risk-aware':>12}  {'shortest':>12}"]
+        for key, a, b in rows:
+            cell = "-" if a is None else f"{a:12.4g}"
+            lines.append(f"{key:<{width}}  {cell:>12}  {b:12.4g}")
+        return "\n".join(lines)
+
+
+def planning_box(spec: RegionSpec, start, goal, altitude_m, margin_m: float | None):
+    """The box around start and goal (plus ``margin_m``, default 30 % of their distance and at
+    least two hinge spacings), clipped to the region; altitude from the band."""
+    start, goal = np.asarray(start, float), np.asarray(goal, float)
+    if margin_m is None:
+        margin_m = max(0.3 * float(np.linalg.norm(goal[:2] - start[:2])), 2 * max(spec.spacing_m[:2]))
+    lo = np.minimum(start, goal) - margin_m
+    hi = np.maximum(start, goal) + margin_m
+    lo[2], hi[2] = (spec.lower[2], spec.upper[2]) if altitude_m is None else altitude_m
+    lo, hi = np.maximum(lo, spec.lower), np.minimum(hi, spec.upper)
+    if np.any(hi <= lo):
+        raise ValueError(
+            f"the planning box {lo.tolist()} .. {hi.tolist()} is empty inside region {spec.name!r}"
+        )
+    return lo, hi
+
+
+def grid_step(spec: RegionSpec, lo, hi, step=None, max_voxels: int = MAX_VOXELS) -> np.ndarray:
+    """A quarter of the hinge spacing (the field varies on that scale), coarsened evenly until
+    the grid has at most ``max_voxels``."""
+    if step is not None:
+        step = np.broadcast_to(np.asarray(step, float), (3,)).copy()
+        if not (step > 0).all():
+            raise ValueError(f"step must be positive, got {step.tolist()}")
+        return step
+    step = np.asarray(spec.spacing_m, float) / 4
+    while np.prod(np.floor((hi - lo) / step) + 1) > max_voxels:
+        step *= 1.25
+    return step
+
+
+def _to_enu(spec: RegionSpec, p, frame: str) -> np.ndarray:
+    p = np.asarray(p, float)
+    if p.shape != (3,):
+        raise ValueError(f"a point needs 3 coordinates, got {p.tolist()}")
+    if frame == "enu":
+        return p
+    if frame != "wgs84":
+        raise ValueError(f"frame must be 'enu' or 'wgs84', got {frame!r}")
+    return spec.frame().to_enu(p[0], p[1], p[2])[0]
+
+
+def plan_route(
+    client: BDFClient,
+    region: str,
+    start,
+    goal,
+    *,
+    weights: CostWeights,
+    frame: str = "enu",
+    altitude_m: tuple[float, float] | None = None,
+    no_fly: tuple[Box, ...] = (),
+    step=None,
+    margin_m: float | None = None,
+    planner: str = "bitstar",
+    time_s: float = 5.0,
+    seed: int | None = None,
+    max_iterations: int | None = None,
+    check_m: float = 10.0,
+) -> RoutePlan:
+    """Plan the risk-aware route from ``start`` to ``goal`` (ENU metres, or lat, lon, alt_m
+    with ``frame="wgs84"``) and the shortest path, and measure both."""
+    spec = client.region(region).spec
+    start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
+    lo, hi = planning_box(spec, start, goal, altitude_m, margin_m)
+    grid = client.grid(region, grid_step(spec, lo, hi, step), bbox=[*lo, *hi])
+    costmap = CostMap(grid.axes, grid.mean, grid.std, weights)
+    # the grid ends on a whole step: the box the planner sees is the grid's
+    band = (float(costmap.lower[2]), float(costmap.upper[2]))
+    risk = Problem(
+        costmap, tuple(start), tuple(goal), band, tuple(no_fly), planner, time_s, max_iterations, seed
+    )
+    shortest = Problem(
+        costmap,
+        tuple(start),
+        tuple(goal),
+        band,
+        tuple(no_fly),
+        planner,
+        time_s,
+        max_iterations,
+        seed,
+        objective="length",
+    )
+    straight = shortest.segments_valid(start[None], goal[None])[0]
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(2, mp_context=context, max_tasks_per_child=1) as pool:
+        risk_run = pool.submit(solve, risk)
+        short_run = None if straight else pool.submit(solve, shortest)
+        solution = risk_run.result()
+        short = short_run.result() if short_run else None
+    baseline_path = np.array([start, goal]) if straight else short.waypoints
+    if len(baseline_path) < 2:
+        raise ValueError(
+            f"no path from {start.tolist()} to {goal.tolist()} avoids the no-fly boxes "
+            f"within {time_s} s ({short.status})"
+        )
+    route = None
+    if solution.exact:
+        route = _route("risk-aware", client, region, spec, costmap, solution.waypoints, solution, check_m)
+    baseline = _route("shortest", client, region, spec, costmap, baseline_path, short, check_m)
+    return RoutePlan(spec, costmap, route, baseline, solution.status)
+
+
+def _route(name, client, region, spec, costmap, P, solution, check_m) -> Route:
+    metrics = path_metrics(costmap, P)
+    # the service's own std along the path (not the grid's interpolation)
+    X = _densify(P, check_m)
+    std = client.query(region, X).std.max(axis=1)
+    bound = costmap.weights.max_std_mps
+    metrics.update(
+        service_max_std_mps=float(std.max()), service_in_tube_fraction=float(np.mean(std <= bound))
+    )
+    if solution is not None and costmap.weights.tube == "hard" and name == "risk-aware" and std.max() > bound:
+        log.warning(
+            "the route leaves the tube between grid nodes (service std %.3g > %.3g m/s): "
+            "ask for a finer grid step",
+            std.max(),
+            bound,
+        )
+    return Route(name, P, spec.frame().to_geodetic(P), metrics, solution)
+
+
+def _densify(P: np.ndarray, spacing_m: float) -> np.ndarray:
+    """Points along the polyline every ``spacing_m`` at most, vertices included."""
+    parts = []
+    for a, b in itertools.pairwise(P):
+        n = max(int(np.ceil(np.linalg.norm(b - a) / spacing_m)), 1)
+        parts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
+    return np.vstack([*parts, P[-1:]])
