@@ -89,7 +89,7 @@ def read_table(path) -> dict[str, np.ndarray]:
     return {n: table.column(n).to_numpy(zero_copy_only=False) for n in table.column_names}
 
 
-def _float_column(table, name, path) -> np.ndarray:
+def float_column(table, name, path) -> np.ndarray:
     if name not in table:
         raise ValueError(f"{path}: missing column {name!r} (have {sorted(table)})")
     col = table[name]
@@ -102,7 +102,7 @@ def _float_column(table, name, path) -> np.ndarray:
 
 def adsb_observations(table: dict, frame: ENUFrame, *, source="table") -> Observations:
     """ADS-B state vectors -> ENU observations; on-ground and incomplete rows are dropped."""
-    cols = {c: _float_column(table, c, source) for c in ADSB_COLUMNS if c not in ("icao24", "onground")}
+    cols = {c: float_column(table, c, source) for c in ADSB_COLUMNS if c not in ("icao24", "onground")}
     if "icao24" not in table:
         raise ValueError(f"{source}: missing column 'icao24'")
     n = len(cols["latitude"])
@@ -135,8 +135,8 @@ def read_adsb(path, frame: ENUFrame) -> Observations:
 def read_radar(path) -> Observations:
     """Radar point cloud CSV with columns x, y, z, vx, vy, vz [, t] (metres, m/s, seconds)."""
     table = read_table(path)
-    cols = [_float_column(table, c, path) for c in RADAR_COLUMNS]
-    t = _float_column(table, "t", path) if "t" in table else np.zeros(len(cols[0]))
+    cols = [float_column(table, c, path) for c in RADAR_COLUMNS]
+    t = float_column(table, "t", path) if "t" in table else np.zeros(len(cols[0]))
     data = np.stack([*cols, t], 1)
     ok = np.all(np.isfinite(data), axis=1)
     return Observations(

@@ -1,16 +1,222 @@
 """The ``bdf`` command line. Errors are one line on stderr and a non-zero exit code.
 
-Exit codes: 0 success, 1 runtime failure (download, I/O), 2 bad usage or bad input.
+Exit codes: 0 success; 1 runtime failure (download, I/O, the service unreachable or
+failing); 2 bad usage or bad input (including the service's 4xx answers); 3 the planner
+found no route within its budget.
+
+The client commands talk to ``--url`` (``$BDF_URL``, default http://127.0.0.1:8000) with
+``--token`` (``$BDF_TOKEN``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
+
+NO_ROUTE = 3
+
+
+def _floats(text: str, n: int | tuple[int, ...], name: str) -> list[float]:
+    """``"1,2,3"`` -> floats; ``n`` the accepted counts."""
+    counts = (n,) if isinstance(n, int) else n
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{name} must be comma-separated numbers, got {text!r}") from None
+    if len(values) not in counts or not np.isfinite(values).all():
+        raise ValueError(f"{name} needs {' or '.join(map(str, counts))} finite numbers, got {text!r}")
+    return values
+
+
+def _client(args):
+    from clients.sdk import BDFClient
+
+    return BDFClient(args.url, args.token)
+
+
+def _print_json(value) -> None:
+    print(json.dumps(value, indent=2, default=str))
+
+
+def _region_create(args) -> int:
+    spec = json.loads(Path(args.spec).read_text())
+    with _client(args) as bdf:
+        region = bdf.create_region(spec)
+    print(f"created region {region.spec.name!r} ({region.spec.tile_counts} tiles per axis)")
+    return 0
+
+
+def _region_list(args) -> int:
+    with _client(args) as bdf:
+        regions = bdf.regions()
+    print(f"{'name':<20} {'version':>8} {'observations':>13} {'tiles':>6}")
+    for r in regions:
+        print(f"{r.spec.name:<20} {r.version:>8} {r.observations:>13} {r.tiles:>6}")
+    return 0
+
+
+def _region_show(args) -> int:
+    with _client(args) as bdf:
+        r = bdf.region(args.name)
+    _print_json({**r.__dict__, "spec": r.spec.model_dump(mode="json")})
+    return 0
+
+
+def _region_delete(args) -> int:
+    with _client(args) as bdf:
+        bdf.delete_region(args.name)
+    print(f"deleted region {args.name!r}")
+    return 0
+
+
+def _send_observations(args, fit: bool) -> int:
+    from clients.files import read_observations
+
+    with _client(args) as bdf:
+        spec = bdf.region(args.name).spec
+        obs = read_observations(args.file, spec)
+        if obs.dropped:
+            print(f"{args.file}: dropped {obs.dropped}", file=sys.stderr)
+        kw = {"input_noise_std": obs.input_noise_std, "frame": obs.frame, "progress": args.progress}
+        if fit:
+            result = bdf.fit(args.name, obs.X, obs.V, **kw)
+        else:
+            result = bdf.upload(args.name, obs.X, obs.V, chunk_size=args.chunk_size, **kw)
+    print(
+        f"{'fitted' if fit else 'uploaded'} {result.accepted} observations to {args.name!r} "
+        f"(rejected {result.rejected}, {result.chunks} request(s), {result.replayed_chunks} replayed); "
+        f"region version {result.region_version}"
+    )
+    return 0
+
+
+def _query(args) -> int:
+    from clients.files import read_points
+
+    if args.points:
+        frame = args.frame
+        P = np.array([_floats(p, 3, "--points") for p in args.points.split(";")])
+    else:
+        frame, P = read_points(args.file)
+    with _client(args) as bdf:
+        pred = bdf.query(args.name, P, frame=frame)
+    lines = ["p0,p1,p2,ve,vn,vu,std_e,std_n,std_u,known"]
+    for p, m, sd, k in zip(P, pred.mean, pred.std, pred.known, strict=True):
+        lines.append(",".join(f"{v:.6g}" for v in (*p, *m, *sd)) + f",{int(k)}")
+    text = "\n".join(lines) + "\n"
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out}: {len(P)} points, region version {pred.region_version}")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def _grid_args(args) -> dict:
+    return {
+        "step": _floats(args.step, (1, 3), "--step"),
+        "bbox": None if args.bbox is None else _floats(args.bbox, 6, "--bbox"),
+    }
+
+
+def _grid(args) -> int:
+    with _client(args) as bdf:
+        grid = bdf.grid(args.name, **_grid_args(args))
+    np.savez(args.out, x=grid.x, y=grid.y, z=grid.z, mean=grid.mean, std=grid.std, known=grid.known)
+    print(f"wrote {args.out}: {grid.mean.shape[:3]} voxels, region version {grid.region_version}")
+    return 0
+
+
+def _tubes(args) -> int:
+    with _client(args) as bdf:
+        kw = dict(**_grid_args(args), component=args.component)
+        if args.out.endswith((".geojson", ".json")):
+            geo = bdf.tubes_geojson(args.name, args.max_std_mps, **kw)
+            Path(args.out).write_text(json.dumps(geo))
+            count = len(geo["features"])
+        else:
+            t = bdf.tubes(args.name, args.max_std_mps, **kw)
+            np.savez(args.out, points=t.points, mean=t.mean, std=t.std, mask=t.mask, x=t.x, y=t.y, z=t.z)
+            count = len(t.points)
+    print(f"wrote {args.out}: {count} voxels with std < {args.max_std_mps} m/s")
+    return 0
+
+
+def _plot(args) -> int:
+    from clients import plots
+
+    with _client(args) as bdf:
+        spec = bdf.region(args.name).spec
+        step = _floats(args.step, (1, 3), "--step") if args.step else None
+        if args.kind == "tube":
+            step = step or (np.array(spec.spacing_m) / 2).tolist()
+            tubes = bdf.tubes(args.name, args.max_std_mps, step)
+            path = plots.plot_tube(tubes, args.max_std_mps, args.out, title=args.name)
+        else:
+            step = step or (np.array(spec.spacing_m) / 8).tolist()
+            alt = min(max(args.alt_m, spec.lower[2]), spec.upper[2])
+            bbox = [*spec.lower[:2], alt, *spec.upper[:2], alt]
+            grid = bdf.grid(args.name, step, bbox)
+            if args.kind == "slice":
+                path = plots.plot_slice(grid, alt, args.component, args.out, title=args.name)
+            else:
+                path = plots.plot_arrows(grid, alt, args.out, title=args.name)
+    print(f"wrote {path}")
+    return 0
+
+
+def _plan(args) -> int:
+    from clients.sdk import BDFClient
+    from planner.costmap import CostWeights
+    from planner.search import Box
+
+    weights = CostWeights(
+        max_std_mps=args.max_std_mps,
+        risk=args.w_risk,
+        flow=args.w_flow,
+        cruise_mps=args.cruise_mps,
+        tube=args.tube,
+    )
+    no_fly = tuple(Box(tuple(b[:3]), tuple(b[3:])) for b in (_floats(t, 6, "--no-fly") for t in args.no_fly))
+    from planner.routes import plan_route
+
+    with BDFClient(args.url, args.token) as bdf:
+        plan = plan_route(
+            bdf,
+            args.region,
+            _floats(args.start, 3, "--start"),
+            _floats(args.goal, 3, "--goal"),
+            weights=weights,
+            frame=args.frame,
+            altitude_m=None
+            if args.altitude_m is None
+            else tuple(_floats(args.altitude_m, 2, "--altitude-m")),
+            no_fly=no_fly,
+            step=None if args.step is None else _floats(args.step, (1, 3), "--step"),
+            planner=args.planner,
+            time_s=args.time,
+            seed=args.seed,
+            max_iterations=args.iterations,
+        )
+    print(plan.table())
+    if args.out:
+        Path(args.out).write_text(json.dumps(plan.geojson()))
+        print(f"wrote {args.out}")
+    if args.png:
+        from planner.plot import plot_route
+
+        print(f"wrote {plot_route(plan, args.png)}")
+    if plan.route is None:
+        print(f"bdf: no risk-aware route within {args.time} s ({plan.status})", file=sys.stderr)
+        return NO_ROUTE
+    return 0
 
 
 def _data_fetch(args) -> int:
@@ -103,6 +309,142 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--data-dir", help="folder of the default SQLite store (default ./bdf-data)")
     serve.add_argument("--config", type=Path, help="TOML settings file")
     serve.set_defaults(run=_serve)
+
+    def connection(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+        p.add_argument(
+            "--url",
+            default=os.environ.get("BDF_URL", "http://127.0.0.1:8000"),
+            help="the service (default $BDF_URL or http://127.0.0.1:8000)",
+        )
+        p.add_argument(
+            "--token", default=os.environ.get("BDF_TOKEN"), help="bearer token (default $BDF_TOKEN)"
+        )
+        return p
+
+    def client(name: str, help: str, **kw) -> argparse.ArgumentParser:
+        return connection(sub.add_parser(name, help=help, description=help, **kw))
+
+    def grid_options(p: argparse.ArgumentParser, step_required: bool = True) -> None:
+        p.add_argument("--step", required=step_required, help="voxel size: dx,dy,dz or one number (m)")
+        p.add_argument("--bbox", help="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres (default: all)")
+
+    region = sub.add_parser("region", help="create, list, show or delete regions")
+    actions = region.add_subparsers(dest="action", required=True)
+    for action, text in (
+        ("list", "list the regions"),
+        ("show", "a region's spec and counters as JSON"),
+        ("delete", "delete a region and its map"),
+        ("create", "create a region from a spec"),
+    ):
+        p = connection(actions.add_parser(action, help=text, description=text))
+        if action == "create":
+            p.add_argument("spec", type=Path, help="JSON file of the region spec (bdf.tiles.RegionSpec)")
+        elif action != "list":
+            p.add_argument("name", help="region name")
+        p.set_defaults(
+            run={
+                "list": _region_list,
+                "show": _region_show,
+                "delete": _region_delete,
+                "create": _region_create,
+            }[action]
+        )
+
+    for name, fit in (("upload", False), ("fit", True)):
+        text = (
+            "replace the region's map with the observations in a file"
+            if fit
+            else "add the observations in a file to the region's map (chunked, exactly once)"
+        )
+        p = client(
+            name,
+            text,
+            epilog="Files: CSV, Parquet or JSON(.gz) with x,y,z or lat,lon,alt_m and "
+            "ve,vn,vu columns, or ADS-B state vectors (OpenSky/traffic columns).",
+        )
+        p.add_argument("name", help="region name")
+        p.add_argument("file", type=Path, help="observations file")
+        if not fit:
+            p.add_argument(
+                "--chunk-size", type=int, default=200_000, help="rows per request (default 200000)"
+            )
+        p.add_argument(
+            "--progress",
+            action=argparse.BooleanOptionalAction,
+            default=None,
+            help="progress bar (default: on a terminal)",
+        )
+        p.set_defaults(run=lambda args, fit=fit: _send_observations(args, fit))
+
+    p = client("query", "predictive mean and std at points, as CSV")
+    p.add_argument("name", help="region name")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--points", help="'x,y,z;x,y,z;...' (or lat,lon,alt_m with --frame wgs84)")
+    src.add_argument("--file", type=Path, help="CSV/Parquet/JSON with x,y,z or lat,lon,alt_m columns")
+    p.add_argument("--frame", choices=["enu", "wgs84"], default="enu", help="frame of --points")
+    p.add_argument("--out", help="CSV file (default: stdout)")
+    p.set_defaults(run=_query)
+
+    p = client("grid", "mean and std on a voxel grid, to an .npz file")
+    p.add_argument("name", help="region name")
+    grid_options(p)
+    p.add_argument("--out", required=True, help=".npz file (x, y, z, mean, std, known)")
+    p.set_defaults(run=_grid)
+
+    p = client("tubes", "the voxels whose std is below a bound, to .npz or .geojson")
+    p.add_argument("name", help="region name")
+    p.add_argument("--max-std-mps", type=float, required=True, help="tube bound on the std (m/s)")
+    grid_options(p)
+    p.add_argument("--component", choices=["all", "e", "n", "u"], default="all", help="whose std is bounded")
+    p.add_argument("--out", required=True, help=".npz (points, mean, std, mask, axes) or .geojson")
+    p.set_defaults(run=_tubes)
+
+    p = client("plot", "PNG pictures of a map: slice, flow arrows, or the 3D tube")
+    p.add_argument("name", help="region name")
+    p.add_argument(
+        "--kind",
+        choices=["slice", "arrows", "tube"],
+        default="slice",
+        help="slice: mean and std of a component (paper fig. 4); arrows: flow over std; "
+        "tube: the tube in 3D coloured by vertical velocity (paper fig. 7)",
+    )
+    p.add_argument("--alt-m", type=float, default=1000.0, help="slice altitude, region ENU up (default 1000)")
+    p.add_argument("--component", choices=["e", "n", "u"], default="e", help="slice component (default e)")
+    p.add_argument("--max-std-mps", type=float, default=5.0, help="tube bound (default 5)")
+    p.add_argument("--step", help="voxel size (default: an eighth of the hinge spacing; tube: a half)")
+    p.add_argument("--out", required=True, help="PNG file")
+    p.set_defaults(run=_plot)
+
+    p = client("plan", "a risk-aware route on the velocity tubes, and the shortest path beside it")
+    p.add_argument("--region", required=True, help="region name")
+    p.add_argument("--start", required=True, help="x,y,z ENU metres (or lat,lon,alt_m with --frame wgs84)")
+    p.add_argument("--goal", required=True, help="as --start")
+    p.add_argument("--frame", choices=["enu", "wgs84"], default="enu", help="frame of --start/--goal")
+    p.add_argument("--max-std-mps", type=float, required=True, help="tube bound on the largest std (m/s)")
+    p.add_argument(
+        "--tube",
+        choices=["hard", "soft", "off"],
+        default="hard",
+        help="hard: never leave the tube; soft: a penalty; off: risk only (default hard)",
+    )
+    p.add_argument("--w-risk", type=float, default=1.0, help="weight of the integrated risk (default 1)")
+    p.add_argument("--w-flow", type=float, default=0.5, help="weight of the flow mismatch (default 0.5)")
+    p.add_argument("--cruise-mps", type=float, default=30.0, help="cruise speed (default 30 m/s)")
+    p.add_argument("--altitude-m", help="min,max altitude band (default: the region's)")
+    p.add_argument("--no-fly", action="append", default=[], help="xmin,ymin,zmin,xmax,ymax,zmax (repeatable)")
+    p.add_argument("--step", help="cost-map voxel size (default: a quarter of the hinge spacing)")
+    p.add_argument(
+        "--planner",
+        default="bitstar",
+        choices=["bitstar", "rrtstar", "informed_rrtstar", "sorrtstar", "fmt"],
+        help="default bitstar",
+    )
+    p.add_argument("--time", type=float, default=5.0, help="planning budget in seconds (default 5)")
+    p.add_argument("--seed", type=int, help="OMPL seed (reproducible with --iterations)")
+    p.add_argument("--iterations", type=int, help="stop after this many iterations instead of --time")
+    p.add_argument("--out", help="GeoJSON file with both routes and their metrics")
+    p.add_argument("--png", help="PNG with the top view over the tube and the altitude profile")
+    p.set_defaults(run=_plan)
     return parser
 
 
@@ -111,8 +453,13 @@ def main(argv=None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    from clients.sdk import BDFError
+
     try:
         return args.run(args)
+    except BDFError as exc:
+        print(f"bdf: error: {exc}", file=sys.stderr)
+        return 2 if 400 <= exc.status < 500 else 1
     except ValueError as exc:
         print(f"bdf: error: {exc}", file=sys.stderr)
         return 2

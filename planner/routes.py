@@ -115,7 +115,7 @@ def _to_enu(spec: RegionSpec, p, frame: str) -> np.ndarray:
         return p
     if frame != "wgs84":
         raise ValueError(f"frame must be 'enu' or 'wgs84', got {frame!r}")
-    return spec.frame().to_enu(p[0], p[1], p[2])[0]
+    return spec.frame().to_enu(p[:1], p[1:2], p[2:])[0]
 
 
 def plan_route(
@@ -183,7 +183,7 @@ def plan_route(
 def _route(name, client, region, spec, costmap, P, solution, check_m) -> Route:
     metrics = path_metrics(costmap, P)
     # the service's own std along the path (not the grid's interpolation)
-    X = _densify(P, check_m)
+    X = densify(P, check_m)
     std = client.query(region, X).std.max(axis=1)
     bound = costmap.weights.max_std_mps
     metrics.update(
@@ -199,7 +199,7 @@ def _route(name, client, region, spec, costmap, P, solution, check_m) -> Route:
     return Route(name, P, spec.frame().to_geodetic(P), metrics, solution)
 
 
-def _densify(P: np.ndarray, spacing_m: float) -> np.ndarray:
+def densify(P: np.ndarray, spacing_m: float) -> np.ndarray:
     """Points along the polyline every ``spacing_m`` at most, vertices included."""
     parts = []
     for a, b in itertools.pairwise(P):

@@ -1,0 +1,126 @@
+"""The cost map against analytic fields: interpolation, segment integrals, metrics, boxes."""
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from planner.costmap import CostMap, CostWeights, path_metrics
+from planner.search import Box, Problem
+
+AXES = (np.linspace(0, 1000, 21), np.linspace(-500, 500, 11), np.linspace(0, 300, 7))
+
+
+def mesh():
+    return np.stack(np.meshgrid(*AXES, indexing="ij"), -1)
+
+
+def costmap(std_fn, mean=(0.0, 0.0, 0.0), **weights):
+    G = mesh()
+    std = np.repeat(std_fn(G)[..., None], 3, -1)
+    mean = np.broadcast_to(np.asarray(mean, float), std.shape)
+    return CostMap(AXES, mean, std, CostWeights(**{"max_std_mps": 2.0, **weights}))
+
+
+def random_points(n, seed=0):
+    return np.random.default_rng(seed).uniform([0, -500, 0], [1000, 500, 300], (n, 3))
+
+
+def test_trilinear_interpolation_is_exact_for_linear_fields_and_bounded_for_quadratic():
+    cm = costmap(lambda G: 1 + 0.002 * G[..., 0] - 0.001 * G[..., 1] + 0.003 * G[..., 2])
+    X = random_points(500)
+    expected = 1 + 0.002 * X[:, 0] - 0.001 * X[:, 1] + 0.003 * X[:, 2]
+    np.testing.assert_allclose(cm.max_std(X), expected, rtol=1e-12)
+    # f = a x^2: error |f''| h^2 / 8 = a h^2 / 4 at most (h = 50 m), reached mid-cell
+    a = 1e-5
+    cm = costmap(lambda G: 1 + a * G[..., 0] ** 2)
+    err = np.abs(cm.max_std(X) - (1 + a * X[:, 0] ** 2))
+    assert a * 50**2 / 4 * 0.95 < err.max() <= a * 50**2 / 4 + 1e-12
+
+
+def test_segment_cost_of_constant_fields_is_length_times_the_integrand():
+    m = np.array([3.0, -1.0, 0.5])
+    w = CostWeights(max_std_mps=2.0, risk=1.5, flow=0.7, cruise_mps=20.0)
+    cm = costmap(
+        lambda G: np.full(G.shape[:3], 1.0), mean=m, risk=w.risk, flow=w.flow, cruise_mps=w.cruise_mps
+    )
+    P0, P1 = np.array([[100.0, -200, 50], [500, 0, 10]]), np.array([[900.0, 300, 250], [500, 0, 290]])
+    d = P1 - P0
+    length = np.linalg.norm(d, axis=1)
+    confidence = 1 / (1 + (1.0 / 2.0) ** 2)
+    mismatch = np.linalg.norm(w.cruise_mps * d / length[:, None] - m, axis=1) / w.cruise_mps
+    expected = length * (1 + w.risk * 1.0 / 2.0 + w.flow * confidence * mismatch)
+    np.testing.assert_allclose(cm.segment_costs(P0, P1), expected, rtol=1e-12)
+    # a batch equals its segments one by one, and a zero-length segment costs nothing
+    for k in range(2):
+        np.testing.assert_allclose(cm.segment_costs(P0[k], P1[k]), expected[k], rtol=1e-12)
+    assert cm.segment_costs(P0[:1], P0[:1])[0] == 0.0
+
+
+def test_linear_risk_integrates_exactly_and_costs_are_at_least_the_length():
+    # risk = s / b, linear in x; no flow term: the trapezoid rule is exact
+    cm = costmap(lambda G: 0.5 + 0.004 * G[..., 0], flow=0.0)
+    a, b = np.array([50.0, 0, 100]), np.array([950.0, 120, 200])
+    s_a, s_b = 0.5 + 0.004 * a[0], 0.5 + 0.004 * b[0]
+    length = np.linalg.norm(b - a)
+    expected = length * (1 + 0.5 * (s_a + s_b) / 2.0)
+    np.testing.assert_allclose(cm.segment_costs(a, b), expected, rtol=1e-12)
+    P0, P1 = random_points(200, 1), random_points(200, 2)
+    assert (cm.segment_costs(P0, P1) >= np.linalg.norm(P1 - P0, axis=1) - 1e-9).all()
+
+
+def test_exceedance_risk_is_the_gaussian_tail_probability():
+    sigma, margin = 1.7, 2.5
+    cm = costmap(lambda G: np.full(G.shape[:3], sigma), risk_kind="exceedance", margin_mps=margin, risk=2.0)
+    p_component = 2 * norm.sf(margin / sigma)
+    expected = 2.0 * (1 - (1 - p_component) ** 3)
+    np.testing.assert_allclose(cm.fields(random_points(10))[:, 1], expected, rtol=1e-12)
+
+
+def test_soft_tube_adds_a_penalty_above_the_bound_only():
+    cm = costmap(lambda G: np.where(G[..., 0] < 500, 1.0, 4.0), tube="soft", tube_penalty=10.0, flow=0.0)
+    inside, outside = cm.fields([[100.0, 0, 0]])[0, 1], cm.fields([[900.0, 0, 0]])[0, 1]
+    assert inside == pytest.approx(1.0 / 2.0)
+    assert outside == pytest.approx(4.0 / 2.0 + 10.0 * (4.0 / 2.0 - 1))
+
+
+def test_path_metrics_on_a_straight_path():
+    cm = costmap(lambda G: 1.0 + 0.002 * G[..., 0], flow=0.0, cruise_mps=25.0)
+    P = np.array([[0.0, 0, 100], [400, 0, 100], [1000, 0, 100]])
+    m = path_metrics(cm, P)
+    assert m["length_m"] == pytest.approx(1000) and m["flight_time_s"] == pytest.approx(40)
+    assert m["max_std_mps"] == pytest.approx(3.0) and m["mean_std_mps"] == pytest.approx(2.0)
+    # s <= 2 m/s for x <= 500 m: half of the path
+    assert m["in_tube_fraction"] == pytest.approx(0.5, abs=cm.sample_m / 1000)
+    assert m["integrated_risk_m"] == pytest.approx(1000 * 2.0 / 2.0)
+    assert m["cost_m"] == pytest.approx(1000 + m["integrated_risk_m"])
+
+
+def test_box_hits_segments_exactly():
+    box = Box((0.0, 0.0, 0.0), (10.0, 10.0, 10.0))
+    P0 = np.array([[-5.0, 5, 5], [-5, 11, 5], [5, 5, 5], [-5, -5, -5], [10, 20, 5], [20, 5, 5]])
+    P1 = np.array([[15.0, 5, 5], [15, 11, 5], [6, 6, 6], [-1, -1, -1], [10, 10, 5], [11, 5, 5]])
+    # through, parallel above, inside, short of it, touching a face, stopping before it
+    np.testing.assert_array_equal(box.hits(P0, P1), [True, False, True, False, True, False])
+    with pytest.raises(ValueError, match="above lower"):
+        Box((0.0, 0, 0), (1.0, 0, 1))
+
+
+def test_problem_rejects_bad_input_with_a_reason():
+    cm = costmap(lambda G: np.where(G[..., 0] < 500, 1.0, 4.0))
+    ok = dict(costmap=cm, start=(100.0, 0, 100), goal=(200.0, 0, 100))
+    with pytest.raises(ValueError, match="outside the tube"):
+        Problem(**{**ok, "goal": (900.0, 0, 100)})
+    with pytest.raises(ValueError, match="deadlocks"):
+        Problem(**ok, planner="prmstar")
+    with pytest.raises(ValueError, match="unknown planner"):
+        Problem(**ok, planner="astar")
+    with pytest.raises(ValueError, match="outside the planning box"):
+        Problem(**ok, altitude_m=(150.0, 300.0))
+    with pytest.raises(ValueError, match="no-fly"):
+        Problem(**ok, no_fly=(Box((50.0, -10, 0), (150.0, 10, 300)),))
+    with pytest.raises(ValueError, match="must be positive"):
+        CostWeights(max_std_mps=0)
+    with pytest.raises(ValueError, match="evenly spaced"):
+        CostMap(
+            (np.array([0.0, 1, 3]), *AXES[1:]), np.zeros((3, 11, 7, 3)), np.ones((3, 11, 7, 3)), cm.weights
+        )

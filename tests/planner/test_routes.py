@@ -1,0 +1,113 @@
+"""End to end on a live service: a map whose only low-variance corridor forces a detour."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bdf.tiles import RegionSpec
+from clients.sdk import BDFClient
+from planner.costmap import CostWeights
+from planner.routes import densify, plan_route
+
+BOUND = 0.3
+SPEC = {
+    "name": "corridor",
+    "origin": {"lat": 48.0, "lon": 2.0},
+    "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
+    "tile_size_m": [100, 100, 60],
+    "overlap_m": [20, 20, 0],
+    "spacing_m": [25, 25, 20],
+    "gamma": [1 / 1250, 1 / 1250, 1 / 800],
+}
+START, GOAL = (20.0, 100.0, 30.0), (280.0, 100.0, 30.0)
+
+
+def corridor(seed=0, n=6000):
+    """Observations along an arch: up the west side, across the north, down the east side."""
+    rng = np.random.default_rng(seed)
+    legs = [((5, 40), (80, 195)), ((5, 295), (160, 195)), ((260, 295), (80, 195))]
+    X = np.vstack(
+        [
+            np.stack([rng.uniform(*xs, n // 3), rng.uniform(*ys, n // 3), rng.uniform(0, 60, n // 3)], 1)
+            for xs, ys in legs
+        ]
+    )
+    V = np.zeros_like(X)
+    V[:, 0] = 5 + 0.02 * X[:, 1]
+    return X, V + 0.1 * rng.standard_normal(X.shape)
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    from clients.local import LocalService
+
+    with LocalService(tmp_path_factory.mktemp("plan") / "data") as svc, BDFClient(svc.url) as bdf:
+        bdf.create_region(SPEC)
+        bdf.fit("corridor", *corridor())
+        yield svc
+
+
+def test_hard_tube_route_stays_below_the_bound_where_the_straight_line_does_not(service):
+    with BDFClient(service.url) as bdf:
+        plan = plan_route(bdf, "corridor", START, GOAL, weights=CostWeights(max_std_mps=BOUND), time_s=2.0)
+        route = plan.route.enu
+        # the service's exact std every 10 m along each path
+        along = bdf.query("corridor", densify(route, 10.0)).std.max(axis=1)
+        straight = bdf.query("corridor", densify(np.array([START, GOAL]), 10.0)).std.max(axis=1)
+    assert along.max() <= BOUND
+    assert straight.max() > 10 * BOUND
+    np.testing.assert_allclose(route[[0, -1]], [START, GOAL], atol=1e-3)
+    assert plan.route.metrics["service_max_std_mps"] == pytest.approx(along.max(), rel=0.05)
+    assert plan.route.metrics["integrated_risk_m"] < plan.baseline.metrics["integrated_risk_m"] / 5
+    assert plan.route.metrics["length_m"] > plan.baseline.metrics["length_m"] == pytest.approx(260)
+    geo = plan.geojson()
+    assert [f["properties"]["name"] for f in geo["features"]] == ["risk-aware", "shortest"]
+    lon, lat, alt = geo["features"][0]["geometry"]["coordinates"][0]
+    np.testing.assert_allclose(plan.region.frame().to_enu([lat], [lon], [alt])[0], START, atol=1e-6)
+
+
+def bdf_cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "clients.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(service, tmp_path):
+    start, goal = RegionSpec.model_validate(SPEC).frame().to_geodetic(np.array([START, GOAL])).tolist()
+    out, png = tmp_path / "route.geojson", tmp_path / "route.png"
+    common = [
+        "plan",
+        "--url",
+        service.url,
+        "--region",
+        "corridor",
+        "--max-std-mps",
+        str(BOUND),
+        "--time",
+        "1.5",
+    ]
+    run = bdf_cli(
+        *common,
+        "--frame",
+        "wgs84",
+        "--start",
+        ",".join(map(repr, start)),
+        "--goal",
+        ",".join(map(repr, goal)),
+        "--out",
+        str(out),
+        "--png",
+        str(png),
+    )
+    assert run.returncode == 0, run.stderr
+    assert "risk-aware" in run.stdout and "integrated_risk_m" in run.stdout
+    features = json.loads(out.read_text())["features"]
+    assert features[0]["properties"]["service_max_std_mps"] <= BOUND
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    bad = bdf_cli(*common, "--start", "150,60,30", "--goal", "280,100,30")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "outside the tube" in bad.stderr
+    missing = bdf_cli(*common, "--region", "nowhere", "--start", "1,1,1", "--goal", "2,2,2")
+    assert missing.returncode == 2 and "404" in missing.stderr
