@@ -193,6 +193,33 @@ def sample_origin(name: str = "paris") -> ENUFrame:
     return ENUFrame(*SAMPLES[name][2])
 
 
+#: The Paris map's hinge spacing (bench/RESULTS.md "core grid"), picked by hand, and its gamma.
+PARIS_SPACING_M = np.array([4000.0, 4000.0, 1000.0])
+PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
+
+
+def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris"):
+    """The tiled region of :func:`load_paris`'s box: 10 km tiles over the whole altitude band,
+    1 km overlap, gamma = 1 / spacing^2, on the sample's origin."""
+    from bdf.tiles import RegionSpec
+
+    frame = sample_origin("paris")
+    lower, upper, spacing = np.asarray(lower, float), np.asarray(upper, float), np.asarray(spacing, float)
+    return RegionSpec.model_validate(
+        {
+            "name": name,
+            "origin": {"lat": frame.lat, "lon": frame.lon, "alt_m": frame.alt_m},
+            # ENU altitude falls below 0 away from the origin (earth curvature): start at -1 km,
+            # on the same hinge lattice as the single field
+            "bounds_m": {"min": (lower - [0, 0, 1000]).tolist(), "max": upper.tolist()},
+            "tile_size_m": [10_000.0, 10_000.0, float(upper[2] - lower[2] + 1000)],
+            "overlap_m": [1000.0, 1000.0, 0.0],
+            "spacing_m": spacing.tolist(),
+            "gamma": (1.0 / spacing**2).tolist(),
+        }
+    )
+
+
 def load_paris(radius_m: float = 40_000.0, max_alt_m: float = 6_000.0, cache=None):
     """The Paris sample as the benchmarks use it: points within ``radius_m`` (horizontal)
     of the mean position and below ``max_alt_m``.

@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bdf import BayesianDynamicField, ingest, metrics
-from clients.demo import PARIS_GAMMA, PARIS_SPACING_M
+from bdf.ingest import PARIS_GAMMA, PARIS_SPACING_M
 
 PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
 

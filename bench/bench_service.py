@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import publish  # bench/ is on the path when run as a script
-from bench_tiles import GRIDS, arguments, postgres_schema, region_spec, table
+from bench_tiles import GRIDS, arguments, postgres_schema, table
 
 from bdf import ingest
 from clients.local import LocalService
@@ -184,7 +184,7 @@ def main():
 
     obs, lower, upper = ingest.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
-    spec = region_spec(lower, upper, GRIDS["core grid"])
+    spec = ingest.paris_region(lower, upper, GRIDS["core grid"])
     report = [
         f"## HTTP service, {datetime.date.today()}",
         "",

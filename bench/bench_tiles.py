@@ -34,29 +34,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_core import accuracy, publish  # bench/ is on the path when run as a script
 
 from bdf import BayesianDynamicField, ingest
-from bdf.tiles import RegionSpec
 from service.maps import RegionMaps
 from service.store import open_store
 
 GRIDS = {"core grid": [4000.0, 4000.0, 1000.0], "fine grid": [2000.0, 2000.0, 500.0]}
-
-
-def region_spec(lower, upper, spacing) -> RegionSpec:
-    frame = ingest.sample_origin("paris")
-    spacing = np.array(spacing)
-    return RegionSpec.model_validate(
-        {
-            "name": "paris",
-            "origin": {"lat": frame.lat, "lon": frame.lon, "alt_m": frame.alt_m},
-            # ENU altitude falls below 0 away from the origin (earth curvature): start at -1 km,
-            # on the same hinge lattice as the single field
-            "bounds_m": {"min": (lower - [0, 0, 1000]).tolist(), "max": upper.tolist()},
-            "tile_size_m": [10_000.0, 10_000.0, float(upper[2] - lower[2] + 1000)],
-            "overlap_m": [1000.0, 1000.0, 0.0],
-            "spacing_m": spacing.tolist(),
-            "gamma": (1.0 / spacing**2).tolist(),
-        }
-    )
 
 
 def run_backend(url, spec, obs, test, weight, n_uploads=0) -> dict:
@@ -166,7 +147,7 @@ def main():
     ]
     rows = []
     for grid_name, spacing in GRIDS.items():
-        spec = region_spec(lower, upper, spacing)
+        spec = ingest.paris_region(lower, upper, spacing)
         weight = ingest.track_weights(obs.subset(~test), spacing)
         try:
             ref, hyper = single_field(lower, upper, spacing, obs, test, weight)

@@ -27,6 +27,8 @@ from typing import Literal
 import numpy as np
 from scipy.special import erfc
 
+#: Where no tile has data, the std is at least this many tube bounds.
+UNKNOWN_STD_RATIO = 10.0
 #: Columns of the per-voxel field table.
 S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
 
@@ -62,12 +64,15 @@ class CostMap:
     """Trilinear cost fields on the grid ``axes`` (each increasing, evenly spaced).
 
     ``mean`` and ``std`` are (nx, ny, nz, 3) m/s, as the service's grid endpoint gives them.
+    Where ``known`` is False no tile has data and the std is only the prior's: those voxels
+    count as at least ``UNKNOWN_STD_RATIO`` tube bounds uncertain, and their mean as 0.
     """
 
     axes: tuple[np.ndarray, np.ndarray, np.ndarray]
     mean: np.ndarray
     std: np.ndarray
     weights: CostWeights
+    known: np.ndarray | None = None
     sample_m: float | None = None
     table: np.ndarray = field(init=False, repr=False)  # (nx * ny * nz, 6) per-voxel fields
 
@@ -85,6 +90,13 @@ class CostMap:
             raise ValueError(f"mean and std must have shape {(*shape, 3)}, got {mean.shape}, {std.shape}")
         if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std >= 0).all()):
             raise ValueError("mean and std must be finite and std non-negative")
+        if self.known is not None:
+            known = np.asarray(self.known, bool)
+            if known.shape != shape:
+                raise ValueError(f"known must have shape {shape}, got {known.shape}")
+            floor = UNKNOWN_STD_RATIO * self.weights.max_std_mps
+            std = np.where(known[..., None], std, np.maximum(std, floor))
+            mean = np.where(known[..., None], mean, 0.0)
         object.__setattr__(self, "axes", axes)
         if self.sample_m is None:
             object.__setattr__(self, "sample_m", 0.5 * min(a[1] - a[0] for a in axes))

@@ -142,7 +142,7 @@ def plan_route(
     start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
     lo, hi = planning_box(spec, start, goal, altitude_m, margin_m)
     grid = client.grid(region, grid_step(spec, lo, hi, step), bbox=[*lo, *hi])
-    costmap = CostMap(grid.axes, grid.mean, grid.std, weights)
+    costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known)
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))
     risk = Problem(

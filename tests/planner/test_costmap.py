@@ -124,3 +124,12 @@ def test_problem_rejects_bad_input_with_a_reason():
         CostMap(
             (np.array([0.0, 1, 3]), *AXES[1:]), np.zeros((3, 11, 7, 3)), np.ones((3, 11, 7, 3)), cm.weights
         )
+
+
+def test_voxels_without_data_count_as_far_outside_the_tube():
+    G = mesh()
+    std = np.full((*G.shape[:3], 3), 0.5)  # an empty tile's prior can be small
+    known = G[..., 0] < 500
+    cm = CostMap(AXES, np.ones_like(std), std, CostWeights(max_std_mps=2.0), known=known)
+    np.testing.assert_allclose(cm.max_std([[100.0, 0, 0], [900.0, 0, 0]]), [0.5, 20.0])
+    np.testing.assert_allclose(cm.fields([[900.0, 0, 0]])[0, 3:], 0.0)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from planner.costmap import CostMap, CostWeights
+from planner.lattice import lattice_optimum
 from planner.routes import densify
 from planner.search import PLANNERS, Box, Problem, solve_in_worker
 
@@ -79,3 +80,16 @@ def test_planning_in_a_worker_leaves_the_callers_threads_running(blocked):
     done.set()
     thread.join()
     assert ticks[0] > 0.5 * elapsed / 0.01  # a solve in this process would hold the GIL throughout
+
+
+def test_lattice_optimum_bounds_the_planner_from_near_and_matches_a_straight_corridor(blocked):
+    problem = Problem(blocked, START, GOAL, time_s=2.0, seed=3)
+    lattice_cost, P = lattice_optimum(problem)
+    assert problem.segments_valid(P[1:-2], P[2:-1]).all()
+    sol = solve_in_worker(problem)
+    # the sampling planner is near the lattice optimum (which is only 26-connected)
+    assert 0.8 * lattice_cost < sol.cost < 1.3 * lattice_cost
+    # along an axis-aligned, obstacle-free line, the lattice path is the straight line
+    free = Problem(blocked, (100.0, 200.0, 100.0), (1900.0, 200.0, 100.0), objective="length")
+    cost, _ = lattice_optimum(free)
+    assert cost == pytest.approx(1800.0)
