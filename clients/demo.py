@@ -1,93 +1,127 @@
-"""Demo on real ADS-B traffic: learn the Paris velocity map, report its accuracy, plot slices."""
+"""The demo, end to end on real ADS-B traffic around Paris (OpenSky, via ``traffic``).
+
+It fetches the sample (once), starts the service on SQLite on 127.0.0.1, builds the map
+from 80 % of the flights over HTTP, scores it on the held-out flights, draws the map,
+plans a risk-aware route and the shortest path between two points of one tube, writes the
+pictures and the route to ``out``, and stops the service.
+"""
 
 from __future__ import annotations
 
-import logging
 import time
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
-from bdf import BayesianDynamicField, ingest, metrics
+from bdf import ingest, metrics
+from clients import plots
+from clients.local import LocalService
+from clients.sdk import BDFClient
 
-log = logging.getLogger(__name__)
+#: The flight band of the demo route, region ENU up, metres.
+ROUTE_BAND_M = (1000.0, 2500.0)
+#: The tube bound is this quantile of the largest std over the band's voxels with data.
+TUBE_QUANTILE = 0.2
 
-#: The grid the benchmark uses (bench/RESULTS.md), picked by hand (see its note on the grid).
-PARIS_SPACING_M = np.array([4000.0, 4000.0, 1000.0])
-PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
 
-
-def run(out: Path, altitudes_m=(1000.0, 3000.0)) -> dict:
+def run(out: Path, plan_time_s: float = 5.0) -> dict:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
     obs, lower, upper = ingest.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
-    field = BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA, alpha="auto", beta="auto")
-    t0 = time.perf_counter()
-    # each flight counts once per grid cell it crosses: 1 Hz samples are not independent
-    weight = ingest.track_weights(obs.subset(~test), PARIS_SPACING_M)
-    field.fit(obs.X[~test], obs.V[~test], sample_weight=weight)
-    mean, std = field.predict(obs.X[test], return_std=True)
-    seconds = time.perf_counter() - t0
-    train = obs.V[~test]
-    report = {
-        "train points": int((~test).sum()),
-        "test points (held-out flights)": int(test.sum()),
-        "hinges M": len(field.hinges),
-        "fit + test query [s]": round(seconds, 2),
-        "RMSE [m/s]": round(float(metrics.rmse(obs.V[test], mean)), 2),
-        "MSLL": round(float(metrics.msll(obs.V[test], mean, std, train.mean(0), train.std(0))), 3),
-        "95% coverage": round(float(metrics.coverage(obs.V[test], mean, std)), 3),
-        "fitted noise std per component [m/s]": np.round(1 / np.sqrt(field.beta_), 2).tolist(),
-    }
-    width = max(map(len, report))
-    print("Paris velocity map (real ADS-B from the OpenSky Network, via the `traffic` package)")
-    for key, value in report.items():
-        print(f"  {key:<{width}}  {value}")
-    out.mkdir(parents=True, exist_ok=True)
-    for alt in altitudes_m:
-        path = out / f"paris_slice_{int(alt)}m.png"
-        plot_slice(field, lower, upper, alt, path, data=obs.X[np.abs(obs.X[:, 2] - alt) < 150])
+    spec = ingest.paris_region(lower, upper)
+    report: dict[str, object] = {}
+    with LocalService(out / "bdf-data", log_path=out / "service.log") as svc, BDFClient(svc.url) as bdf:
+        print(f"service on {svc.url} (SQLite in {out / 'bdf-data'}); log in {out / 'service.log'}")
+        if spec.name in [r.spec.name for r in bdf.regions()]:
+            bdf.delete_region(spec.name)
+        bdf.create_region(spec)
+        t0 = time.perf_counter()
+        # each flight counts once per grid cell it crosses: 1 Hz samples are not independent
+        weight = ingest.track_weights(obs.subset(~test), spec.spacing_m)
+        fit = bdf.fit(spec.name, obs.X[~test], obs.V[~test], sample_weight=weight)
+        report["map build over HTTP [s]"] = round(time.perf_counter() - t0, 2)
+        report["train points / tiles updated"] = f"{fit.accepted} / {fit.tiles_updated}"
+        t0 = time.perf_counter()
+        pred = bdf.query(spec.name, obs.X[test])
+        report["query of the held-out points [s]"] = round(time.perf_counter() - t0, 2)
+        train = obs.V[~test]
+        report["held-out flights: points"] = int(test.sum())
+        report["RMSE [m/s]"] = round(float(metrics.rmse(obs.V[test], pred.mean)), 2)
+        report["MSLL"] = round(
+            float(metrics.msll(obs.V[test], pred.mean, pred.std, train.mean(0), train.std(0))), 3
+        )
+        report["95% coverage"] = round(float(metrics.coverage(obs.V[test], pred.mean, pred.std)), 3)
+        _print("Paris velocity map (real ADS-B, OpenSky Network)", report)
+
+        pictures = _pictures(bdf, spec, out)
+        plan = _plan(bdf, spec, plan_time_s)
+    print("\nrisk-aware route vs shortest path (metres, m/s, seconds)")
+    print(plan.table())
+    route_file = out / "route.geojson"
+    import json
+
+    route_file.write_text(json.dumps(plan.geojson()))
+    from planner.plot import plot_route
+
+    pictures.append(plot_route(plan, out / "route.png"))
+    for path in [*pictures, route_file]:
         print(f"  wrote {path}")
+    report["route"] = plan
     return report
 
 
-def plot_slice(field, lower, upper, alt_m, path, data=None, n=160):
-    """Horizontal slice at ``alt_m``: mean speed with flow arrows, and the predictive std."""
-    import matplotlib
+def _print(title: str, report: dict) -> None:
+    width = max(map(len, report))
+    print(title)
+    for key, value in report.items():
+        print(f"  {key:<{width}}  {value}")
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    xs, ys = np.linspace(lower[0], upper[0], n), np.linspace(lower[1], upper[1], n)
-    gx, gy = np.meshgrid(xs, ys)
-    pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, alt_m)], 1)
-    mean, std = field.predict(pts, return_std=True)
-    speed = np.hypot(mean[:, 0], mean[:, 1]).reshape(gx.shape)
-    horizontal_std = np.sqrt(std[:, 0] ** 2 + std[:, 1] ** 2).reshape(gx.shape)
-    km = 1e-3
-    extent = [lower[0] * km, upper[0] * km, lower[1] * km, upper[1] * km]
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.6), constrained_layout=True)
-    im = axes[0].imshow(speed, origin="lower", extent=extent, cmap="viridis")
-    step = n // 20
-    axes[0].quiver(
-        gx[::step, ::step] * km,
-        gy[::step, ::step] * km,
-        mean[:, 0].reshape(gx.shape)[::step, ::step],
-        mean[:, 1].reshape(gx.shape)[::step, ::step],
-        color="white",
-        width=0.003,
+def _pictures(bdf: BDFClient, spec, out: Path) -> list[Path]:
+    step = (np.array(spec.spacing_m) / 8).tolist()
+    paths = []
+    for alt, kind in ((1000.0, "slice"), (3000.0, "arrows")):
+        grid = bdf.grid(spec.name, step, [*spec.lower[:2], alt, *spec.upper[:2], alt])
+        if kind == "slice":
+            paths.append(plots.plot_slice(grid, alt, "e", out / f"slice_e_{alt:.0f}m.png", title=spec.name))
+        else:
+            paths.append(plots.plot_arrows(grid, alt, out / f"flow_{alt:.0f}m.png", title=spec.name))
+    tubes = bdf.tubes(spec.name, 25.0, (np.array(spec.spacing_m) / 4).tolist())
+    paths.append(plots.plot_tube(tubes, 25.0, out / "tube_3d.png", title=spec.name))
+    return paths
+
+
+def _plan(bdf: BDFClient, spec, time_s: float):
+    """Start and goal: the two voxels farthest apart in the largest connected piece of the
+    tube in the band, so that a route inside the tube exists."""
+    from planner.costmap import CostWeights
+    from planner.routes import plan_route
+
+    step = (np.array(spec.spacing_m) / 4).tolist()
+    grid = bdf.grid(spec.name, step, [*spec.lower[:2], ROUTE_BAND_M[0], *spec.upper[:2], ROUTE_BAND_M[1]])
+    s = grid.std.max(axis=-1)
+    bound = float(np.quantile(s[grid.known], TUBE_QUANTILE))
+    labels, n = ndimage.label(grid.known & (s < bound))
+    largest = 1 + int(np.argmax(ndimage.sum_labels(np.ones_like(s), labels, range(1, n + 1))))
+    # voxels whose neighbours are all in the tube: the start and goal are well inside it
+    idx = np.argwhere(ndimage.binary_erosion(labels == largest, np.ones((3, 3, 3))))
+    P = np.stack([grid.x[idx[:, 0]], grid.y[idx[:, 1]], grid.z[idx[:, 2]]], axis=1)
+    a = P[np.argmax(np.linalg.norm(P - P.mean(0), axis=1))]
+    b = P[np.argmax(np.linalg.norm(P - a, axis=1))]
+    print(
+        f"\nplanning {np.linalg.norm(b - a) / 1e3:.1f} km from {a.round().tolist()} to {b.round().tolist()} "
+        f"(ENU m) inside the tube std < {bound:.1f} m/s, band {ROUTE_BAND_M} m, BIT* {time_s:g} s"
     )
-    fig.colorbar(im, ax=axes[0], label="mean horizontal speed [m/s]")
-    axes[0].set_title(f"mean flow at {alt_m:.0f} m")
-    im = axes[1].imshow(horizontal_std, origin="lower", extent=extent, cmap="magma_r")
-    if data is not None and len(data):
-        axes[1].scatter(
-            data[:, 0] * km, data[:, 1] * km, s=0.2, c="cyan", alpha=0.4, label="observations ±150 m"
-        )
-        axes[1].legend(loc="upper right", markerscale=20)
-    fig.colorbar(im, ax=axes[1], label="predictive std of horizontal velocity [m/s]")
-    axes[1].set_title(f"uncertainty at {alt_m:.0f} m")
-    for ax in axes:
-        ax.set_xlabel("east [km]")
-        ax.set_ylabel("north [km]")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return plan_route(
+        bdf,
+        spec.name,
+        a,
+        b,
+        weights=CostWeights(max_std_mps=bound, cruise_mps=60.0),
+        altitude_m=ROUTE_BAND_M,
+        step=step,
+        time_s=time_s,
+        seed=1,
+    )

@@ -202,36 +202,42 @@ def _json_body(body) -> dict:
     return {"content": json.dumps(body).encode(), "content_type": JSON}
 
 
-def _observations_body(X, V, noise, frame: Frame) -> bytes:
+def _observations_body(X, V, noise, weight, frame: Frame) -> bytes:
     columns = {
         **_position_columns(X, frame),
         **{c: np.ascontiguousarray(V[:, j]) for j, c in enumerate(("ve", "vn", "vu"))},
     }
     if noise is not None:
         columns["input_noise_std"] = noise
+    if weight is not None:
+        columns["sample_weight"] = weight
     return _arrow(columns)
 
 
-def _observations(X, V, noise):
+def _per_point(value, n: int, name: str) -> np.ndarray | None:
+    if value is None:
+        return None
+    try:
+        return np.broadcast_to(np.asarray(value, dtype=float), (n,)).copy()
+    except ValueError:
+        raise ValueError(
+            f"{name} must be one number or one per point ({n}), got shape {np.shape(value)}"
+        ) from None
+
+
+def _observations(X, V, noise, weight):
     X, V = _points(X), _points(V, "V")
     if len(X) != len(V):
         raise ValueError(f"{len(X)} positions but {len(V)} velocities")
     if len(X) == 0:
         raise ValueError("no observations to send")
-    if noise is not None:
-        try:
-            noise = np.broadcast_to(np.asarray(noise, dtype=float), (len(X),)).copy()
-        except ValueError:
-            raise ValueError(
-                f"input_noise_std must be one number or one per point ({len(X)}), got shape {np.shape(noise)}"
-            ) from None
-    return X, V, noise
+    return X, V, _per_point(noise, len(X), "input_noise_std"), _per_point(weight, len(X), "sample_weight")
 
 
-def _upload_key(X, V, noise, chunk_size: int, kind: str) -> str:
+def _upload_key(X, V, noise, weight, chunk_size: int, kind: str) -> str:
     """Same data, same keys: a rerun of an interrupted upload skips the chunks already applied."""
     h = hashlib.sha256(kind.encode())
-    for a in (X, V, noise):
+    for a in (X, V, noise, weight):
         if a is not None:
             h.update(np.ascontiguousarray(a).tobytes())
     h.update(str(chunk_size).encode())
@@ -285,16 +291,20 @@ class _Endpoints:
         V,
         *,
         input_noise_std=None,
+        sample_weight=None,
         frame: Frame = "enu",
         chunk_size: int = 200_000,
         key: str | None = None,
         progress: bool | None = None,
     ) -> UploadResult:
         """Add observations: positions ``X`` (n, 3) ENU metres or lat, lon, alt_m with
-        ``frame="wgs84"``; velocities ``V`` (n, 3) east, north, up m/s. Sent in chunks of
+        ``frame="wgs84"``; velocities ``V`` (n, 3) east, north, up m/s; ``sample_weight``
+        per observation (e.g. :func:`bdf.ingest.track_weights`). Sent in chunks of
         ``chunk_size`` with keys ``{key}-{i}``; ``key`` defaults to a hash of the data, so
         running the same upload again applies nothing twice."""
-        return self._run(self._upload(name, X, V, input_noise_std, frame, chunk_size, key, progress))
+        return self._run(
+            self._upload(name, X, V, input_noise_std, sample_weight, frame, chunk_size, key, progress)
+        )
 
     def fit(
         self,
@@ -303,6 +313,7 @@ class _Endpoints:
         V,
         *,
         input_noise_std=None,
+        sample_weight=None,
         frame: Frame = "enu",
         key: str | None = None,
         wait: bool = True,
@@ -312,7 +323,9 @@ class _Endpoints:
         """Replace the region's map with these observations (one request). A large fit runs
         as a job on the server: with ``wait`` the client polls it and returns its result;
         without, it returns the job (``{"id", "state", "progress", ...}``)."""
-        return self._run(self._fit(name, X, V, input_noise_std, frame, key, wait, poll_s, progress))
+        return self._run(
+            self._fit(name, X, V, input_noise_std, sample_weight, frame, key, wait, poll_s, progress)
+        )
 
     # -- maps ---------------------------------------------------------------------------------
     def query(self, name: str, X, *, frame: Frame = "enu", transport: Literal["arrow", "json"] = "arrow"):
@@ -345,11 +358,11 @@ class _Endpoints:
         response = yield _Request(method, path, **body)
         return parse(response.json() if response.content else None)
 
-    def _upload(self, name, X, V, noise, frame, chunk_size, key, progress) -> Call:
-        X, V, noise = _observations(X, V, noise)
+    def _upload(self, name, X, V, noise, weight, frame, chunk_size, key, progress) -> Call:
+        X, V, noise, weight = _observations(X, V, noise, weight)
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
-        key = key or _upload_key(X, V, noise, chunk_size, "observations")
+        key = key or _upload_key(X, V, noise, weight, chunk_size, "observations")
         results = []
         with _progress_bar(len(X), f"upload {name}", progress) as bar:
             for i, start in enumerate(range(0, len(X), chunk_size)):
@@ -358,7 +371,11 @@ class _Endpoints:
                     "POST",
                     f"/v1/regions/{name}/observations",
                     content=_observations_body(
-                        X[part], V[part], None if noise is None else noise[part], frame
+                        X[part],
+                        V[part],
+                        None if noise is None else noise[part],
+                        None if weight is None else weight[part],
+                        frame,
                     ),
                     content_type=ARROW,
                     idempotency_key=f"{key}-{i}",
@@ -367,14 +384,14 @@ class _Endpoints:
                 bar.update(len(X[part]))
         return _summary(results)
 
-    def _fit(self, name, X, V, noise, frame, key, wait, poll_s, progress) -> Call:
-        X, V, noise = _observations(X, V, noise)
+    def _fit(self, name, X, V, noise, weight, frame, key, wait, poll_s, progress) -> Call:
+        X, V, noise, weight = _observations(X, V, noise, weight)
         response = yield _Request(
             "POST",
             f"/v1/regions/{name}/fit",
-            content=_observations_body(X, V, noise, frame),
+            content=_observations_body(X, V, noise, weight, frame),
             content_type=ARROW,
-            idempotency_key=key or _upload_key(X, V, noise, len(X), "fit"),
+            idempotency_key=key or _upload_key(X, V, noise, weight, len(X), "fit"),
         )
         if response.status_code != 202:
             return _summary([response.json()])

@@ -141,7 +141,10 @@ def plan_route(
     spec = client.region(region).spec
     start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
     lo, hi = planning_box(spec, start, goal, altitude_m, margin_m)
-    grid = client.grid(region, grid_step(spec, lo, hi, step), bbox=[*lo, *hi])
+    step = grid_step(spec, lo, hi, step)
+    # on the region's lattice of this step: the same voxels as any other grid of the step
+    lo[:2] = spec.lower[:2] + np.floor((lo[:2] - spec.lower[:2]) / step[:2] + 1e-9) * step[:2]
+    grid = client.grid(region, step, bbox=[*lo, *hi])
     costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known)
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))

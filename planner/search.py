@@ -95,6 +95,8 @@ class Problem:
             raise ValueError(f"objective must be 'risk' or 'length', got {self.objective!r}")
         if not self.time_s > 0:
             raise ValueError(f"time_s must be positive, got {self.time_s}")
+        if self.seed is not None and self.seed < 1:
+            raise ValueError(f"seed must be a positive integer (OMPL does not take 0), got {self.seed}")
         if self.max_iterations is not None and self.max_iterations < 1:
             raise ValueError(f"max_iterations must be positive, got {self.max_iterations}")
         lower, upper = self.bounds()

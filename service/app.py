@@ -198,7 +198,14 @@ async def post_observations(name: RegionName, request: Request, idempotency_key:
 
     def work():
         obs = _observations(app, name, body, request.headers.get("content-type"))
-        result = app.state.maps.upload(name, upload_id, obs.X, obs.V, input_noise_std=obs.input_noise_std)
+        result = app.state.maps.upload(
+            name,
+            upload_id,
+            obs.X,
+            obs.V,
+            input_noise_std=obs.input_noise_std,
+            sample_weight=obs.sample_weight,
+        )
         app.state.metrics.upload_applied(result)
         return result
 
@@ -232,6 +239,7 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
             obs.X,
             obs.V,
             input_noise_std=obs.input_noise_std,
+            sample_weight=obs.sample_weight,
             replace=True,
             progress=progress,
         )

@@ -48,6 +48,11 @@ class ObservationsBody(BaseModel):
     input_noise_std: float | list[Value] | list[Row3] | None = Field(
         None, description="position noise std in metres: one number, one per point, or one per axis"
     )
+    sample_weight: list[Value] | None = Field(
+        None,
+        description="weight per observation (>= 0), e.g. 1 / samples of a track per cell: "
+        "correlated 1 Hz samples of one flight should not count as independent",
+    )
 
 
 class QueryBody(BaseModel):
@@ -68,6 +73,7 @@ class Observations:
     X: np.ndarray  # (n, 3) region ENU
     V: np.ndarray  # (n, 3) region ENU axes
     input_noise_std: np.ndarray | None
+    sample_weight: np.ndarray | None
 
 
 def _array(rows, n_cols: int = 3) -> np.ndarray:
@@ -125,7 +131,7 @@ def read_observations(spec: RegionSpec, body: bytes, media: str, max_points: int
         if len(obs.points) != len(obs.velocities):
             raise Problem(422, f"{len(obs.points)} points but {len(obs.velocities)} velocities")
         frame, P, V = obs.frame, _array(obs.points), _array(obs.velocities)
-        noise = obs.input_noise_std
+        noise, weight = obs.input_noise_std, obs.sample_weight
         if isinstance(noise, list):
             noise = _array(noise, 3 if noise and isinstance(noise[0], list) else 1)
     elif media == ARROW or media in PARQUET_ALIASES:
@@ -135,8 +141,9 @@ def read_observations(spec: RegionSpec, body: bytes, media: str, max_points: int
             raise Problem(422, f"the table lacks the velocity columns {missing}")
         frame, P = _table_positions(table)
         V = _columns(table, VELOCITY_COLUMNS)
-        noise = (
-            _columns(table, ["input_noise_std"])[:, 0] if "input_noise_std" in table.column_names else None
+        noise, weight = (
+            _columns(table, [c])[:, 0] if c in table.column_names else None
+            for c in ("input_noise_std", "sample_weight")
         )
     else:
         raise Problem(415, f"send {JSON}, {ARROW} or {PARQUET}, not {media or 'no Content-Type'}")
@@ -145,7 +152,12 @@ def read_observations(spec: RegionSpec, body: bytes, media: str, max_points: int
     if len(P) > max_points:
         raise Problem(422, f"{len(P)} observations in one request; the limit is {max_points}: split it")
     X, V = _to_region(spec, frame, P, V)
-    return Observations(X, V, None if noise is None else np.asarray(noise, float))
+    return Observations(
+        X,
+        V,
+        None if noise is None else np.asarray(noise, float),
+        None if weight is None else np.asarray(weight, float),
+    )
 
 
 def read_query(spec: RegionSpec, body: bytes, media: str, max_points: int) -> np.ndarray:
