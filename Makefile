@@ -30,6 +30,7 @@ bench: install
 	$(PY) bench/bench_core.py
 	$(PY) bench/bench_tiles.py
 	$(PY) bench/bench_service.py
+	$(PY) bench/bench_planner.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -1,0 +1,173 @@
+"""Planner benchmark on the Paris map, served on 127.0.0.1 (SQLite).
+
+* each planner on one route (the demo's: the two farthest points of the largest tube piece
+  in the 1,000-2,500 m band): time to the first solution, cost after 1, 5 and 10 s, motion
+  costs and validity checks per second (the Python callbacks are the bottleneck), against
+  the optimum of the same cost on the voxel lattice (Dijkstra, 26-connected);
+* risk-aware (BIT*, ``--pair-time`` s) against the shortest path over ``--pairs`` random
+  start/goal pairs inside the tube, at least 20 km apart: median length increase, median
+  integrated-risk decrease.
+
+    python bench/bench_planner.py [--pairs 20] [--pair-time 3] [--no-append]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_tiles import table
+
+from bdf import ingest
+from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE
+from clients.local import LocalService
+from clients.sdk import BDFClient
+from planner.costmap import CostMap, CostWeights
+from planner.lattice import lattice_optimum
+from planner.routes import plan_route
+from planner.search import PLANNERS, Problem, solve_in_worker
+
+CHECKPOINTS = (1.0, 5.0, 10.0)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=int, default=20)
+    parser.add_argument("--pair-time", type=float, default=3.0)
+    parser.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
+    args = parser.parse_args()
+
+    obs, lower, upper = ingest.load_paris()
+    spec = ingest.paris_region(lower, upper)
+    with tempfile.TemporaryDirectory() as tmp, LocalService(Path(tmp)) as svc, BDFClient(svc.url) as bdf:
+        bdf.create_region(spec)
+        bdf.fit(spec.name, obs.X, obs.V, sample_weight=ingest.track_weights(obs, spec.spacing_m))
+        step = (np.array(spec.spacing_m) / 4).tolist()
+        grid = bdf.grid(spec.name, step, [*spec.lower[:2], ROUTE_BAND_M[0], *spec.upper[:2], ROUTE_BAND_M[1]])
+        s = grid.std.max(axis=-1)
+        bound = float(np.quantile(s[grid.known], TUBE_QUANTILE))
+        weights = CostWeights(max_std_mps=bound, cruise_mps=60.0)
+        costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known)
+        labels, n = ndimage.label(grid.known & (s < bound))
+        largest = 1 + int(np.argmax(ndimage.sum_labels(np.ones_like(s), labels, range(1, n + 1))))
+        idx = np.argwhere(ndimage.binary_erosion(labels == largest, np.ones((3, 3, 3))))
+        P = np.stack([grid.x[idx[:, 0]], grid.y[idx[:, 1]], grid.z[idx[:, 2]]], axis=1)
+        a = P[np.argmax(np.linalg.norm(P - P.mean(0), axis=1))]
+        b = P[np.argmax(np.linalg.norm(P - a, axis=1))]
+
+        rows = planner_rows(costmap, a, b)
+        pairs = pair_rows(bdf, spec, P, weights, step, args)
+
+    report = [
+        f"## Planner, {datetime.date.today()}",
+        "",
+        f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, {os.cpu_count()} "
+        f"cores. Paris map (core grid, track-weighted, all flights) served on SQLite; cost map "
+        f"{'x'.join(map(str, costmap.shape))} voxels of {step} m over the {ROUTE_BAND_M} m band; tube "
+        f"bound {bound:.1f} m/s (the {TUBE_QUANTILE:.0%} quantile of the largest std where there is data); "
+        f"cruise 60 m/s, weights risk 1, flow 0.5, hard tube. Route of {np.linalg.norm(b - a) / 1e3:.1f} km "
+        f"from {a.round().tolist()} to {b.round().tolist()}. Each run is a fresh worker process.",
+        "",
+        table(rows),
+        "",
+        pairs,
+    ]
+    text = "\n".join(report) + "\n"
+    print(text)
+    if not args.no_append:
+        with open(Path(__file__).with_name("RESULTS.md"), "a") as fh:
+            fh.write("\n" + text)
+
+
+def planner_rows(costmap: CostMap, a, b) -> list[dict]:
+    problem = Problem(costmap, tuple(a), tuple(b), seed=1)
+    t0 = time.perf_counter()
+    reference, _ = lattice_optimum(problem)
+    lattice_s = time.perf_counter() - t0
+    rows = [
+        {
+            "planner": "lattice Dijkstra (reference)",
+            "first solution s": round(lattice_s, 2),
+            "cost 10 s": round(reference),
+            "final cost / lattice": 1.0,
+        }
+    ]
+    for name in PLANNERS:
+        sol = solve_in_worker(
+            Problem(
+                costmap,
+                tuple(a),
+                tuple(b),
+                planner=name,
+                time_s=max(CHECKPOINTS),
+                checkpoints_s=CHECKPOINTS,
+                seed=1,
+            )
+        )
+        row = {"planner": name, "first solution s": _round(sol.first_solution_s)}
+        for c in CHECKPOINTS:
+            cost = sol.cost_at_s.get(c)
+            if name == "fmt" and c == max(CHECKPOINTS):  # one-shot: only its final answer
+                cost = sol.cost if sol.exact else None
+            row[f"cost {c:g} s"] = _round(cost, 0)
+        row["final cost / lattice"] = _round(sol.cost / reference if sol.exact else None, 3)
+        seconds = max(sol.solve_s, 1e-9)
+        row["motion costs /s"] = round(sol.calls["motion_cost"] / seconds)
+        row["validity checks /s"] = round((sol.calls["motion_check"] + sol.calls["state_check"]) / seconds)
+        row["callback share"] = round(sol.callback_s / seconds, 2)
+        row["iterations"] = "-" if sol.iterations is None else sol.iterations
+        rows.append(row)
+    return rows
+
+
+def _round(value, digits=2):
+    return "-" if value is None or not np.isfinite(value) else round(value, digits)
+
+
+def pair_rows(bdf, spec, P, weights, step, args) -> str:
+    rng = np.random.default_rng(0)
+    length_up, risk_down, found = [], [], 0
+    tried = 0
+    while found < args.pairs and tried < 5 * args.pairs:
+        tried += 1
+        a, b = P[rng.choice(len(P), 2, replace=False)]
+        if np.linalg.norm(a - b) < 20_000:
+            continue
+        plan = plan_route(
+            bdf,
+            spec.name,
+            a,
+            b,
+            weights=weights,
+            altitude_m=ROUTE_BAND_M,
+            step=step,
+            time_s=args.pair_time,
+            seed=1 + found,
+        )
+        if plan.route is None:
+            continue
+        found += 1
+        r, s = plan.route.metrics, plan.baseline.metrics
+        length_up.append(r["length_m"] / s["length_m"] - 1)
+        risk_down.append(1 - r["integrated_risk_m"] / s["integrated_risk_m"])
+    return (
+        f"Risk-aware (BIT*, {args.pair_time:g} s) vs shortest over {found} random pairs in the tube "
+        f"(>= 20 km apart, {tried} drawn): median length +{100 * np.median(length_up):.1f} % "
+        f"(max +{100 * np.max(length_up):.1f} %), median integrated risk -{100 * np.median(risk_down):.1f} % "
+        f"(min -{100 * np.min(risk_down):.1f} %)."
+    )
+
+
+if __name__ == "__main__":
+    main()

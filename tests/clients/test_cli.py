@@ -1,0 +1,98 @@
+"""The ``bdf`` client commands against a live service: files in, numbers and pictures out,
+one-line errors with meaningful exit codes."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import pytest
+
+from clients.sdk import BDFClient
+from tests.service.test_store import SPEC, data
+
+NAME = SPEC["name"]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def bdf(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "clients.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    from clients.local import LocalService
+
+    with LocalService(tmp_path_factory.mktemp("cli") / "data") as svc:
+        yield svc
+
+
+def test_region_upload_query_grid_tubes_and_plots(server, tmp_path):
+    url = ["--url", server.url]
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(json.dumps(SPEC))
+    assert bdf("region", "create", str(spec_file), *url).returncode == 0
+    X, V = data(0, n=600)
+    csv = tmp_path / "obs.csv"
+    cols = dict(zip(["x", "y", "z", "ve", "vn", "vu"], np.hstack([X, V]).T, strict=True))
+    pacsv.write_csv(pa.table(cols), csv)
+    run = bdf("upload", NAME, str(csv), "--chunk-size", "250", *url)
+    assert run.returncode == 0, run.stderr
+    assert "uploaded 600 observations" in run.stdout and "3 request(s)" in run.stdout
+    listing = bdf("region", "list", *url).stdout
+    assert NAME in listing and " 600 " in listing
+
+    run = bdf("query", NAME, "--points", "10,20,30;150,100,30", *url)
+    rows = [r.split(",") for r in run.stdout.strip().splitlines()[1:]]
+    with BDFClient(server.url) as client:
+        expected = client.query(NAME, [[10, 20, 30], [150, 100, 30]])
+    np.testing.assert_allclose(np.array(rows, float)[:, 3:6], expected.mean, rtol=1e-5)
+
+    npz = tmp_path / "grid.npz"
+    assert bdf("grid", NAME, "--step", "50,50,20", "--out", str(npz), *url).returncode == 0
+    with np.load(npz) as g:
+        assert g["mean"].shape == (7, 5, 4, 3)
+        bound = float(np.median(g["std"]))
+        in_tube = int(((g["std"] < bound).all(-1) & g["known"]).sum())
+    geo = tmp_path / "tube.geojson"
+    run = bdf("tubes", NAME, "--max-std-mps", repr(bound), "--step", "50,50,20", "--out", str(geo), *url)
+    assert run.returncode == 0 and len(json.loads(geo.read_text())["features"]) == in_tube
+
+    for kind in ("slice", "arrows", "tube"):
+        png = tmp_path / f"{kind}.png"
+        run = bdf(
+            "plot",
+            NAME,
+            "--kind",
+            kind,
+            "--alt-m",
+            "30",
+            "--max-std-mps",
+            repr(bound),
+            "--out",
+            str(png),
+            *url,
+        )
+        assert run.returncode == 0, run.stderr
+        assert png.read_bytes()[:8] == PNG and png.stat().st_size > 10_000
+
+
+def test_errors_are_one_line_with_meaningful_exit_codes(server, tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("a,b\n1,2\n")
+    for args, code, words in (
+        (["upload", "nowhere", str(bad), "--url", server.url], 2, "404"),
+        (["grid", NAME, "--step", "1,2", "--out", "x.npz", "--url", server.url], 2, "--step"),
+        (["region", "list", "--url", "http://127.0.0.1:9"], 1, "cannot reach"),
+    ):
+        run = bdf(*args)
+        assert run.returncode == code and words in run.stderr and run.stderr.count("\n") == 1, run.stderr
+    with BDFClient(server.url) as client:
+        if NAME not in [r.spec.name for r in client.regions()]:
+            client.create_region(SPEC)
+    run = bdf("upload", NAME, str(bad), "--url", server.url)
+    assert run.returncode == 2 and "need the columns" in run.stderr
