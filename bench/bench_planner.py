@@ -23,14 +23,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_tiles import table
 
 from bdf import ingest
-from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE
+from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE, farthest_pair, tube_voxels
 from clients.local import LocalService
 from clients.sdk import BDFClient
 from planner.costmap import CostMap, CostWeights
@@ -53,18 +52,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp, LocalService(Path(tmp)) as svc, BDFClient(svc.url) as bdf:
         bdf.create_region(spec)
         bdf.fit(spec.name, obs.X, obs.V, sample_weight=ingest.track_weights(obs, spec.spacing_m))
-        step = (np.array(spec.spacing_m) / 4).tolist()
-        grid = bdf.grid(spec.name, step, [*spec.lower[:2], ROUTE_BAND_M[0], *spec.upper[:2], ROUTE_BAND_M[1]])
-        s = grid.std.max(axis=-1)
-        bound = float(np.quantile(s[grid.known], TUBE_QUANTILE))
+        grid, bound, P = tube_voxels(bdf, spec)
+        step = [float(a[1] - a[0]) for a in grid.axes]
         weights = CostWeights(max_std_mps=bound, cruise_mps=60.0)
         costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known)
-        labels, n = ndimage.label(grid.known & (s < bound))
-        largest = 1 + int(np.argmax(ndimage.sum_labels(np.ones_like(s), labels, range(1, n + 1))))
-        idx = np.argwhere(ndimage.binary_erosion(labels == largest, np.ones((3, 3, 3))))
-        P = np.stack([grid.x[idx[:, 0]], grid.y[idx[:, 1]], grid.z[idx[:, 2]]], axis=1)
-        a = P[np.argmax(np.linalg.norm(P - P.mean(0), axis=1))]
-        b = P[np.argmax(np.linalg.norm(P - a, axis=1))]
+        a, b = farthest_pair(P)
 
         rows = planner_rows(costmap, a, b)
         pairs = pair_rows(bdf, spec, P, weights, step, args)

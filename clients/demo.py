@@ -93,23 +93,33 @@ def _pictures(bdf: BDFClient, spec, out: Path) -> list[Path]:
     return paths
 
 
-def _plan(bdf: BDFClient, spec, time_s: float):
-    """Start and goal: the two voxels farthest apart in the largest connected piece of the
-    tube in the band, so that a route inside the tube exists."""
-    from planner.costmap import CostWeights
-    from planner.routes import plan_route
-
+def tube_voxels(bdf: BDFClient, spec):
+    """The planning grid over the demo band, the tube bound (a quantile of the largest std
+    where there is data), and the voxels deep inside the largest connected piece of the
+    tube (all their neighbours are in it): start and goal points with a route between them."""
     step = (np.array(spec.spacing_m) / 4).tolist()
     grid = bdf.grid(spec.name, step, [*spec.lower[:2], ROUTE_BAND_M[0], *spec.upper[:2], ROUTE_BAND_M[1]])
     s = grid.std.max(axis=-1)
     bound = float(np.quantile(s[grid.known], TUBE_QUANTILE))
     labels, n = ndimage.label(grid.known & (s < bound))
     largest = 1 + int(np.argmax(ndimage.sum_labels(np.ones_like(s), labels, range(1, n + 1))))
-    # voxels whose neighbours are all in the tube: the start and goal are well inside it
     idx = np.argwhere(ndimage.binary_erosion(labels == largest, np.ones((3, 3, 3))))
-    P = np.stack([grid.x[idx[:, 0]], grid.y[idx[:, 1]], grid.z[idx[:, 2]]], axis=1)
+    return grid, bound, np.stack([grid.x[idx[:, 0]], grid.y[idx[:, 1]], grid.z[idx[:, 2]]], axis=1)
+
+
+def farthest_pair(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a = P[np.argmax(np.linalg.norm(P - P.mean(0), axis=1))]
-    b = P[np.argmax(np.linalg.norm(P - a, axis=1))]
+    return a, P[np.argmax(np.linalg.norm(P - a, axis=1))]
+
+
+def _plan(bdf: BDFClient, spec, time_s: float):
+    """A route between the two farthest points of the largest piece of the tube."""
+    from planner.costmap import CostWeights
+    from planner.routes import plan_route
+
+    grid, bound, P = tube_voxels(bdf, spec)
+    step = [float(a[1] - a[0]) for a in grid.axes]
+    a, b = farthest_pair(P)
     print(
         f"\nplanning {np.linalg.norm(b - a) / 1e3:.1f} km from {a.round().tolist()} to {b.round().tolist()} "
         f"(ENU m) inside the tube std < {bound:.1f} m/s, band {ROUTE_BAND_M} m, BIT* {time_s:g} s"

@@ -11,17 +11,10 @@ from bdf.tiles import RegionSpec
 from clients.sdk import BDFClient
 from planner.costmap import CostWeights
 from planner.routes import densify, plan_route
+from tests.service.test_store import SPEC as STORE_SPEC
 
 BOUND = 0.3
-SPEC = {
-    "name": "corridor",
-    "origin": {"lat": 48.0, "lon": 2.0},
-    "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
-    "tile_size_m": [100, 100, 60],
-    "overlap_m": [20, 20, 0],
-    "spacing_m": [25, 25, 20],
-    "gamma": [1 / 1250, 1 / 1250, 1 / 800],
-}
+SPEC = {**STORE_SPEC, "name": "corridor"}  # 300 x 200 x 60 m, 25 m hinges
 START, GOAL = (20.0, 100.0, 30.0), (280.0, 100.0, 30.0)
 
 
