@@ -37,7 +37,7 @@ from bdf import BayesianDynamicField, ingest
 from service.maps import RegionMaps
 from service.store import open_store
 
-GRIDS = {"core grid": [4000.0, 4000.0, 1000.0], "fine grid": [2000.0, 2000.0, 500.0]}
+GRIDS = {"core grid": ingest.PARIS_SPACING_M.tolist(), "fine grid": [2000.0, 2000.0, 500.0]}
 
 
 def run_backend(url, spec, obs, test, weight, n_uploads=0) -> dict:

@@ -173,8 +173,8 @@ def _plot(args) -> int:
 
 
 def _plan(args) -> int:
-    from clients.sdk import BDFClient
     from planner.costmap import CostWeights
+    from planner.routes import plan_route
     from planner.search import Box
 
     weights = CostWeights(
@@ -185,9 +185,7 @@ def _plan(args) -> int:
         tube=args.tube,
     )
     no_fly = tuple(Box(tuple(b[:3]), tuple(b[3:])) for b in (_floats(t, 6, "--no-fly") for t in args.no_fly))
-    from planner.routes import plan_route
-
-    with BDFClient(args.url, args.token) as bdf:
+    with _client(args) as bdf:
         plan = plan_route(
             bdf,
             args.region,
@@ -278,6 +276,8 @@ def _serve(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from planner.search import PLANNERS  # numpy and scipy only: ompl loads when a plan runs
+
     parser = argparse.ArgumentParser(prog="bdf", description="bdf-maps: 3D velocity maps with uncertainty.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -436,7 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--planner",
         default="bitstar",
-        choices=["bitstar", "rrtstar", "informed_rrtstar", "sorrtstar", "fmt"],
+        choices=PLANNERS,
         help="default bitstar",
     )
     p.add_argument("--time", type=float, default=5.0, help="planning budget in seconds (default 5)")

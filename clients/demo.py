@@ -8,6 +8,7 @@ pictures and the route to ``out``, and stops the service.
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -60,8 +61,6 @@ def run(out: Path, plan_time_s: float = 5.0) -> dict:
     print("\nrisk-aware route vs shortest path (metres, m/s, seconds)")
     print(plan.table())
     route_file = out / "route.geojson"
-    import json
-
     route_file.write_text(json.dumps(plan.geojson()))
     from planner.plot import plot_route
 

@@ -140,7 +140,7 @@ class _Pause:
     seconds: float
 
 
-Call = Generator[_Request | _Pause, httpx.Response, Any]
+Call = Generator[_Request | _Pause, httpx.Response | httpx.TransportError | None, Any]
 
 
 def _arrow(columns: dict[str, np.ndarray]) -> bytes:
@@ -253,9 +253,40 @@ def _progress_bar(total: int, desc: str, enabled: bool | None):
 
 
 class _Endpoints:
-    """The endpoints, once for both clients; ``_run`` sends (sync) or returns a coroutine."""
+    """The endpoints and the retries, once for both clients; ``_run`` drives a call: it
+    sends each request and sends back the response, or the connection error."""
 
     _run: Callable[[Call], Any]
+    _delays: list[float]
+    url: str
+
+    def _retrying(self, call: Call) -> Call:
+        """``call`` with each request retried after connection errors and 5xx, with backoff."""
+        try:
+            step = next(call)
+        except StopIteration as done:
+            return done.value
+        while True:
+            value = (yield step) if isinstance(step, _Pause) else (yield from self._attempts(step))
+            try:
+                step = call.send(value)
+            except StopIteration as done:
+                return done.value
+
+    def _attempts(self, request: _Request):
+        delays = iter(self._delays)
+        while True:
+            outcome = yield request
+            failed = isinstance(outcome, httpx.TransportError)
+            if not failed and outcome.status_code not in RETRY_STATUS:
+                _raise_for_problem(outcome)
+                return outcome
+            delay = next(delays, None)
+            if delay is None:
+                if failed:
+                    raise _unreachable(self.url, outcome) from outcome
+                _raise_for_problem(outcome)
+            yield _Pause(delay)
 
     # -- regions ------------------------------------------------------------------------------
     def regions(self) -> list[Region]:
@@ -519,33 +550,20 @@ class BDFClient(_Endpoints):
             base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
         )
 
-    def _send(self, request: _Request) -> httpx.Response:
-        delays = iter(self._delays)
-        while True:
-            try:
-                response = self._http.send(_build(self._http, request))
-                if response.status_code not in RETRY_STATUS:
-                    _raise_for_problem(response)
-                    return response
-                failure = None
-            except httpx.TransportError as exc:
-                response, failure = None, exc
-            delay = next(delays, None)
-            if delay is None:
-                if failure is not None:
-                    raise _unreachable(self.url, failure) from failure
-                _raise_for_problem(response)
-            time.sleep(delay)
-
     def _run(self, call: Call):
+        call = self._retrying(call)
         try:
             step = next(call)
             while True:
                 if isinstance(step, _Pause):
                     time.sleep(step.seconds)
                     step = call.send(None)
-                else:
-                    step = call.send(self._send(step))
+                    continue
+                try:
+                    outcome = self._http.send(_build(self._http, step))
+                except httpx.TransportError as exc:
+                    outcome = exc
+                step = call.send(outcome)
         except StopIteration as done:
             return done.value
 
@@ -578,33 +596,20 @@ class AsyncBDFClient(_Endpoints):
             base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
         )
 
-    async def _send(self, request: _Request) -> httpx.Response:
-        delays = iter(self._delays)
-        while True:
-            try:
-                response = await self._http.send(_build(self._http, request))
-                if response.status_code not in RETRY_STATUS:
-                    _raise_for_problem(response)
-                    return response
-                failure = None
-            except httpx.TransportError as exc:
-                response, failure = None, exc
-            delay = next(delays, None)
-            if delay is None:
-                if failure is not None:
-                    raise _unreachable(self.url, failure) from failure
-                _raise_for_problem(response)
-            await asyncio.sleep(delay)
-
     async def _run(self, call: Call):
+        call = self._retrying(call)
         try:
             step = next(call)
             while True:
                 if isinstance(step, _Pause):
                     await asyncio.sleep(step.seconds)
                     step = call.send(None)
-                else:
-                    step = call.send(await self._send(step))
+                    continue
+                try:
+                    outcome = await self._http.send(_build(self._http, step))
+                except httpx.TransportError as exc:
+                    outcome = exc
+                step = call.send(outcome)
         except StopIteration as done:
             return done.value
 

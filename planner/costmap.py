@@ -154,7 +154,7 @@ class CostMap:
 
     def samples(self, P0, P1):
         """Sample points of segments ``P0[k] -> P1[k]``: (points, segment of each, its
-        position along the segment in [0, 1], lengths, direction per segment)."""
+        trapezoid weight in metres, lengths, direction per segment)."""
         P0, P1 = np.asarray(P0, float).reshape(-1, 3), np.asarray(P1, float).reshape(-1, 3)
         delta = P1 - P0
         length = np.linalg.norm(delta, axis=1)
@@ -162,19 +162,18 @@ class CostMap:
         seg = np.repeat(np.arange(len(P0)), n)
         first = np.cumsum(n) - n
         t = (np.arange(n.sum()) - first[seg]) / np.maximum(n[seg] - 1, 1)
+        # each sample stands for the stretch around it: n - 1 equal intervals, halves at the ends
+        ds = (length / np.maximum(n - 1, 1))[seg]
+        ds[first] *= 0.5
+        ds[first + n - 1] *= 0.5
         direction = delta / np.maximum(length, 1e-300)[:, None]
-        return P0[seg] + t[:, None] * delta[seg], seg, t, length, direction
+        return P0[seg] + t[:, None] * delta[seg], seg, ds, length, direction
 
     def segment_costs(self, P0, P1) -> np.ndarray:
         """Cost of each segment ``P0[k] -> P1[k]`` (trapezoid rule on the samples), metres."""
-        X, seg, _, length, direction = self.samples(P0, P1)
+        X, seg, ds, length, direction = self.samples(P0, P1)
         f = self.integrand(self.fields(X), direction[seg])
-        n = np.bincount(seg, minlength=len(length))
-        first = np.cumsum(n) - n
-        ends = f[first] + f[first + n - 1]
-        inner_sum = np.bincount(seg, weights=f, minlength=len(length)) - ends
-        # trapezoid with n samples and n - 1 equal intervals
-        return length * (0.5 * ends + inner_sum) / np.maximum(n - 1, 1)
+        return np.bincount(seg, weights=f * ds, minlength=len(length))
 
     def integrand(self, F: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Cost per metre at samples with fields ``F`` flying along unit ``direction``."""
@@ -210,14 +209,8 @@ def path_metrics(costmap: CostMap, waypoints) -> dict[str, float]:
     if P.ndim != 2 or P.shape[1] != 3 or len(P) < 2:
         raise ValueError(f"a path needs at least 2 waypoints of 3 coordinates, got shape {P.shape}")
     w = costmap.weights
-    X, seg, _, length, direction = costmap.samples(P[:-1], P[1:])
+    X, seg, ds, length, direction = costmap.samples(P[:-1], P[1:])
     F = costmap.fields(X)
-    # each sample stands for the stretch of path around it (trapezoid weights)
-    n = np.bincount(seg, minlength=len(length))
-    ds = (length / np.maximum(n - 1, 1))[seg]
-    first = np.cumsum(n) - n
-    ds[first] *= 0.5
-    ds[first + n - 1] *= 0.5
     total = float(length.sum())
     s = F[:, S]
     mismatch = np.linalg.norm(w.cruise_mps * direction[seg] - F[:, MEAN], axis=1)

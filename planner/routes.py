@@ -7,6 +7,7 @@ each route is then checked against the service's exact predictions, every ``chec
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import multiprocessing
@@ -151,18 +152,7 @@ def plan_route(
     risk = Problem(
         costmap, tuple(start), tuple(goal), band, tuple(no_fly), planner, time_s, max_iterations, seed
     )
-    shortest = Problem(
-        costmap,
-        tuple(start),
-        tuple(goal),
-        band,
-        tuple(no_fly),
-        planner,
-        time_s,
-        max_iterations,
-        seed,
-        objective="length",
-    )
+    shortest = dataclasses.replace(risk, objective="length")
     straight = shortest.segments_valid(start[None], goal[None])[0]
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(2, mp_context=context, max_tasks_per_child=1) as pool:

@@ -198,16 +198,7 @@ async def post_observations(name: RegionName, request: Request, idempotency_key:
 
     def work():
         obs = _observations(app, name, body, request.headers.get("content-type"))
-        result = app.state.maps.upload(
-            name,
-            upload_id,
-            obs.X,
-            obs.V,
-            input_noise_std=obs.input_noise_std,
-            sample_weight=obs.sample_weight,
-        )
-        app.state.metrics.upload_applied(result)
-        return result
+        return _apply(app, name, upload_id, obs)
 
     return await run_in_threadpool(work)
 
@@ -216,6 +207,21 @@ def _observations(app, name: str, body: bytes, content_type: str | None) -> form
     spec = app.state.maps.store.region(name).spec
     settings: Settings = app.state.settings
     return formats.read_observations(spec, body, formats.media_type(content_type), settings.max_points)
+
+
+def _apply(app, name: str, upload_id: str, obs: formats.Observations, **kw) -> dict:
+    """Upload (or, with ``replace=True``, fit) and count it in the metrics."""
+    result = app.state.maps.upload(
+        name,
+        upload_id,
+        obs.X,
+        obs.V,
+        input_noise_std=obs.input_noise_std,
+        sample_weight=obs.sample_weight,
+        **kw,
+    )
+    app.state.metrics.upload_applied(result)
+    return result
 
 
 @router.post(
@@ -233,18 +239,7 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
     obs = await run_in_threadpool(_observations, app, name, body, request.headers.get("content-type"))
 
     def fit(progress=None):
-        result = app.state.maps.upload(
-            name,
-            upload_id,
-            obs.X,
-            obs.V,
-            input_noise_std=obs.input_noise_std,
-            sample_weight=obs.sample_weight,
-            replace=True,
-            progress=progress,
-        )
-        app.state.metrics.upload_applied(result)
-        return result
+        return _apply(app, name, upload_id, obs, replace=True, progress=progress)
 
     if len(obs.X) <= app.state.settings.fit_job_points:
         return await run_in_threadpool(fit)

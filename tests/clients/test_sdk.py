@@ -142,3 +142,18 @@ def test_async_client_gives_the_same_answers(server, bdf):
     expected = bdf.query(NAME, Xq)
     np.testing.assert_array_equal(pred.mean, expected.mean)
     np.testing.assert_allclose(first5.std, expected.std[:5], rtol=1e-12)  # other BLAS shapes
+
+
+def test_sample_weights_travel_with_the_upload(bdf):
+    spec = RegionSpec.model_validate(SPEC)
+    X, V = data(8, n=400)
+    w = np.random.default_rng(8).uniform(0.1, 2.0, len(X))
+    assert bdf.upload(NAME, X, V, sample_weight=w).accepted == 400
+    Xq = data(9, n=30)[0]
+    posts = {k: spec.posterior(k, inc.evidence) for k, inc in spec.increments(X, V, sample_weight=w).items()}
+    mean, std, _ = spec.predict(Xq, posts)
+    pred = bdf.query(NAME, Xq)
+    np.testing.assert_allclose(pred.mean, mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(pred.std, std, rtol=1e-9)
+    unweighted, _, _ = library(spec, X, V, Xq)
+    assert np.abs(unweighted - mean).max() > 1e-3  # the weights changed the answer
