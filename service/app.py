@@ -9,19 +9,20 @@ database runs in the thread pool, never on the event loop.
 from __future__ import annotations
 
 import logging
+import pathlib
 from contextlib import asynccontextmanager
 from typing import Annotated, Literal
 
 import anyio
 import numpy as np
 from fastapi import APIRouter, FastAPI, Header, Path, Query, Request, Response
-from fastapi.responses import JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 from starlette.concurrency import run_in_threadpool
 
 from bdf.tiles import RegionSpec, key_str
-from service import formats, problems
+from service import formats, problems, slices
 from service.auth import PUBLIC, require
 from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET
 from service.jobs import Jobs
@@ -32,6 +33,8 @@ from service.store import MapStore, RegionInfo, open_store
 from service.telemetry import Metrics, RequestMiddleware
 
 log = logging.getLogger("bdf.service")
+PNG = "image/png"
+VIEWER_HTML = (pathlib.Path(__file__).parent / "viewer.html").read_text()
 NAME = r"^[a-z0-9][a-z0-9_-]{0,62}$"
 RegionName = Annotated[str, Path(pattern=NAME, description="region name")]
 
@@ -428,6 +431,49 @@ def tubes(
     return JSONResponse(content, media_type=GEOJSON, headers=headers)
 
 
+@router.get(
+    "/regions/{name}/slice.png",
+    response_class=Response,
+    responses={200: {"content": {PNG: {}}}},
+    **scoped("read"),
+)
+def slice_png(
+    name: RegionName,
+    request: Request,
+    alt_m: Annotated[float, Query(description="altitude of the slice, region ENU metres")],
+    layer: Annotated[slices.Layer, Query(description="mean, std, or the tube's mean")] = "mean",
+    component: Annotated[slices.Component, Query(description="velocity component shown")] = "e",
+    max_std_mps: Annotated[float, Query(gt=0, description="tube bound (layer=tube), m/s")] = 1.0,
+    bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax in region ENU metres")] = None,
+    step: Annotated[float | None, Query(gt=0, description="horizontal cell size, metres")] = None,
+):
+    """A PNG of one horizontal slice with its colour scale and units (the viewer's image)."""
+    info = request.app.state.maps.store.region(name)
+    etag = _etag(info.region_id, info.version)
+    if _not_modified(request, etag):
+        return Response(status_code=304, headers={"ETag": etag})
+    spec = info.spec
+    if not spec.lower[2] <= alt_m <= spec.upper[2]:
+        raise Problem(422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m")
+    box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
+    x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
+    pred = request.app.state.maps.predict_grid(name, [x, y, np.array([alt_m])], spec=spec)
+    png = slices.render_slice(
+        x,
+        y,
+        pred.mean[:, :, 0],
+        pred.std[:, :, 0],
+        pred.known[:, :, 0],
+        alt_m=alt_m,
+        layer=layer,
+        component=component,
+        max_std_mps=max_std_mps,
+        title=f"{name} v{pred.version}",
+    )
+    headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+    return Response(png, media_type=PNG, headers=headers)
+
+
 @router.get("/regions/{name}/tiles", **scoped("read"))
 def tiles(name: RegionName, request: Request):
     """The region's tiles that hold data: key, version, weighted count, points, bytes."""
@@ -465,6 +511,13 @@ def readyz(request: Request):
     except Exception as exc:
         raise Problem(503, f"the store is unreachable: {type(exc).__name__}") from exc
     return {"status": "ready"}
+
+
+@ops.get("/viewer", response_class=HTMLResponse, **scoped(PUBLIC))
+def viewer():
+    """The map viewer: region, altitude slider, component and layer, drawn from slice.png.
+    The page itself is public; its requests carry the token typed into it, if any."""
+    return HTMLResponse(VIEWER_HTML)
 
 
 @ops.get("/metrics", **scoped(PUBLIC))

@@ -1,0 +1,89 @@
+"""PNG pictures of one horizontal slice of a map, for the viewer page and for humans.
+
+Rendered with matplotlib's object API (a ``Figure`` per request, no pyplot state), so
+request threads can render at once. Every picture carries its colour scale and units.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Literal
+
+import numpy as np
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+
+Layer = Literal["mean", "std", "tube"]
+Component = Literal["e", "n", "u"]
+COMPONENTS = ("e", "n", "u")
+MAX_SIDE = 256  # cells per horizontal axis of a slice: enough for a screen, cheap to predict
+
+
+def slice_axes(lower, upper, spacing, bbox: tuple[float, float, float, float] | None, step: float | None):
+    """Horizontal axes ``(x, y)`` of a slice: the bbox (default: the region) sampled at
+    ``step`` metres (default: a quarter of the hinge spacing, coarser if that would give
+    more than ``MAX_SIDE`` cells per axis). Raises ``ValueError`` on a bad bbox or step."""
+    lo, hi = np.asarray(lower[:2], float), np.asarray(upper[:2], float)
+    if bbox is not None:
+        box = np.asarray(bbox, float)
+        if np.any(box[2:] <= box[:2]):
+            raise ValueError(f"bbox {box.tolist()} must have xmax > xmin and ymax > ymin")
+        if np.any(box[:2] < lo) or np.any(box[2:] > hi):
+            raise ValueError(
+                f"bbox {box.tolist()} leaves the region's x, y bounds {lo.tolist()} .. {hi.tolist()}"
+            )
+        lo, hi = box[:2], box[2:]
+    if step is None:
+        step = max(min(spacing[:2]) / 4, float(np.max(hi - lo)) / (MAX_SIDE - 1))
+    if not step > 0:
+        raise ValueError(f"step must be positive, got {step}")
+    counts = np.floor((hi - lo) / step + 1e-9).astype(int) + 1
+    if np.any(counts > MAX_SIDE):
+        raise ValueError(
+            f"a slice of {counts.tolist()} cells exceeds {MAX_SIDE} per axis: "
+            "use a larger step or a smaller bbox"
+        )
+    return lo[0] + step * np.arange(counts[0]), lo[1] + step * np.arange(counts[1])
+
+
+def render_slice(
+    x: np.ndarray,
+    y: np.ndarray,
+    mean: np.ndarray,
+    std: np.ndarray,
+    known: np.ndarray,
+    *,
+    alt_m: float,
+    layer: Layer,
+    component: Component,
+    max_std_mps: float,
+    title: str,
+) -> bytes:
+    """PNG of one slice. ``mean``, ``std``: (nx, ny, 3) m/s; ``known``: (nx, ny).
+
+    ``mean``: the mean of ``component``, grey where no tile has data (the prior);
+    ``std``: its predictive std; ``tube``: the mean where every component's std is below
+    ``max_std_mps`` and there is data, grey elsewhere.
+    """
+    c = COMPONENTS.index(component)
+    if layer == "std":
+        values = np.ma.masked_invalid(std[..., c])
+        cmap, norm = "magma_r", Normalize(float(values.min()), float(values.max()))
+        label = f"predictive std of v{component} [m/s]"
+    else:
+        hide = ~known if layer == "mean" else ~(known & (std < max_std_mps).all(axis=-1))
+        values = np.ma.array(mean[..., c], mask=hide)
+        limit = float(np.abs(values).max()) if values.count() else 1.0
+        cmap, norm = "RdBu_r", Normalize(-(limit or 1.0), limit or 1.0)
+        label = f"mean v{component} [m/s]"
+    fig = Figure(figsize=(7.2, 6.0), layout="constrained")
+    ax = fig.add_subplot()
+    ax.set_facecolor("0.85")  # masked cells: no data, or outside the tube
+    extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
+    im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
+    fig.colorbar(im, ax=ax, label=label, shrink=0.9)
+    what = {"mean": "mean", "std": "uncertainty", "tube": f"tube (std < {max_std_mps:g} m/s)"}[layer]
+    ax.set(xlabel="east [km]", ylabel="north [km]", title=f"{title}: {what} at {alt_m:.0f} m")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    return buf.getvalue()
