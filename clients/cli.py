@@ -275,6 +275,39 @@ def _serve(args) -> int:
     return 0
 
 
+def _build(args) -> int:
+    """A Dask build straight into the store (no HTTP): the service replicas see it at once."""
+    from distributed import Client, LocalCluster
+
+    from service.build import build
+    from service.settings import Settings
+    from service.store import RegionNotFound, UploadConflict, open_store
+
+    overrides = {k: v for k, v in (("store_url", args.store_url), ("data_dir", args.data_dir)) if v}
+    store = open_store(Settings(**overrides).store)
+    try:
+        if args.scheduler:
+            cluster, client = None, Client(args.scheduler)
+        else:
+            cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, dashboard_address=None)
+            client = Client(cluster)
+        with client, cluster or client:
+            result = build(
+                store, args.region, args.files, client, replace=not args.add, upload_id=args.upload_id
+            )
+    except (RegionNotFound, UploadConflict) as exc:
+        raise ValueError(str(exc).strip("'\"")) from None
+    finally:
+        store.close()
+    rejected = ", ".join(f"{n} {why}" for why, n in result["rejected"].items() if n)
+    print(
+        f"{result['accepted']} accepted{f' ({rejected} rejected)' if rejected else ''}, "
+        f"{result['tiles_updated']} tiles, region {args.region!r} version {result['region_version']}"
+        f"{' (a replay: nothing changed)' if result['replayed'] else ''}"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from planner.search import PLANNERS  # numpy and scipy only: ompl loads when a plan runs
 
@@ -309,6 +342,29 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--data-dir", help="folder of the default SQLite store (default ./bdf-data)")
     serve.add_argument("--config", type=Path, help="TOML settings file")
     serve.set_defaults(run=_serve)
+
+    text = "learn a region from many Parquet/Arrow files on a Dask cluster, straight into the store"
+    p = sub.add_parser(
+        "build",
+        help=text,
+        description=f"{text[0].upper()}{text[1:]}. Files hold the columns an upload takes "
+        "(x,y,z or lat,lon,alt_m; ve,vn,vu; optional input_noise_std, sample_weight); each is read "
+        "by a worker, so on a cluster every worker must see the paths. The build is one "
+        "exactly-once upload: re-running it is a replay.",
+    )
+    p.add_argument("files", nargs="+", type=Path, help=".parquet or .arrow observation files")
+    p.add_argument("--region", required=True, help="an existing region")
+    p.add_argument(
+        "--store-url", help="sqlite:///dir or postgresql://... (default: $BDF_STORE_URL or --data-dir)"
+    )
+    p.add_argument("--data-dir", help="folder of the default SQLite store (default ./bdf-data)")
+    p.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://scheduler:8786 (default: local)")
+    p.add_argument(
+        "--workers", type=int, default=os.cpu_count(), help="local worker processes (default: cores)"
+    )
+    p.add_argument("--add", action="store_true", help="add to the map instead of replacing it")
+    p.add_argument("--upload-id", help="ledger id (default: derived from the files' content)")
+    p.set_defaults(run=_build)
 
     def connection(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
         p.add_argument(

@@ -17,7 +17,7 @@ import numpy as np
 
 from bdf._validate import noise_std_rows
 from bdf.field import Posterior
-from bdf.tiles import RegionSpec, TileKey
+from bdf.tiles import Increment, RegionSpec, TileKey
 from service.store import MapStore, payload_digest
 
 log = logging.getLogger(__name__)
@@ -96,48 +96,19 @@ class RegionMaps:
         Returns the ledger result: accepted, rejected (by reason), tiles_updated,
         region_version, replayed. ``progress(fraction)`` follows the per-tile work.
         """
-        X, V = np.asarray(X, float), np.asarray(V, float)
-        if X.ndim != 2 or X.shape[1] != 3 or V.shape != X.shape:
-            raise ValueError(f"points and velocities must both be (n, 3), got {X.shape} and {V.shape}")
-        noise = None if input_noise_std is None else noise_std_rows(input_noise_std, len(X))
-        weight = None if sample_weight is None else np.asarray(sample_weight, float)
-        if weight is not None and weight.shape != (len(X),):
-            raise ValueError(f"sample_weight must have shape ({len(X)},), got {weight.shape}")
+        X, V, noise, weight = _checked(X, V, input_noise_std, sample_weight)
         digest = payload_digest("fit" if replace else "observations", X, V, noise, weight)
         first = self.store.upload_result(region, upload_id, digest)
         if first is not None:
             return first
         spec = self.store.region(region).spec
-
-        finite = np.isfinite(X).all(1) & np.isfinite(V).all(1)
-        if noise is not None:
-            finite &= np.isfinite(noise).all(1) & (noise >= 0).all(1)
-        if weight is not None:
-            finite &= np.isfinite(weight) & (weight >= 0)
-        inside = np.zeros(len(X), bool)
-        inside[finite] = spec.inside(X[finite])
-        keep = finite & inside
-        increments = (
-            {}
-            if not keep.any()
-            else spec.increments(
-                X[keep],
-                V[keep],
-                input_noise_std=None if noise is None else noise[keep],
-                sample_weight=None if weight is None else weight[keep],
-                progress=None if progress is None else (lambda f: progress(0.9 * f)),
-            )
-        )
-        summary = {
-            "accepted": int(keep.sum()),
-            "rejected": {"non_finite": int((~finite).sum()), "outside_region": int((finite & ~inside).sum())},
-        }
+        increments, summary = observations_evidence(spec, X, V, noise, weight, progress)
         return self.store.apply(
             region,
             upload_id,
             digest,
             increments,
-            observations=int(keep.sum()),
+            observations=summary["accepted"],
             replace=replace,
             summary=summary,
         )
@@ -190,3 +161,47 @@ class RegionMaps:
                 self.cache.put((snap.region.region_id, key, tile.version), post)
             posteriors[key] = post
         return posteriors, snap.region
+
+
+def _checked(X, V, input_noise_std, sample_weight):
+    X, V = np.asarray(X, float), np.asarray(V, float)
+    if X.ndim != 2 or X.shape[1] != 3 or V.shape != X.shape:
+        raise ValueError(f"points and velocities must both be (n, 3), got {X.shape} and {V.shape}")
+    noise = None if input_noise_std is None else noise_std_rows(input_noise_std, len(X))
+    weight = None if sample_weight is None else np.asarray(sample_weight, float)
+    if weight is not None and weight.shape != (len(X),):
+        raise ValueError(f"sample_weight must have shape ({len(X)},), got {weight.shape}")
+    return X, V, noise, weight
+
+
+def observations_evidence(
+    spec: RegionSpec, X, V, input_noise_std=None, sample_weight=None, progress=None
+) -> tuple[dict[TileKey, Increment], dict]:
+    """The tile increments of observations, and the summary the ledger keeps: rows with a
+    non-finite value (or a negative weight or noise) or outside the region are rejected
+    and counted, the rest accepted. Uploads, fits and Dask builds all learn through this."""
+    X, V, noise, weight = _checked(X, V, input_noise_std, sample_weight)
+    finite = np.isfinite(X).all(1) & np.isfinite(V).all(1)
+    if noise is not None:
+        finite &= np.isfinite(noise).all(1) & (noise >= 0).all(1)
+    if weight is not None:
+        finite &= np.isfinite(weight) & (weight >= 0)
+    inside = np.zeros(len(X), bool)
+    inside[finite] = spec.inside(X[finite])
+    keep = finite & inside
+    increments = (
+        {}
+        if not keep.any()
+        else spec.increments(
+            X[keep],
+            V[keep],
+            input_noise_std=None if noise is None else noise[keep],
+            sample_weight=None if weight is None else weight[keep],
+            progress=None if progress is None else (lambda f: progress(0.9 * f)),
+        )
+    )
+    summary = {
+        "accepted": int(keep.sum()),
+        "rejected": {"non_finite": int((~finite).sum()), "outside_region": int((finite & ~inside).sum())},
+    }
+    return increments, summary

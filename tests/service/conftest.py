@@ -31,3 +31,14 @@ def store(store_url):
     s = open_store(store_url)
     yield s
     s.close()
+
+
+@pytest.fixture
+def spec(store):
+    """The region ``town`` (tests.service.test_store.SPEC), created in ``store``."""
+    from bdf.tiles import RegionSpec
+    from tests.service.test_store import SPEC
+
+    spec = RegionSpec.model_validate(SPEC)
+    store.create_region(spec)
+    return spec

@@ -50,13 +50,6 @@ def assert_evidence_equal(got, expected, rtol=1e-9):
         np.testing.assert_allclose([a.count, *a.v_sum, *a.v_sq], [b.count, *b.v_sum, *b.v_sq], rtol=rtol)
 
 
-@pytest.fixture
-def spec(store):
-    spec = RegionSpec.model_validate(SPEC)
-    store.create_region(spec)
-    return spec
-
-
 def test_regions_are_created_listed_and_deleted_with_their_tiles(store, spec):
     with pytest.raises(RegionExists):
         store.create_region(spec)
