@@ -4,13 +4,14 @@ Exit codes: 0 success; 1 runtime failure (download, I/O, the service unreachable
 failing); 2 bad usage or bad input (including the service's 4xx answers); 3 the planner
 found no route within its budget.
 
-The client commands talk to ``--url`` (``$BDF_URL``, default http://127.0.0.1:8000) with
-``--token`` (``$BDF_TOKEN``).
+The client commands talk to ``--url`` (``$BDF_URL``, default http://127.0.0.1:$BDF_PORT,
+port 8000 unless set) with ``--token`` (``$BDF_TOKEN``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -73,6 +74,14 @@ def _region_delete(args) -> int:
     with _client(args) as bdf:
         bdf.delete_region(args.name)
     print(f"deleted region {args.name!r}")
+    return 0
+
+
+def _health(args) -> int:
+    """Exit 0 when the service answers and its store is reachable (container healthchecks)."""
+    with _client(args) as bdf:
+        bdf.health()
+    print("ready")
     return 0
 
 
@@ -286,12 +295,12 @@ def _build(args) -> int:
     overrides = {k: v for k, v in (("store_url", args.store_url), ("data_dir", args.data_dir)) if v}
     store = open_store(Settings(**overrides).store)
     try:
-        if args.scheduler:
-            cluster, client = None, Client(args.scheduler)
-        else:
-            cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, dashboard_address=None)
-            client = Client(cluster)
-        with client, cluster or client:
+        with contextlib.ExitStack() as stack:
+            if args.scheduler:
+                client = stack.enter_context(Client(args.scheduler))
+            else:
+                cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, dashboard_address=None)
+                client = stack.enter_context(Client(stack.enter_context(cluster)))
             result = build(
                 store, args.region, args.files, client, replace=not args.add, upload_id=args.upload_id
             )
@@ -369,8 +378,8 @@ def build_parser() -> argparse.ArgumentParser:
     def connection(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
         p.add_argument(
             "--url",
-            default=os.environ.get("BDF_URL", "http://127.0.0.1:8000"),
-            help="the service (default $BDF_URL or http://127.0.0.1:8000)",
+            default=os.environ.get("BDF_URL", f"http://127.0.0.1:{os.environ.get('BDF_PORT', '8000')}"),
+            help="the service (default $BDF_URL, else http://127.0.0.1:$BDF_PORT, port 8000 by default)",
         )
         p.add_argument(
             "--token", default=os.environ.get("BDF_TOKEN"), help="bearer token (default $BDF_TOKEN)"
@@ -431,6 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
             help="progress bar (default: on a terminal)",
         )
         p.set_defaults(run=lambda args, fit=fit: _send_observations(args, fit))
+
+    p = client("health", "check that the service answers and its store is reachable (exit 0)")
+    p.set_defaults(run=_health)
 
     p = client("query", "predictive mean and std at points, as CSV")
     p.add_argument("name", help="region name")

@@ -1,0 +1,179 @@
+"""docker/: the Dockerfile passes hadolint, and the command lines of the image and of every
+compose service work outside Docker (no engine runs here): the service as the image starts
+it, its healthcheck, a Dask scheduler and worker as compose starts them, and a build
+through them that the running service then serves."""
+
+import json
+import os
+import re
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import yaml
+
+from bdf.tiles import RegionSpec
+from tests.service.test_store import SPEC, data
+
+DOCKER = Path(__file__).parents[2] / "docker"
+BIN = Path(sys.executable).parent
+TOKENS = '{"tok": ["read", "write", "admin"]}'
+
+
+def dockerfile() -> dict:
+    """ENV (merged), ENTRYPOINT, CMD, HEALTHCHECK CMD and EXPOSE of the final stage."""
+    text = re.sub(r"\\\n\s*", " ", (DOCKER / "Dockerfile").read_text())
+    final = text[text.rindex("\nFROM ") :]
+    out = {"ENV": {}}
+    for line in final.splitlines():
+        word, _, rest = line.strip().partition(" ")
+        if word == "ENV":
+            out["ENV"].update(kv.split("=", 1) for kv in shlex.split(rest))
+        elif word in ("ENTRYPOINT", "CMD", "EXPOSE"):
+            out[word] = json.loads(rest) if rest.startswith("[") else rest
+        elif word == "HEALTHCHECK":
+            out[word] = json.loads(rest[rest.index(" CMD ") + 5 :])
+    return out
+
+
+def compose() -> dict:
+    """compose.yaml with its ``${VAR:?message}`` values filled in (as compose does, after parsing)."""
+    values = {"BDF_TOKENS": TOKENS, "POSTGRES_PASSWORD": "pw"}
+
+    def fill(node):
+        if isinstance(node, dict):
+            return {k: fill(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [fill(v) for v in node]
+        if isinstance(node, str):
+            return re.sub(r"\$\{(\w+):\?[^}]*\}", lambda m: values[m[1]], node)
+        return node
+
+    return fill(yaml.safe_load((DOCKER / "compose.yaml").read_text()))
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def local(argv: list[str]) -> list[str]:
+    """A container's argv run here: its programs from this virtual environment."""
+    return [str(BIN / argv[0]), *argv[1:]]
+
+
+def wait_until(check, what: str, procs, timeout_s: float = 60) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        for p in procs:
+            assert p.poll() is None, f"{what}: {p.args[:2]} exited with {p.returncode}"
+        assert time.monotonic() < deadline, f"{what}: not within {timeout_s} s"
+        time.sleep(0.2)
+
+
+def test_dockerfile_passes_hadolint():
+    run = subprocess.run([BIN / "hadolint", DOCKER / "Dockerfile"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout + run.stderr
+
+
+def test_image_and_compose_command_lines_work_outside_docker(tmp_path):
+    image, services = dockerfile(), compose()["services"]
+    assert image["ENTRYPOINT"] == ["bdf"] and image["CMD"] == ["serve"] and image["EXPOSE"] == "8000"
+    assert set(services) == {"postgres", "service", "dask-scheduler", "dask-worker", "builder"}
+    store_url = os.environ.get("BDF_TEST_POSTGRES_URL")  # compose's store is PostgreSQL
+    if store_url:
+        store_url += f"?schema=bdf_docker_{os.getpid()}"
+    else:
+        store_url = f"sqlite:///{tmp_path / 'data'}"
+    port, scheduler_port, dashboard = free_port(), free_port(), free_port()
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("BDF_")}
+    env.update({k: v for k, v in image["ENV"].items() if k != "PATH"})
+    env.update(services["service"]["environment"])  # tokens (required on 0.0.0.0) and store
+    assert env["BDF_HOST"] == "0.0.0.0" and json.loads(env["BDF_TOKENS"]) == json.loads(TOKENS)
+    env.update(BDF_PORT=str(port), BDF_DATA_DIR=str(tmp_path / "data"), BDF_STORE_URL=store_url)
+
+    observations = tmp_path / "observations"
+    observations.mkdir()
+    X, V = data(0, n=600)
+    for i in range(3):
+        table = pa.table(dict(zip(["x", "y", "z", "ve", "vn", "vu"], [*X[i::3].T, *V[i::3].T], strict=True)))
+        pq.write_table(table, observations / f"part{i}.parquet")
+
+    def container(svc: str, **replace) -> list[str]:
+        spec = services[svc]
+        argv = [*spec.get("entrypoint", image["ENTRYPOINT"]), *spec.get("command", image["CMD"])]
+        text = shlex.join(argv)
+        for old, new in replace.items():
+            text = text.replace(old, new)
+        return local(shlex.split(text))
+
+    scheduler_address = f"tcp://127.0.0.1:{scheduler_port}"
+    procs = []
+    try:
+        logs = tmp_path / "logs"
+        logs.mkdir()
+
+        def start(name, argv):
+            with open(logs / f"{name}.log", "wb") as log:
+                procs.append(subprocess.Popen(argv, env=env, stdout=log, stderr=subprocess.STDOUT))
+
+        start("service", container("service"))
+        start(
+            "scheduler",
+            container("dask-scheduler", **{"8786": str(scheduler_port), ":8787": f"127.0.0.1:{dashboard}"}),
+        )
+        start("worker", container("dask-worker", **{"tcp://dask-scheduler:8786": scheduler_address}))
+
+        health = local(image["HEALTHCHECK"])
+        wait_until(
+            lambda: subprocess.run(health, env=env, capture_output=True).returncode == 0, "health", procs
+        )
+
+        def dashboard_up():
+            try:
+                return httpx.get(f"http://127.0.0.1:{dashboard}/health", timeout=1).text == "ok"
+            except httpx.TransportError:
+                return False
+
+        wait_until(dashboard_up, "dask scheduler", procs)
+
+        auth = {"Authorization": "Bearer tok"}
+        base = f"http://127.0.0.1:{port}"
+        assert httpx.post(f"{base}/v1/regions", json=SPEC, headers=auth).status_code == 201
+        assert httpx.get(f"{base}/v1/regions", timeout=5).status_code == 401  # tokens are on
+
+        files = [str(p) for p in sorted(observations.glob("*.parquet"))]
+        build = container("builder", **{"--help": ""})
+        build += ["build", "--region", SPEC["name"], "--scheduler", scheduler_address, *files]
+        run = subprocess.run(build, env=env, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-3000:]
+        assert "600 accepted" in run.stdout and "version 1" in run.stdout
+
+        body = {"points": X[:50].tolist()}
+        got = httpx.post(f"{base}/v1/regions/{SPEC['name']}/query", json=body, headers=auth).json()
+        spec = RegionSpec.model_validate(SPEC)
+        posts = {k: spec.posterior(k, inc.evidence) for k, inc in spec.increments(X, V).items()}
+        mean, std, _ = spec.predict(X[:50], posts)
+        np.testing.assert_allclose(got["mean"], mean, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(got["std"], std, rtol=1e-9)
+        assert got["region_version"] == 1
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+        codes = [p.wait(60) for p in procs]
+        if store_url.startswith("postgresql"):
+            import psycopg
+
+            with psycopg.connect(os.environ["BDF_TEST_POSTGRES_URL"], autocommit=True) as conn:
+                conn.execute(f"DROP SCHEMA IF EXISTS bdf_docker_{os.getpid()} CASCADE")
+    assert codes[0] == 0, (logs / "service.log").read_text()[-3000:]  # graceful stop
