@@ -68,22 +68,30 @@ def render_slice(
     c = COMPONENTS.index(component)
     if layer == "std":
         values = np.ma.masked_invalid(std[..., c])
-        cmap, norm = "magma_r", Normalize(float(values.min()), float(values.max()))
+        cmap, norm = "magma_r", Normalize(float(values.min()), _robust_max(values))
         label = f"predictive std of v{component} [m/s]"
     else:
         hide = ~known if layer == "mean" else ~(known & (std < max_std_mps).all(axis=-1))
         values = np.ma.array(mean[..., c], mask=hide)
-        limit = float(np.abs(values).max()) if values.count() else 1.0
-        cmap, norm = "RdBu_r", Normalize(-(limit or 1.0), limit or 1.0)
+        limit = _robust_max(np.abs(values))
+        cmap, norm = "RdBu_r", Normalize(-limit, limit)
         label = f"mean v{component} [m/s]"
     fig = Figure(figsize=(7.2, 6.0), layout="constrained")
     ax = fig.add_subplot()
     ax.set_facecolor("0.85")  # masked cells: no data, or outside the tube
     extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
     im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
-    fig.colorbar(im, ax=ax, label=label, shrink=0.9)
+    fig.colorbar(im, ax=ax, label=label, shrink=0.9, extend="max" if layer == "std" else "both")
     what = {"mean": "mean", "std": "uncertainty", "tube": f"tube (std < {max_std_mps:g} m/s)"}[layer]
     ax.set(xlabel="east [km]", ylabel="north [km]", title=f"{title}: {what} at {alt_m:.0f} m")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     return buf.getvalue()
+
+
+def _robust_max(values: np.ma.MaskedArray) -> float:
+    """The colour scale's top: the 99th percentile, so that a few outliers do not wash out
+    the rest (they show in the end colour; the bar's arrow says so)."""
+    shown = values.compressed()
+    top = float(np.percentile(shown, 99)) if len(shown) else 0.0
+    return top if top > 0 else 1.0
