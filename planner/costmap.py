@@ -3,7 +3,8 @@
 A route's cost is ``∫ (1 + risk(x) + flow(x, direction)) ds`` along it (metres):
 
 * ``risk``: ``w_risk * s(x) / max_std_mps`` where ``s`` is the largest of the three
-  predictive stds (the tube holds the points where ``s < max_std_mps``), or, with
+  predictive stds (the tube holds the points where ``s < max_std_mps``; the hard tube
+  tests an upper bound of ``s`` between grid nodes, :meth:`CostMap.max_std_high`), or, with
   ``risk="exceedance"``, ``w_risk * P(some component deviates from the mean by more
   than margin_mps)`` under the Gaussian predictive; with a soft tube, plus
   ``w_tube * max(0, s / max_std_mps - 1)``.
@@ -25,10 +26,14 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import erfc
 
 #: Where no tile has data, the std is at least this many tube bounds.
 UNKNOWN_STD_RATIO = 10.0
+#: Second differences at a cell's corners underestimate the curvature inside it (by ~10 %
+#: for a field sampled 10 times per period): the hard tube's bound takes this much more.
+CURVATURE_SAFETY = 1.25
 #: Columns of the per-voxel field table.
 S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
 
@@ -75,6 +80,7 @@ class CostMap:
     known: np.ndarray | None = None
     sample_m: float | None = None
     table: np.ndarray = field(init=False, repr=False)  # (nx * ny * nz, 6) per-voxel fields
+    curvature: np.ndarray = field(init=False, repr=False)  # (cells, 3) of s, see max_std_high
 
     def __post_init__(self):
         axes = tuple(np.asarray(a, float) for a in self.axes)
@@ -102,7 +108,9 @@ class CostMap:
             object.__setattr__(self, "sample_m", 0.5 * min(a[1] - a[0] for a in axes))
         if not self.sample_m > 0:
             raise ValueError(f"sample_m must be positive, got {self.sample_m}")
-        object.__setattr__(self, "table", _voxel_fields(mean, std, self.weights).reshape(-1, 6))
+        table = _voxel_fields(mean, std, self.weights)
+        object.__setattr__(self, "table", table.reshape(-1, 6))
+        object.__setattr__(self, "curvature", _cell_curvature(table[..., S]).reshape(-1, 3))
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -126,6 +134,10 @@ class CostMap:
         Points outside the grid take the value at the nearest face (the planner's space is
         the grid's box, so this only matters for callers probing outside it).
         """
+        return self._interpolate(X)[0]
+
+    def _interpolate(self, X):
+        """Fields at ``X``, and each point's cell (flat index) and position in it (0..1)."""
         X = np.asarray(X, float).reshape(-1, 3)
         lower, inv_step, top, offsets = self._lookup
         u = (X - lower) * inv_step
@@ -136,7 +148,8 @@ class CostMap:
         wyz = np.stack([g[:, 1] * g[:, 2], g[:, 1] * f[:, 2], f[:, 1] * g[:, 2], f[:, 1] * f[:, 2]], 1)
         weights = (wx * wyz[:, None, :]).reshape(-1, 8)  # corner order: x bit, y bit, z bit
         corners = self.table[(base @ self._strides)[:, None] + offsets]
-        return np.einsum("nk,nkf->nf", weights, corners)
+        cell = base @ np.array([(top[1] + 1) * (top[2] + 1), top[2] + 1, 1])
+        return np.einsum("nk,nkf->nf", weights, corners), cell, f
 
     @functools.cached_property
     def _strides(self) -> np.ndarray:
@@ -151,6 +164,16 @@ class CostMap:
     def max_std(self, X) -> np.ndarray:
         """Interpolated ``s``: the largest of the three stds, m/s."""
         return self.fields(X)[:, S]
+
+    def max_std_high(self, X) -> np.ndarray:
+        """``s`` plus the bound of trilinear interpolation's error, what the hard tube tests:
+        ``|s - I s| <= sum_d t_d (1 - t_d) / 2 * h_d^2 max |d^2 s / dx_d^2|`` in a cell
+        (``t`` the position in it: 0 at the nodes, ``h^2 / 8`` times the curvature midway);
+        only a concave ``s`` rises above its interpolation. Curvatures are estimated from
+        the grid's second differences (:func:`_cell_curvature`), times ``CURVATURE_SAFETY``."""
+        F, cell, t = self._interpolate(X)
+        margin = np.einsum("nd,nd->n", t * (1.0 - t), self.curvature[cell])
+        return F[:, S] + 0.5 * CURVATURE_SAFETY * margin
 
     def samples(self, P0, P1):
         """Sample points of segments ``P0[k] -> P1[k]``: (points, segment of each, its
@@ -182,9 +205,11 @@ class CostMap:
         return 1.0 + F[:, RISK] + w.flow * F[:, CONFIDENCE] * mismatch
 
     def segments_in_tube(self, P0, P1) -> np.ndarray:
-        """True per segment when every sample has ``s <= max_std_mps``."""
+        """True per segment when every sample has ``s_high <= max_std_mps``: the true std
+        between grid nodes can exceed the interpolated one, never ``s_high`` (up to the
+        curvature estimate)."""
         X, seg, *_ = self.samples(P0, P1)
-        bad = self.max_std(X) > self.weights.max_std_mps
+        bad = self.max_std_high(X) > self.weights.max_std_mps
         return np.bincount(seg, weights=bad, minlength=len(np.atleast_2d(P0))) == 0
 
 
@@ -201,6 +226,24 @@ def _voxel_fields(mean: np.ndarray, std: np.ndarray, w: CostWeights) -> np.ndarr
         risk = risk + w.tube_penalty * np.maximum(ratio - 1.0, 0.0)
     confidence = 1.0 / (1.0 + ratio**2)
     return np.concatenate([s[..., None], risk[..., None], confidence[..., None], mean], axis=-1)
+
+
+def _cell_curvature(s: np.ndarray) -> np.ndarray:
+    """(nx-1, ny-1, nz-1, 3): per cell and axis ``d``, ``h_d^2 max(-d^2 s / dx_d^2, 0)``, the
+    concave curvature of ``s``, from the second differences at the cell's 8 corners
+    (extrapolated linearly to the grid's faces)."""
+    out = np.zeros((*(n - 1 for n in s.shape), 3))
+    for d in range(3):
+        if s.shape[d] < 3:
+            continue
+        second = np.moveaxis(np.diff(s, n=2, axis=d), d, 0)
+        if len(second) >= 2:  # linear extrapolation to the faces
+            first, last = 2 * second[0] - second[1], 2 * second[-1] - second[-2]
+        else:
+            first, last = second[0], second[-1]
+        node = np.moveaxis(np.concatenate([first[None], second, last[None]]), 0, d)
+        out[..., d] = sliding_window_view(np.maximum(-node, 0.0), (2, 2, 2)).max(axis=(-3, -2, -1))
+    return out
 
 
 def path_metrics(costmap: CostMap, waypoints) -> dict[str, float]:

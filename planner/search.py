@@ -117,7 +117,7 @@ class Problem:
             if any(box.contains(p)[0] for box in self.no_fly):
                 raise ValueError(f"{name} {p.round(1).tolist()} is inside a no-fly box")
             if self.hard_tube:
-                s = float(self.costmap.max_std(p)[0])
+                s = float(self.costmap.max_std_high(p)[0])
                 bound = self.costmap.weights.max_std_mps
                 if s > bound:
                     raise ValueError(

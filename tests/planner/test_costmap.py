@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from planner.costmap import CostMap, CostWeights, path_metrics
+from planner.costmap import CURVATURE_SAFETY, CostMap, CostWeights, path_metrics
 from planner.search import Box, Problem
 
 AXES = (np.linspace(0, 1000, 21), np.linspace(-500, 500, 11), np.linspace(0, 300, 7))
@@ -35,6 +35,32 @@ def test_trilinear_interpolation_is_exact_for_linear_fields_and_bounded_for_quad
     cm = costmap(lambda G: 1 + a * G[..., 0] ** 2)
     err = np.abs(cm.max_std(X) - (1 + a * X[:, 0] ** 2))
     assert a * 50**2 / 4 * 0.95 < err.max() <= a * 50**2 / 4 + 1e-12
+
+
+def test_the_hard_tube_bound_is_exact_for_concave_quadratics_and_never_below_smooth_fields():
+    X = random_points(2000)
+    a, b = 2e-6, 2e-5
+    # s = 5 - a x^2 - b z^2: concave, constant second differences: the bound is the
+    # interpolation plus its exact error, times the safety factor
+    cm = costmap(lambda G: 5 - a * G[..., 0] ** 2 - b * G[..., 2] ** 2)
+    exact = 5 - a * X[:, 0] ** 2 - b * X[:, 2] ** 2
+    under = exact - cm.max_std(X)
+    assert (under > 1e-4).mean() > 0.9  # interpolation alone underestimates
+    np.testing.assert_allclose(cm.max_std_high(X) - cm.max_std(X), CURVATURE_SAFETY * under, rtol=1e-9)
+    # convex: interpolation already overestimates, nothing is added
+    cm = costmap(lambda G: 1 + a * G[..., 0] ** 2)
+    np.testing.assert_allclose(cm.max_std_high(X), cm.max_std(X), rtol=0)
+    nodes = mesh().reshape(-1, 3)
+    np.testing.assert_allclose(cm.max_std_high(nodes), 1 + a * nodes[:, 0] ** 2, rtol=1e-12)
+
+    def bumps(P):  # a smooth field like a map's std: bumps a few cells wide
+        return 2 + np.sin(P[..., 0] / 130) * np.cos(P[..., 1] / 170) + 0.5 * np.sin(P[..., 2] / 90)
+
+    cm = costmap(bumps)
+    X = random_points(20_000)
+    under = bumps(X) - cm.max_std(X)
+    assert under.max() > 0.05  # the plain interpolation is no bound
+    assert (cm.max_std_high(X) >= bumps(X)).all()
 
 
 def test_segment_cost_of_constant_fields_is_length_times_the_integrand():
