@@ -24,6 +24,14 @@ def coloured_pixels(png: bytes) -> int:
     return int((np.ptp(rgb, axis=-1) > 0.05).sum())
 
 
+def create_town(c: httpx.Client) -> None:
+    """The region ``town`` with 900 observations, version 1."""
+    assert c.post("/v1/regions", json=SPEC).status_code == 201
+    X, V = data(0, n=900)
+    body = {"points": X.tolist(), "velocities": V.tolist()}
+    assert c.post(f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "a"}).is_success
+
+
 def test_slice_axes_default_bbox_and_limits():
     lo, hi, spacing = np.array([0, 0, 0.0]), np.array([300, 200, 60.0]), np.array([25, 25, 20.0])
     x, y = slice_axes(lo, hi, spacing, None, None)
@@ -64,12 +72,7 @@ def test_render_slice_colours_only_what_the_layer_shows():
 def test_slice_png_endpoint(live_server):
     server = live_server()
     with httpx.Client(base_url=server.url, timeout=60) as c:
-        assert c.post("/v1/regions", json=SPEC).status_code == 201
-        X, V = data(0, n=900)
-        body = {"points": X.tolist(), "velocities": V.tolist()}
-        assert c.post(
-            f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "a"}
-        ).is_success
+        create_town(c)
         url = f"/v1/regions/{NAME}/slice.png"
         r = c.get(url, params={"alt_m": 20})
         assert r.status_code == 200 and r.headers["content-type"] == "image/png"
@@ -131,12 +134,7 @@ def test_viewer_page_in_headless_chromium(live_server, browser):
     server = live_server(env={"BDF_TOKENS": '{"tok": ["read", "write", "admin"]}'})
     auth = {"Authorization": "Bearer tok"}
     with httpx.Client(base_url=server.url, timeout=60, headers=auth) as c:
-        assert c.post("/v1/regions", json=SPEC).status_code == 201
-        X, V = data(0, n=900)
-        body = {"points": X.tolist(), "velocities": V.tolist()}
-        assert c.post(
-            f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "a"}
-        ).is_success
+        create_town(c)
         png_at_30 = c.get(f"/v1/regions/{NAME}/slice.png", params={"alt_m": 30}).content
 
     page = browser.new_page(viewport={"width": 1100, "height": 900})
