@@ -383,7 +383,31 @@ class _Endpoints:
         """The tube as a GeoJSON FeatureCollection of points (lon, lat, alt)."""
         return self._run(self._tubes(name, max_std_mps, step, bbox, component, GEOJSON))
 
+    def slice_png(
+        self,
+        name: str,
+        alt_m: float,
+        layer: Literal["mean", "std", "tube"] = "mean",
+        component: Literal["e", "n", "u"] = "e",
+        max_std_mps: float = 1.0,
+        bbox=None,
+        step: float | None = None,
+    ) -> bytes:
+        """PNG of the horizontal slice at ``alt_m`` (what ``/viewer`` shows); ``bbox`` is
+        (xmin, ymin, xmax, ymax) in ENU metres, ``step`` the cell size (default: automatic)."""
+        params = {"alt_m": repr(float(alt_m)), "layer": layer, "component": component}
+        params["max_std_mps"] = repr(float(max_std_mps))
+        if bbox is not None:
+            params["bbox"] = ",".join(repr(float(v)) for v in bbox)
+        if step is not None:
+            params["step"] = repr(float(step))
+        return self._run(self._bytes(f"/v1/regions/{name}/slice.png", "image/png", params))
+
     # -- the calls ----------------------------------------------------------------------------
+    def _bytes(self, path: str, accept: str, params: dict) -> Call:
+        response = yield _Request("GET", path, accept=accept, params=params)
+        return response.content
+
     def _json(self, method: str, path: str, *, json=None, parse=lambda js: js) -> Call:
         body = {} if json is None else _json_body(json)
         response = yield _Request(method, path, **body)

@@ -65,6 +65,8 @@ def test_chunked_upload_query_grid_tubes_equal_the_library_and_a_rerun_applies_n
     geo = bdf.tubes_geojson(NAME, bound, step=[50, 50, 20])
     assert len(geo["features"]) == expected.sum()
     assert sum(t["points"] for t in bdf.tiles(NAME)["tiles"]) >= 900  # overlaps count twice
+    png = bdf.slice_png(NAME, 20, layer="tube", max_std_mps=bound, bbox=[0, 0, 150, 100], step=5)
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and png != bdf.slice_png(NAME, 40)
 
 
 class LosesResponses(httpx.HTTPTransport):
@@ -109,6 +111,9 @@ def test_errors_carry_the_problem_detail(server, bdf):
     assert err.value.status == 422 and "leaves region" in err.value.detail
     with pytest.raises(ValueError, match="shape"):
         bdf.upload(NAME, np.zeros((3, 2)), np.zeros((3, 3)))
+    with pytest.raises(BDFError, match="outside region") as err:
+        bdf.slice_png(NAME, alt_m=1000)
+    assert err.value.status == 422
     with pytest.raises(ValueError, match="step needs 3"):
         bdf.grid(NAME, step=[1, 2])
     with BDFClient("http://127.0.0.1:9", retries=1, backoff_s=0) as dead:
