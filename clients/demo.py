@@ -67,6 +67,9 @@ def run(out: Path, plan_time_s: float = 5.0) -> dict:
     pictures.append(plot_route(plan, out / "route.png"))
     for path in [*pictures, route_file]:
         print(f"  wrote {path}")
+    print(
+        f"\nto browse the map: bdf serve --data-dir {out / 'bdf-data'}, then open http://127.0.0.1:8000/viewer"
+    )
     report["route"] = plan
     return report
 
