@@ -305,7 +305,7 @@ def _build(args) -> int:
                 store, args.region, args.files, client, replace=not args.add, upload_id=args.upload_id
             )
     except (RegionNotFound, UploadConflict) as exc:
-        raise ValueError(str(exc).strip("'\"")) from None
+        raise ValueError(str(exc)) from None
     finally:
         store.close()
     rejected = ", ".join(f"{n} {why}" for why, n in result["rejected"].items() if n)

@@ -257,8 +257,23 @@ class _Endpoints:
     sends each request and sends back the response, or the connection error."""
 
     _run: Callable[[Call], Any]
-    _delays: list[float]
-    url: str
+    _http_class: type[httpx.Client] | type[httpx.AsyncClient]
+
+    def __init__(
+        self,
+        url: str = "http://127.0.0.1:8000",
+        token: str | None = None,
+        *,
+        timeout_s: float = 120.0,
+        retries: int = 4,
+        backoff_s: float = 0.25,
+        transport: httpx.BaseTransport | httpx.AsyncBaseTransport | None = None,
+    ):
+        self.url = url.rstrip("/")
+        self._delays = _backoff(retries, backoff_s)
+        self._http = self._http_class(
+            base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
+        )
 
     def _retrying(self, call: Call) -> Call:
         """``call`` with each request retried after connection errors and 5xx, with backoff."""
@@ -558,21 +573,7 @@ class BDFClient(_Endpoints):
     """Synchronous client. ``token``: a bearer token of the needed scope (none for an open
     local service). Use as a context manager, or call :meth:`close`."""
 
-    def __init__(
-        self,
-        url: str = "http://127.0.0.1:8000",
-        token: str | None = None,
-        *,
-        timeout_s: float = 120.0,
-        retries: int = 4,
-        backoff_s: float = 0.25,
-        transport: httpx.BaseTransport | None = None,
-    ):
-        self.url = url.rstrip("/")
-        self._delays = _backoff(retries, backoff_s)
-        self._http = httpx.Client(
-            base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
-        )
+    _http_class = httpx.Client
 
     def _run(self, call: Call):
         call = self._retrying(call)
@@ -604,21 +605,7 @@ class BDFClient(_Endpoints):
 class AsyncBDFClient(_Endpoints):
     """The same methods as :class:`BDFClient`, as coroutines (``await client.query(...)``)."""
 
-    def __init__(
-        self,
-        url: str = "http://127.0.0.1:8000",
-        token: str | None = None,
-        *,
-        timeout_s: float = 120.0,
-        retries: int = 4,
-        backoff_s: float = 0.25,
-        transport: httpx.AsyncBaseTransport | None = None,
-    ):
-        self.url = url.rstrip("/")
-        self._delays = _backoff(retries, backoff_s)
-        self._http = httpx.AsyncClient(
-            base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
-        )
+    _http_class = httpx.AsyncClient
 
     async def _run(self, call: Call):
         call = self._retrying(call)

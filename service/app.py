@@ -108,6 +108,13 @@ def _not_modified(request: Request, etag: str) -> bool:
     return "*" in tags or etag.removeprefix("W/") in tags
 
 
+def _region_or_304(request: Request, name: str) -> tuple[RegionInfo, Response | None]:
+    """The region's info, and a 304 response if the client's ETag names its current state."""
+    info = request.app.state.maps.store.region(name)
+    etag = _etag(info.region_id, info.version)
+    return info, Response(status_code=304, headers={"ETag": etag}) if _not_modified(request, etag) else None
+
+
 def _floats(text: str, n: int, name: str) -> np.ndarray:
     try:
         values = np.array([float(v) for v in text.split(",")])
@@ -270,9 +277,9 @@ async def query(name: RegionName, request: Request):
     app = request.app
 
     def work():
-        info = app.state.maps.store.region(name)
-        if _not_modified(request, _etag(info.region_id, info.version)):
-            return Response(status_code=304, headers={"ETag": _etag(info.region_id, info.version)})
+        info, not_modified = _region_or_304(request, name)
+        if not_modified:
+            return not_modified
         X = formats.read_query(
             info.spec,
             body,
@@ -302,10 +309,9 @@ async def query(name: RegionName, request: Request):
 def _grid_prediction(request: Request, name: str, bbox: str | None, step: str):
     """(spec, axes, prediction on the grid), or (None, None, a 304 response)."""
     app = request.app
-    info = app.state.maps.store.region(name)
-    etag = _etag(info.region_id, info.version)
-    if _not_modified(request, etag):
-        return None, None, Response(status_code=304, headers={"ETag": etag})
+    info, not_modified = _region_or_304(request, name)
+    if not_modified:
+        return None, None, not_modified
     axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
     return info.spec, axes, app.state.maps.predict_grid(name, axes, spec=info.spec)
 
@@ -448,10 +454,9 @@ def slice_png(
     step: Annotated[float | None, Query(gt=0, description="horizontal cell size, metres")] = None,
 ):
     """A PNG of one horizontal slice with its colour scale and units (the viewer's image)."""
-    info = request.app.state.maps.store.region(name)
-    etag = _etag(info.region_id, info.version)
-    if _not_modified(request, etag):
-        return Response(status_code=304, headers={"ETag": etag})
+    info, not_modified = _region_or_304(request, name)
+    if not_modified:
+        return not_modified
     spec = info.spec
     if not spec.lower[2] <= alt_m <= spec.upper[2]:
         raise Problem(422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m")

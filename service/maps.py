@@ -102,7 +102,7 @@ class RegionMaps:
         if first is not None:
             return first
         spec = self.store.region(region).spec
-        increments, summary = observations_evidence(spec, X, V, noise, weight, progress)
+        increments, summary = _evidence(spec, X, V, noise, weight, progress)
         return self.store.apply(
             region,
             upload_id,
@@ -180,7 +180,11 @@ def observations_evidence(
     """The tile increments of observations, and the summary the ledger keeps: rows with a
     non-finite value (or a negative weight or noise) or outside the region are rejected
     and counted, the rest accepted. Uploads, fits and Dask builds all learn through this."""
-    X, V, noise, weight = _checked(X, V, input_noise_std, sample_weight)
+    return _evidence(spec, *_checked(X, V, input_noise_std, sample_weight), progress)
+
+
+def _evidence(spec: RegionSpec, X, V, noise, weight, progress):
+    """:func:`observations_evidence` of arrays :func:`_checked` has passed."""
     finite = np.isfinite(X).all(1) & np.isfinite(V).all(1)
     if noise is not None:
         finite &= np.isfinite(noise).all(1) & (noise >= 0).all(1)

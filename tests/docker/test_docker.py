@@ -21,6 +21,7 @@ import pyarrow.parquet as pq
 import yaml
 
 from bdf.tiles import RegionSpec
+from tests.service.test_api import enu_columns
 from tests.service.test_store import SPEC, data
 
 DOCKER = Path(__file__).parents[2] / "docker"
@@ -106,8 +107,7 @@ def test_image_and_compose_command_lines_work_outside_docker(tmp_path):
     observations.mkdir()
     X, V = data(0, n=600)
     for i in range(3):
-        table = pa.table(dict(zip(["x", "y", "z", "ve", "vn", "vu"], [*X[i::3].T, *V[i::3].T], strict=True)))
-        pq.write_table(table, observations / f"part{i}.parquet")
+        pq.write_table(pa.table(enu_columns(X[i::3], V[i::3])), observations / f"part{i}.parquet")
 
     def container(svc: str, **replace) -> list[str]:
         spec = services[svc]

@@ -14,11 +14,12 @@ from bdf.tiles import RegionSpec
 from service.build import build
 from service.maps import RegionMaps
 from service.store import open_store
+from tests.service.test_api import enu_columns
 from tests.service.test_store import SPEC, assert_evidence_equal, data
 
 
 def write(path, X, V, weight=None):
-    columns = dict(x=X[:, 0], y=X[:, 1], z=X[:, 2], ve=V[:, 0], vn=V[:, 1], vu=V[:, 2])
+    columns = enu_columns(X, V)
     if weight is not None:
         columns["sample_weight"] = weight
     table = pa.table(columns)
