@@ -42,20 +42,24 @@ def expected_kernel(gamma: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarra
 
 
 class _Blocks:
-    """Points grouped by lattice-cell blocks, with their per-axis window factors."""
+    """Points grouped by lattice-cell blocks, with their per-axis window factors.
+
+    ``order`` sorts the points by block (``slice(None)`` when there is one block);
+    ``factors[d]`` is (n, width[d]): ``exp(-k (x - g)^2)`` at the lattice points g of each
+    point's window along axis d, points in sorted order.
+    """
 
     def __init__(self, lattice: Lattice, X: np.ndarray, k: np.ndarray, cutoff: float, block: int):
         """``block``: the smallest block edge in lattice cells; it doubles while blocks are sparse."""
         k = np.broadcast_to(k, X.shape)
-        radius = np.sqrt(np.log(1.0 / cutoff) / k.min(axis=0))
-        reach = np.ceil(radius / lattice.step).astype(int)
         shape = np.array(lattice.shape)
+        reach = np.ceil(np.sqrt(np.log(1.0 / cutoff) / k.min(axis=0)) / lattice.step).astype(int)
         if len(X) < 2 * MIN_POINTS_PER_BLOCK or np.all(2 * reach + 1 >= shape):
-            # every window would be the whole lattice, or too few points to split: one block
-            self.order = np.arange(len(X))
-            self.bounds = np.array([0, len(X)])
-            self.width = shape
-            self.start = np.zeros((len(X), 3), np.int64)
+            # too few points to split, or every window would span the lattice (small tiles,
+            # radar scans): one window over the whole lattice, which keeps every term and
+            # so differs from the cutoff sum by less than the cutoff
+            self.order, self.bounds, self.width = slice(None), [0, len(X)], shape
+            self.start = np.zeros((1, 3), np.int64)
             self._factors(lattice, X, k)
             return
         cells = np.floor((X - lattice.origin) / lattice.step).astype(np.int64)
@@ -82,7 +86,7 @@ class _Blocks:
 
     def _factors(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
         """Per axis, ``exp(-k (x - g)^2)`` for the lattice points g of each point's window."""
-        t = (X - lattice.origin) / lattice.step - self.start  # in lattice steps
+        t = (X - lattice.origin) / lattice.step - self.start[: len(X)]  # in lattice steps
         scale = k * lattice.step**2
         self.factors = []
         for d in range(3):
@@ -123,16 +127,28 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
         return out
     blocks = _Blocks(lattice, X, k, cutoff, block)
     fx, fy, fz = blocks.factors
-    Lx, Ly, Lz = blocks.width
-    # layout (y, z, x, c): one GEMM (n x Ly*Lz) @ (Ly*Lz x Lx*C) per block
-    T = np.ascontiguousarray(np.asarray(T).transpose(1, 2, 0, 3))
-    sorted_out = np.empty_like(out)
+    T = gather_table(T)
+    sorted_out = out if isinstance(blocks.order, slice) else np.empty_like(out)
     for rows, (wx, wy, wz) in blocks:
-        yz = (fy[rows, :, None] * fz[rows, None, :]).reshape(-1, Ly * Lz)
-        txc = (yz @ T[wy, wz, wx].reshape(Ly * Lz, Lx * n_out)).reshape(-1, Lx, n_out)
-        sorted_out[rows] = np.einsum("nxc,nx->nc", txc, fx[rows])
-    out[blocks.order] = sorted_out
+        sorted_out[rows] = contract(fx[rows], fy[rows, :, None] * fz[rows, None, :], T[wy, wz, wx])
+    if sorted_out is not out:
+        out[blocks.order] = sorted_out
     return out
+
+
+def gather_table(T) -> np.ndarray:
+    """Lattice values (nx, ny, nz, C) in the layout :func:`contract` reads: (ny, nz, nx, C)."""
+    return np.ascontiguousarray(np.asarray(T).transpose(1, 2, 0, 3))
+
+
+def contract(fx, yz, table) -> np.ndarray:
+    """``out[n, c] = sum_ijk fx[n, i] fy[n, j] fz[n, k] T[i, j, k, c]`` for the x factors
+    ``fx`` (n, Lx), the y-z factor products ``yz`` (n, Ly, Lz) and ``table`` =
+    :func:`gather_table` of ``T``: one GEMM (n x Ly*Lz) @ (Ly*Lz x Lx*C) and one product
+    with the x factors."""
+    Ly, Lz, Lx, n_out = table.shape
+    txc = (yz.reshape(-1, Ly * Lz) @ table.reshape(Ly * Lz, Lx * n_out)).reshape(-1, Lx, n_out)
+    return np.einsum("nxc,nx->nc", txc, fx)
 
 
 def gather_grid(lattice: Lattice, axes, T, k) -> np.ndarray:

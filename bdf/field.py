@@ -39,6 +39,7 @@ class Posterior:
         self.weights = np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
         self._solutions = sols
         self._variance = None
+        self._tables = None
 
     def mean(self, X: np.ndarray) -> np.ndarray:
         T = self.weights.reshape(*self.grid.shape, 3)
@@ -79,11 +80,21 @@ class Posterior:
             var = var + 1.0 / self.beta
         return mean, np.sqrt(var)
 
+    def gather_tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """Weights and variance density (one column per component) in
+        :func:`features.contract`'s layout: what a region's batched point query reads."""
+        if self._tables is None:
+            if self._variance is None:
+                self._variance = self._variance_density()
+            densities, columns = self._variance
+            weights = features.gather_table(self.weights.reshape(*self.grid.shape, 3))
+            self._tables = weights, features.gather_table(densities[..., columns])
+        return self._tables
+
     def compact(self) -> Posterior:
-        """Compute the variance density now and drop the M x M factors: what a cache keeps
-        (a few times the midpoint lattice instead of M^2 numbers per factorisation)."""
-        if self._variance is None:
-            self._variance = self._variance_density()
+        """Compute the variance density and the gather tables now and drop the M x M
+        factors: what a cache keeps (a few times the midpoint lattice, not M^2 numbers)."""
+        self.gather_tables()
         self._solutions = None
         return self
 
@@ -93,6 +104,8 @@ class Posterior:
         held = self.weights.nbytes
         if self._variance is not None:
             held += self._variance[0].nbytes
+        if self._tables is not None:
+            held += self._tables[0].nbytes + self._tables[1].nbytes
         if self._solutions is not None:
             held += sum(s.factor.nbytes for s in {id(s): s for s in self._solutions}.values())
         return held

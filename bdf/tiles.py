@@ -132,11 +132,16 @@ class RegionSpec(BaseModel):
 
     def tile_grid(self, key: TileKey) -> HingeGrid:
         """Hinges of the tile: the grown box widened to the region-wide hinge lattice."""
-        lo, hi = self._grown(key)
+        _, hi = self._grown(key)
         s = np.array(self.spacing_m)
-        first = self.lower + np.floor((lo - self.lower) / s + 1e-9) * s
         last = self.lower + np.ceil((hi - self.lower) / s - 1e-9) * s
-        return HingeGrid(first, last, s)
+        return HingeGrid(self._grid_origins(np.array([key]))[0], last, s)
+
+    def _grid_origins(self, keys: np.ndarray) -> np.ndarray:
+        """First hinge of the tiles ``keys`` (n, 3): the grown box's low corner, widened."""
+        s = np.array(self.spacing_m)
+        lo = self.lower + keys * np.array(self.tile_size_m) - self.overlap_m
+        return self.lower + np.floor((lo - self.lower) / s + 1e-9) * s
 
     def tile_field(self, key: TileKey) -> BayesianDynamicField:
         """An (unfitted) field with this tile's grid and the region's model settings."""
@@ -150,51 +155,45 @@ class RegionSpec(BaseModel):
 
     def tiles_containing(self, X) -> dict[TileKey, np.ndarray]:
         """Row indices of ``X`` per tile whose grown box holds them (up to 8 tiles a point)."""
-        return self._groups(self._inside_points(X))
+        rows, keys = self._memberships(self._inside_points(X))
+        return {key: rows[a:b] for a, b, key in _runs(keys)}
 
-    def _groups(self, X: np.ndarray) -> dict[TileKey, np.ndarray]:
+    def _memberships(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each (row of ``X``, tile whose grown box holds it): rows (P,) and tile keys (P, 3),
+        sorted by tile, then row."""
         size, overlap, n = np.array(self.tile_size_m), np.array(self.overlap_m), np.array(self.tile_counts)
         home = np.clip(np.floor((X - self.lower) / size).astype(np.int64), 0, n - 1)
-        per_axis = []  # per axis: (tile index, member) for the home tile and its two neighbours
-        for d in range(3):
-            options = []
-            for step in (-1, 0, 1):
-                i = home[:, d] + step
-                lo = self.lower[d] + i * size[d]
-                hi = np.minimum(lo + size[d], self.upper[d])
-                member = (i >= 0) & (i < n[d]) & (X[:, d] >= lo - overlap[d]) & (X[:, d] <= hi + overlap[d])
-                options.append((i, member))
-            per_axis.append(options)
-        keys, rows = [], []
-        for (ix, mx), (iy, my), (iz, mz) in itertools.product(*per_axis):
-            member = np.flatnonzero(mx & my & mz)
-            keys.append(np.stack([ix[member], iy[member], iz[member]], axis=1))
-            rows.append(member)
-        keys, rows = np.concatenate(keys), np.concatenate(rows)
-        unique, inverse = np.unique(keys, axis=0, return_inverse=True)
-        order = np.argsort(inverse.ravel(), kind="stable")
-        splits = np.split(rows[order], np.cumsum(np.bincount(inverse.ravel(), minlength=len(unique)))[:-1])
-        return {tuple(int(v) for v in key): idx for key, idx in zip(unique, splits, strict=True)}
+        # per axis, the home tile and its two neighbours, and whether the point is in each
+        index = home[:, None, :] + np.array([-1, 0, 1])[:, None]  # (n, 3 options, 3 axes)
+        lo = self.lower + index * size
+        hi = np.minimum(lo + size, self.upper)
+        x = X[:, None, :]
+        member = (index >= 0) & (index < n) & (x >= lo - overlap) & (x <= hi + overlap)
+        both = member[:, :, None, None, 0] & member[:, None, :, None, 1] & member[:, None, None, :, 2]
+        rows, ox, oy, oz = np.nonzero(both)
+        keys = np.stack([index[rows, ox, 0], index[rows, oy, 1], index[rows, oz, 2]], axis=1)
+        order = np.lexsort((rows, keys[:, 2], keys[:, 1], keys[:, 0]))
+        return rows[order], keys[order]
 
     def tile_weights(self, key: TileKey, X: np.ndarray) -> np.ndarray:
         """Unnormalised partition-of-unity weight of the tile at ``X`` (n,), see module doc."""
-        return np.prod([self._axis_weight(key, d, X[:, d]) for d in range(3)], axis=0)
+        return self._weights(np.broadcast_to(np.asarray(key), X.shape), X)
 
-    def _axis_weight(self, key: TileKey, d: int, x: np.ndarray) -> np.ndarray:
-        """The tile's weight along axis ``d`` (the weight is a product over axes)."""
+    def _weights(self, keys: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """Weight of tile ``keys[i]`` at ``X[i]`` (keys and X both (n, 3))."""
+        return np.prod([self._axis_weight(d, keys[:, d], X[:, d]) for d in range(3)], axis=0)
+
+    def _axis_weight(self, d: int, index, x: np.ndarray) -> np.ndarray:
+        """The weight along axis ``d`` of tile(s) ``index`` (the weight is a product over axes)."""
         n, o, size = self.tile_counts[d], self.overlap_m[d], self.tile_size_m[d]
-        lo = self.bounds_m.min[d] + key[d] * size
-        hi = min(lo + size, self.bounds_m.max[d])
-        w = np.ones(len(x))
-        if o > 0:  # ramps only towards neighbours: the region's outer faces keep weight 1
-            if key[d] > 0:
-                w *= _ramp((x - lo + o) / (2 * o))
-            if key[d] < n - 1:
-                w *= _ramp((hi + o - x) / (2 * o))
-        else:  # hard border: each point belongs to the tile whose core holds it
-            home = np.clip(np.floor((x - self.lower[d]) / self.tile_size_m[d]), 0, n - 1)
-            w *= home == key[d]
-        return w
+        lo = self.bounds_m.min[d] + np.asarray(index) * size
+        hi = np.minimum(lo + size, self.bounds_m.max[d])
+        if o == 0:  # hard border: each point belongs to the tile whose core holds it
+            home = np.clip(np.floor((x - self.lower[d]) / size), 0, n - 1)
+            return (home == index).astype(float)
+        # ramps only towards neighbours: the region's outer faces keep weight 1
+        rise = np.where(index > 0, _ramp((x - lo + o) / (2 * o)), 1.0)
+        return rise * np.where(index < n - 1, _ramp((hi + o - x) / (2 * o)), 1.0)
 
     def _inside_points(self, X) -> np.ndarray:
         X = as_points(X, "X", allow_empty=True)
@@ -252,30 +251,66 @@ class RegionSpec(BaseModel):
         ``posterior(key)`` gives a tile's posterior, or None for a tile without data, which
         answers with the prior (mean 0). ``known`` is False where only such tiles cover.
         ``groups``: :meth:`tiles_containing` of ``X`` if the caller already has it.
+
+        All (point, tile) pairs are evaluated in one batch: the kernel factors of every
+        pair come from a few vectorised calls (tiles share the region's hinge lattice, so
+        only their origins differ), then each tile costs two small GEMMs
+        (:func:`features.contract`) on its weights and variance density.
         """
         if isinstance(posterior, Mapping):
             posterior = posterior.get
         X = self._inside_points(X)
-        parts, weight_sum = [], np.zeros(len(X))
-        mean, known = np.zeros((len(X), 3)), np.zeros(len(X), bool)
-        for key, idx in (self._groups(X) if groups is None else groups).items():
-            w = self.tile_weights(key, X[idx])
-            idx, w = idx[w > 0], w[w > 0]
-            post = posterior(key)
+        if groups is None:
+            rows, keys = self._memberships(X)
+        else:
+            rows = np.concatenate([np.zeros(0, np.int64), *groups.values()])
+            keys = np.repeat(
+                np.array(list(groups), np.int64).reshape(-1, 3), [len(r) for r in groups.values()], axis=0
+            )
+        w = self._weights(keys, X[rows])
+        rows, keys, w = rows[w > 0], keys[w > 0], w[w > 0]
+        tiles = _runs(keys)
+        posts = [posterior(key) for _, _, key in tiles]
+        shape = np.max(
+            [
+                self.tile_grid(key).shape if p is None else p.grid.shape
+                for (*_, key), p in zip(tiles, posts, strict=True)
+            ],
+            axis=0,
+            initial=1,
+        )
+        # per-axis kernel factors of every pair, on the hinge and the midpoint lattice
+        t = (X[rows] - self._grid_origins(keys)) / np.array(self.spacing_m)  # in hinge steps
+        gamma_steps = np.array(self.gamma) * np.array(self.spacing_m) ** 2
+        hinge = [np.exp(-gamma_steps[d] * (t[:, d, None] - np.arange(shape[d])) ** 2) for d in range(3)]
+        half = [
+            np.exp(-gamma_steps[d] / 2 * (2 * t[:, d, None] - np.arange(2 * shape[d] - 1)) ** 2)
+            for d in range(3)
+        ]
+        hinge_yz = hinge[1][:, :, None] * hinge[2][:, None, :]
+        half_yz = half[1][:, :, None] * half[2][:, None, :]
+        mu, var = np.zeros((len(rows), 3)), np.empty((len(rows), 3))
+        beta = np.empty((len(rows), 3))  # noise precision of each pair's tile, NaN: no data
+        for (a, b, key), post in zip(tiles, posts, strict=True):
             if post is None:
-                mu, var = np.zeros((len(idx), 3)), self._prior_variance(key, X[idx])
-            else:
-                mu, std = post.predict(X[idx], return_std=True)
-                var = std**2
-                known[idx] = True
-            mean[idx] += w[:, None] * mu
-            weight_sum[idx] += w
-            parts.append((idx, w, mu, var))
-        mean /= weight_sum[:, None]
-        var = np.zeros((len(X), 3))
-        for idx, w, mu, v in parts:
-            var[idx] += w[:, None] * (v + (mu - mean[idx]) ** 2)
-        return mean, np.sqrt(var / weight_sum[:, None]), known
+                var[a:b], beta[a:b] = self._prior_variance(key, X[rows[a:b]]), np.nan
+                continue
+            mean_table, var_table = post.gather_tables()
+            nx, ny, nz = post.grid.shape
+            mu[a:b] = features.contract(hinge[0][a:b, :nx], hinge_yz[a:b, :ny, :nz], mean_table)
+            var[a:b] = features.contract(
+                half[0][a:b, : 2 * nx - 1], half_yz[a:b, : 2 * ny - 1, : 2 * nz - 1], var_table
+            )
+            beta[a:b] = post.beta
+        known = ~np.isnan(beta[:, 0])
+        var[known] = np.maximum(var[known] / beta[known], 0.0) + 1.0 / beta[known]
+        # partition-of-unity blend: weighted mean, mixture variance
+        n = len(X)
+        weight_sum = np.bincount(rows, w, n)
+        mean = np.stack([np.bincount(rows, w * mu[:, c], n) for c in range(3)], axis=1) / weight_sum[:, None]
+        spread = w[:, None] * (var + (mu - mean[rows]) ** 2)
+        var = np.stack([np.bincount(rows, spread[:, c], n) for c in range(3)], axis=1) / weight_sum[:, None]
+        return mean, np.sqrt(var), np.bincount(rows, known, n) > 0
 
     def predict_grid(
         self, axes, posterior: Callable[[TileKey], Posterior | None] | Mapping[TileKey, Posterior]
@@ -302,7 +337,7 @@ class RegionSpec(BaseModel):
             sel, w_axes = [], []
             for d in range(3):
                 idx = np.flatnonzero((axes[d] >= lo[d]) & (axes[d] <= hi[d]))
-                w = self._axis_weight(key, d, axes[d][idx])
+                w = self._axis_weight(d, key[d], axes[d][idx])
                 sel.append(idx[w > 0])
                 w_axes.append(w[w > 0])
             if min(len(i) for i in sel) == 0:
@@ -367,3 +402,10 @@ def parse_key(text: str) -> TileKey:
 def _ramp(t: np.ndarray) -> np.ndarray:
     t = np.clip(t, 0.0, 1.0)
     return t * t * t * (t * (6.0 * t - 15.0) + 10.0)
+
+
+def _runs(keys: np.ndarray) -> list[tuple[int, int, TileKey]]:
+    """Runs of equal rows of the sorted ``keys`` (n, 3): (start, stop, key) each."""
+    starts = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
+    bounds = [0, *starts.tolist(), len(keys)] if len(keys) else []
+    return [(a, b, tuple(int(v) for v in keys[a])) for a, b in itertools.pairwise(bounds)]

@@ -1,13 +1,14 @@
 """The HTTP service under load on loopback: queries (JSON vs Arrow), grids, concurrent uploads.
 
-    .venv/bin/python bench/bench_service.py [--postgres URL] [--seconds 10] [--no-append]
+    .venv/bin/python bench/bench_service.py [--postgres URL] [--seconds 10] [--workers 1] [--no-append]
 
-A real ``bdf serve`` (one uvicorn worker, SQLite unless --postgres) holds the Paris map of
-bench_tiles.py (core grid, flight split, fitted over HTTP as one Arrow body). The load
+A real ``bdf serve`` (``--workers`` uvicorn workers, SQLite unless --postgres) holds the Paris
+map of bench_tiles.py (core grid, flight split, fitted over HTTP as one Arrow body). The load
 generator is asyncio + httpx in this process (it shares the 2 cores with the server):
 
 * queries: 1,000 random test-set points per request; one client in sequence (latency
-  unloaded), then 16 concurrent clients for ``--seconds`` (throughput, p50, p99);
+  unloaded), then 16 concurrent clients for ``--seconds`` (throughput, p50, p99), with the
+  CPU time the server (all its processes) and the load generator spent per request;
 * grid: 100 x 100 x 30 voxels over the whole region, npz and Arrow, warm cache, median of 5;
 * uploads: 10 concurrent uploaders, 1,000 rows each request (Arrow), distinct keys.
 """
@@ -47,6 +48,19 @@ def arrow_points(X, V=None) -> bytes:
     if V is not None:
         cols.update(ve=V[:, 0], vn=V[:, 1], vu=V[:, 2])
     return arrow_bytes(cols)
+
+
+def process_tree_cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of process ``pid`` and its children (uvicorn workers)."""
+    tick, total = os.sysconf("SC_CLK_TCK"), 0.0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the process ended meanwhile
+            continue
+        if int(stat.parent.name) == pid or int(fields[1]) == pid:
+            total += (int(fields[11]) + int(fields[12])) / tick
+    return total
 
 
 def stats(latencies, wall=None) -> dict:
@@ -157,17 +171,24 @@ def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], 
         fit_s = build(svc.url, spec, obs, test)
         points = obs.X[test]
         with httpx.Client(base_url=svc.url, timeout=120) as c:  # warm every tile's posterior
-            c.post(
-                "/v1/regions/paris/query",
-                content=arrow_points(points[:20000]),
-                headers={"Content-Type": ARROW},
-            )
+            for _ in range(4 * int(url_env.get("BDF_WORKERS", 1))):  # in each worker, likely
+                c.post(
+                    "/v1/regions/paris/query",
+                    content=arrow_points(points[:20000]),
+                    headers={"Content-Type": ARROW},
+                )
         for fmt in ("json", "arrow"):
             bodies = query_bodies(points, 64, fmt)
-            one = asyncio.run(query_load(svc.url, bodies, 1, seconds / 2))
-            rows.append({"what": f"query 1,000 pts, {fmt}, 1 client", **one})
-            many = asyncio.run(query_load(svc.url, bodies, CLIENTS, seconds))
-            rows.append({"what": f"query 1,000 pts, {fmt}, {CLIENTS} clients", **many})
+            for clients, duration in ((1, seconds / 2), (CLIENTS, seconds)):
+                server, client = process_tree_cpu_s(svc.proc.pid), time.process_time()
+                load = asyncio.run(query_load(svc.url, bodies, clients, duration))
+                load["server CPU ms/req"] = (
+                    1e3 * (process_tree_cpu_s(svc.proc.pid) - server) / load["requests"]
+                )
+                load["client CPU ms/req"] = 1e3 * (time.process_time() - client) / load["requests"]
+                rows.append(
+                    {"what": f"query 1,000 pts, {fmt}, {clients} client{'s' * (clients > 1)}", **load}
+                )
         for accept, name in ((NPZ, "npz"), (ARROW, "arrow")):
             g = grid_times(svc.url, spec, accept)
             rows.append({"what": f"grid 100x100x30, {name}, warm", "p50 ms": g["median ms"], "MB": g["MB"]})
@@ -180,6 +201,7 @@ def main():
     parser = arguments(__doc__)
     parser.add_argument("--seconds", type=float, default=10.0, help="duration of each concurrent query run")
     parser.add_argument("--threads", type=int, default=2, help="the service's compute threads (BDF_THREADS)")
+    parser.add_argument("--workers", type=int, default=1, help="uvicorn worker processes (BDF_WORKERS)")
     args = parser.parse_args()
 
     obs, lower, upper = ingest.load_paris()
@@ -189,14 +211,14 @@ def main():
         f"## HTTP service, {datetime.date.today()}",
         "",
         f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
-        f"{os.cpu_count()} cores; one uvicorn worker with {args.threads} compute threads; the load "
-        "generator shares the machine. Paris map of bench_tiles (core grid), "
-        f"fitted over HTTP from {int((~test).sum())} rows in one Arrow body. Targets: 1,000-point query p50 "
-        "< 20 ms with Arrow; 100x100x30 grid < 300 ms warm.",
+        f"{os.cpu_count()} cores; {args.workers} uvicorn worker(s) with {args.threads} compute threads "
+        "each; the load generator (asyncio + httpx) shares the machine. Paris map of bench_tiles "
+        f"(core grid), fitted over HTTP from {int((~test).sum())} rows in one Arrow body. Targets: "
+        "1,000-point query p50 < 20 ms with Arrow; 100x100x30 grid < 300 ms warm.",
     ]
     backends = ["SQLite", "PostgreSQL"] if args.postgres else ["SQLite"]
     for name in backends:
-        env = {"BDF_LOG_LEVEL": "warning", "BDF_THREADS": str(args.threads)}
+        env = {"BDF_LOG_LEVEL": "warning", "BDF_THREADS": str(args.threads), "BDF_WORKERS": str(args.workers)}
         with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
             if name == "PostgreSQL":
                 env["BDF_STORE_URL"] = stack.enter_context(postgres_schema(args.postgres))

@@ -22,6 +22,7 @@ Readers read in one snapshot (``snapshot``), so they never see half an upload.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import threading
@@ -228,7 +229,7 @@ class MapStore(ABC):
             raise RegionNotFound(f"no region {name!r}")
         spec, region_id, version, observations, created, updated, tiles = rows[0]
         return RegionInfo(
-            RegionSpec.model_validate_json(spec),
+            _spec(spec),
             region_id,
             int(version),
             int(observations),
@@ -319,7 +320,7 @@ class MapStore(ABC):
             region_id, version, spec = (
                 rows[0][0],
                 int(rows[0][1]) + 1,
-                RegionSpec.model_validate_json(rows[0][2]),
+                _spec(rows[0][2]),
             )
             first = self._ledger(q, region_id, upload_id, digest)
             if first is not None:
@@ -392,3 +393,10 @@ def _decode(spec: RegionSpec, key: TileKey, blob, format_version) -> Evidence:
             f"tile {key_str(key)} has statistics format {format_version}, this code reads {FORMAT_VERSION}"
         )
     return Evidence.from_bytes(bytes(blob), spec.tile_grid(key))
+
+
+@functools.lru_cache(maxsize=256)
+def _spec(text: str) -> RegionSpec:
+    """A stored spec, parsed once per text: validating a spec costs a millisecond, and every
+    request reads its region's (specs are frozen, so sharing them is safe)."""
+    return RegionSpec.model_validate_json(text)
