@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from bdf._blas import single_threaded
 from bdf.grid import Lattice
 
 DEFAULT_CUTOFF = 1e-12
@@ -100,6 +101,7 @@ class _Blocks:
             yield slice(a, b), tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
 
 
+@single_threaded
 def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
     """``T[g, c] = sum_n W[n, c] prod_d exp(-k_nd (x_nd - g_d)^2)``, shape lattice + (C,)."""
     n_out = W.shape[1]
@@ -119,6 +121,7 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
 
 
+@single_threaded
 def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
     """``out[n, c] = sum_g T[g, c] prod_d exp(-k_d (x_nd - g_d)^2)``, shape (N, C)."""
     n_out = T.shape[-1]
@@ -164,6 +167,7 @@ def gather_grid(lattice: Lattice, axes, T, k) -> np.ndarray:
     return np.einsum("xi,yj,zk,ijkc->xyzc", *K, np.asarray(T), optimize="optimal")
 
 
+@single_threaded
 def gram(lattice: Lattice, X, k, amplitude, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
     """Dense ``sum_n a_n^2 phi(x_n) phi(x_n)^T`` (M x M) with per-point widths ``k``.
 

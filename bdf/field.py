@@ -9,6 +9,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from bdf import features, tuning
+from bdf._blas import threads_for
 from bdf._validate import (
     as_hyper,
     as_noise_std,
@@ -115,10 +116,11 @@ class Posterior:
         densities, columns = {}, []
         for sol in self._solutions:
             if id(sol) not in densities:
-                inv, info = sla.lapack.dpotri(sol.factor, lower=0)
+                with threads_for(len(sol.factor)):
+                    inv, info = sla.lapack.dpotri(sol.factor, lower=0)
                 if info != 0:
                     raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
-                inv += np.triu(inv, 1).T  # dpotri fills the upper triangle only
+                # the upper triangle of the inverse; the lower one is the clean factor's zeros
                 densities[id(sol)] = variance_density(self.grid, self.gamma, inv)
             columns.append(list(densities).index(id(sol)))
         return np.stack(list(densities.values()), axis=-1), columns

@@ -225,12 +225,18 @@ def _pair_structure(shape, step, gamma):
     return index, factor
 
 
-def variance_density(grid: HingeGrid, gamma: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+def variance_density(grid: HingeGrid, gamma: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """``S(g) = sum over hinge pairs with midpoint g of Sigma[m, m'] c(h_m - h_m')``.
 
     Then ``phi(x)^T Sigma phi(x) = sum_g S(g) exp(-sum_d 2 gamma_d (x_d - g_d)^2)``, a
     gather on the midpoint lattice: O(K) per query point instead of O(K^2).
+
+    ``upper``: the upper triangle of the symmetric ``Sigma``, zeros below (what LAPACK's
+    ``dpotri`` leaves from a clean factor). Pairs (m, m') and (m', m) share a midpoint, so
+    the sum is twice the upper triangle's minus the diagonal's.
     """
     index, factor = pair_structure(grid, gamma)
     mid = grid.midpoints()
-    return np.bincount(index.ravel(), (covariance * factor).ravel(), mid.size).reshape(mid.shape)
+    twice = 2.0 * np.bincount(index.ravel(), (upper * factor).ravel(), mid.size)
+    diagonal = np.bincount(np.diagonal(index), np.diagonal(upper), mid.size)
+    return (twice - diagonal).reshape(mid.shape)

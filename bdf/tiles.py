@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bdf import features
+from bdf._blas import single_threaded
 from bdf._validate import _bad_rows, as_noise_std, as_observations, as_points, as_sample_weight
 from bdf.field import BayesianDynamicField, Posterior
 from bdf.frames import ENUFrame
@@ -240,6 +241,7 @@ class RegionSpec(BaseModel):
         """The tile's posterior, with its variance density ready and its factors dropped."""
         return self.tile_field(key).set_evidence(evidence).posterior_.compact()
 
+    @single_threaded
     def predict(
         self,
         X,

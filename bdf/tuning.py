@@ -23,6 +23,7 @@ import scipy.linalg as sla
 from scipy.optimize import minimize_scalar
 
 from bdf import features, metrics
+from bdf._blas import threads_for
 from bdf._validate import as_observations, as_sample_weight
 from bdf.grid import HingeGrid
 from bdf.stats import Evidence
@@ -58,13 +59,14 @@ def solve(gram: np.ndarray, proj: np.ndarray, v_sq: np.ndarray, lam: float, out=
         np.copyto(a, gram)
     a.flat[:: len(a) + 1] += lam
     # the transpose of a C-order symmetric matrix is itself in Fortran order: no copy
-    factor, info = sla.lapack.dpotrf(a.T, lower=0, overwrite_a=1, clean=1)
-    if info != 0:
-        raise ValueError(
-            f"the precision matrix is not positive definite (alpha/beta = {lam:.3g}); "
-            "increase alpha or decrease beta"
-        )
-    weights, info = sla.lapack.dpotrs(factor, proj, lower=0)
+    with threads_for(len(a)):
+        factor, info = sla.lapack.dpotrf(a.T, lower=0, overwrite_a=1, clean=1)
+        if info != 0:
+            raise ValueError(
+                f"the precision matrix is not positive definite (alpha/beta = {lam:.3g}); "
+                "increase alpha or decrease beta"
+            )
+        weights, info = sla.lapack.dpotrs(factor, proj, lower=0)
     residual = np.maximum(v_sq - np.einsum("mc,mc->c", proj, weights), 1e-300)
     logdet = 2.0 * float(np.sum(np.log(np.diag(factor))))
     return Solution(lam, factor, weights, logdet, residual)
