@@ -87,7 +87,7 @@ class _Blocks:
 
     def _factors(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
         """Per axis, ``exp(-k (x - g)^2)`` for the lattice points g of each point's window."""
-        t = (X - lattice.origin) / lattice.step - self.start[: len(X)]  # in lattice steps
+        t = (X - lattice.origin) / lattice.step - self.start  # in lattice steps
         scale = k * lattice.step**2
         self.factors = []
         for d in range(3):
@@ -131,11 +131,10 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
     blocks = _Blocks(lattice, X, k, cutoff, block)
     fx, fy, fz = blocks.factors
     T = gather_table(T)
-    sorted_out = out if isinstance(blocks.order, slice) else np.empty_like(out)
+    sorted_out = np.empty_like(out)
     for rows, (wx, wy, wz) in blocks:
         sorted_out[rows] = contract(fx[rows], fy[rows, :, None] * fz[rows, None, :], T[wy, wz, wx])
-    if sorted_out is not out:
-        out[blocks.order] = sorted_out
+    out[blocks.order] = sorted_out
     return out
 
 

@@ -273,14 +273,11 @@ class RegionSpec(BaseModel):
         rows, keys, w = rows[w > 0], keys[w > 0], w[w > 0]
         tiles = _runs(keys)
         posts = [posterior(key) for _, _, key in tiles]
-        shape = np.max(
-            [
-                self.tile_grid(key).shape if p is None else p.grid.shape
-                for (*_, key), p in zip(tiles, posts, strict=True)
-            ],
-            axis=0,
-            initial=1,
-        )
+        shapes = [
+            self.tile_grid(key).shape if p is None else p.grid.shape
+            for (*_, key), p in zip(tiles, posts, strict=True)
+        ]
+        shape = np.max([(1, 1, 1), *shapes], axis=0)
         # per-axis kernel factors of every pair, on the hinge and the midpoint lattice
         t = (X[rows] - self._grid_origins(keys)) / np.array(self.spacing_m)  # in hinge steps
         gamma_steps = np.array(self.gamma) * np.array(self.spacing_m) ** 2

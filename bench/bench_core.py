@@ -1,6 +1,8 @@
 """Core benchmark on real ADS-B traffic around Paris: bdf vs the paper's algorithm vs an exact GP.
 
-    .venv/bin/python bench/bench_core.py [--gp-points 2000] [--skip-reference] [--no-append]
+    .venv/bin/python bench/bench_core.py [--gp-points 2000] [--skip-reference] [--cv] [--no-append]
+
+The sparse GP row needs ``pip install -e '.[gp]'`` (PyTorch 2.13.0 CPU and GPyTorch).
 
 Data: the Paris sample (OpenSky via `traffic`), points within 40 km of the mean position
 and below 6,000 m. Two splits, seed 0: 20% of points at random; 20% of whole flights.
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import importlib.util
 import os
 import platform
 import sys
@@ -22,10 +25,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bdf import BayesianDynamicField, ingest, metrics
+from bdf import BayesianDynamicField, ingest, metrics, tuning
 from bdf.ingest import PARIS_GAMMA, PARIS_SPACING_M
 
 PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
+#: The coarsest grid the targets allow (M >= 2,000): where an "auto" fit takes under 1 s.
+COARSE_SPACING_M = np.array([5000.0, 5000.0, 1000.0])
+#: Grids of the weighted cross-validation (``--cv``).
+CV_SPACINGS_M = [PARIS_SPACING_M, COARSE_SPACING_M, np.array([4000.0, 4000.0, 750.0])]
 
 
 def accuracy(V_test, V_train, mean, std) -> dict:
@@ -65,11 +72,15 @@ def best_of(repeat, fn):
     return min(times), out
 
 
-def run_bdf(lower, upper, Xtr, Vtr, Xte, alpha, beta, repeat, weight=None):
-    """Train = statistics + posterior + variance precompute; query = mean and std of the test set."""
+def run_bdf(
+    lower, upper, Xtr, Vtr, Xte, alpha, beta, repeat, weight=None, spacing=PARIS_SPACING_M, gamma=None
+):
+    """Train = statistics + posterior + variance precompute; query = mean and std of the test set.
+    ``gamma`` defaults to 1 / spacing^2."""
+    gamma = 1.0 / np.asarray(spacing) ** 2 if gamma is None else gamma
 
     def train():
-        field = BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA, alpha=alpha, beta=beta)
+        field = BayesianDynamicField(lower, upper, spacing, gamma, alpha=alpha, beta=beta)
         field.fit(Xtr, Vtr, sample_weight=weight)
         field.predict(Xte[:1], return_std=True)  # factorisation and variance density
         return field
@@ -129,6 +140,55 @@ def exact_gp(Xtr, Vtr, Xte, n, seed=0):
     return train_s, query_s, mean, std if std.ndim == 2 else np.repeat(std[:, None], 3, 1)
 
 
+def sparse_gp(Xtr, Vtr, Xte, inducing=500, steps=60, seed=0):
+    """GPyTorch SGPR (Titsias' collapsed bound), ARD RBF, one GP per component, float64,
+    inducing points started on a random subset, Adam; inputs and outputs standardised.
+    Optional: runs when ``gpytorch`` is installed (``pip install -e '.[gp]'``)."""
+    import gpytorch
+    import torch
+
+    torch.manual_seed(seed)
+    x_mean, x_std, v_mean, v_std = Xtr.mean(0), Xtr.std(0), Vtr.mean(0), Vtr.std(0)
+    x = torch.tensor((Xtr - x_mean) / x_std)
+    xq = torch.tensor((Xte - x_mean) / x_std)
+
+    class SGPR(gpytorch.models.ExactGP):
+        def __init__(self, y, likelihood):
+            super().__init__(x, y, likelihood)
+            self.mean_module = gpytorch.means.ConstantMean()
+            rbf = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel(ard_num_dims=3))
+            start = x[torch.randperm(len(x))[:inducing]].clone()
+            self.covar_module = gpytorch.kernels.InducingPointKernel(rbf, start, likelihood)
+
+        def forward(self, z):
+            return gpytorch.distributions.MultivariateNormal(self.mean_module(z), self.covar_module(z))
+
+    t0 = time.perf_counter()
+    models = []
+    for c in range(3):
+        y = torch.tensor((Vtr[:, c] - v_mean[c]) / v_std[c])
+        likelihood = gpytorch.likelihoods.GaussianLikelihood()
+        model = SGPR(y, likelihood).double()
+        model.train()
+        optimizer = torch.optim.Adam(model.parameters(), lr=0.05)
+        mll = gpytorch.mlls.ExactMarginalLogLikelihood(likelihood, model)
+        for _ in range(steps):
+            optimizer.zero_grad()
+            loss = -mll(model(x), y)
+            loss.backward()
+            optimizer.step()
+        models.append((model.eval(), likelihood.eval()))
+    train_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mean, std = np.empty((len(Xte), 3)), np.empty((len(Xte), 3))
+    with torch.no_grad():
+        for c, (model, likelihood) in enumerate(models):
+            pred = likelihood(model(xq))
+            mean[:, c] = pred.mean.numpy() * v_std[c] + v_mean[c]
+            std[:, c] = pred.variance.sqrt().numpy() * v_std[c]
+    return train_s, time.perf_counter() - t0, mean, std
+
+
 def microscopic(repeat=200):
     """A 300-point radar scan, M = 500: partial_fit + prediction at 1,000 points (median ms)."""
     rng = np.random.default_rng(0)
@@ -151,6 +211,45 @@ def microscopic(repeat=200):
     return 1e3 * np.median(mean_only), 1e3 * np.median(with_std)
 
 
+def weighted_cv(obs: ingest.Observations, lower, upper) -> list[dict]:
+    """Flight-grouped 5-fold CV (MSLL) of grids and gammas with track weights, on ``obs``.
+
+    Track weights depend on the grid, so each spacing is one :func:`tuning.cross_validate`
+    call with its own weights; gamma is 1 or 2 times 1 / spacing^2.
+    """
+    rows = []
+    for spacing in CV_SPACINGS_M:
+        weight = ingest.track_weights(obs, spacing)
+        t0 = time.perf_counter()
+        _, found = tuning.cross_validate(
+            obs.X,
+            obs.V,
+            lower,
+            upper,
+            [(spacing, scale / spacing**2) for scale in (1.0, 2.0)],
+            groups=obs.flight,
+            sample_weight=weight,
+        )
+        seconds = (time.perf_counter() - t0) / len(found)
+        rows += [
+            {**row, "gamma x spacing^2": row["gamma"][0] * spacing[0] ** 2, "s": seconds} for row in found
+        ]
+    return rows
+
+
+def cv_table(rows) -> str:
+    lines = [
+        "| spacing m | gamma x spacing^2 | M | CV RMSE | CV MSLL | s per candidate |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['spacing']} | {r['gamma x spacing^2']:g} | {r['hinges']} | {r['rmse']:.2f} | "
+            f"{r['msll']:.3f} | {r['s']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
 def table(rows):
     cols = ["method", "train s", "query s", "RMSE", "MSLL", "cov95", "note"]
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -170,6 +269,13 @@ def main():
     parser.add_argument("--gp-points", type=int, default=2000, help="training subset of the exact GP")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--skip-reference", action="store_true", help="skip the paper's algorithm (slow)")
+    parser.add_argument(
+        "--cv", action="store_true", help="weighted, flight-grouped CV of grids (flight split)"
+    )
+    parser.add_argument("--inducing", type=int, default=500, help="inducing points of the sparse GP")
+    parser.add_argument(
+        "--sgpr-steps", type=int, default=60, help="Adam steps of the sparse GP, per component"
+    )
     parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
     args = parser.parse_args()
 
@@ -182,8 +288,8 @@ def main():
         f"{os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}.",
         f"Paris sample: {len(obs)} points within 40 km and below 6,000 m. Grid spacing "
         f"{PARIS_SPACING_M.tolist()} m, gamma = 1/spacing^2, M = {M} hinges (picked by hand "
-        "after an unweighted flight-grouped comparison of 3 spacings x 3 gammas; a weighted CV "
-        "run is a follow-up). Track weights: each flight weighs 1 per grid cell it "
+        "after an unweighted flight-grouped comparison of 3 spacings x 3 gammas; with --cv, the "
+        "weighted comparison follows the flight split). Track weights: each flight weighs 1 per grid cell it "
         "crosses (`bdf.ingest.track_weights`). Train = statistics + factorisation(s) + variance "
         "precompute; query = mean and std of the whole test set.",
     ]
@@ -203,6 +309,21 @@ def main():
                 tr,
                 q,
                 f"noise std {np.round(1 / np.sqrt(field.beta_), 1).tolist()} m/s",
+            )
+        )
+        coarse = ingest.track_weights(obs.subset(~test), COARSE_SPACING_M)
+        coarse_field, tr, q, mean, std = run_bdf(
+            lower, upper, Xtr, Vtr, Xte, "auto", "auto", args.repeat, coarse, COARSE_SPACING_M
+        )
+        rows.append(
+            score(
+                f"bdf, auto, track weights, 5 km grid (M = {len(coarse_field.hinges)})",
+                Vte,
+                Vtr,
+                mean,
+                std,
+                tr,
+                q,
             )
         )
         _, tr, q, mean, std = run_bdf(lower, upper, Xtr, Vtr, Xte, "auto", "auto", args.repeat)
@@ -229,8 +350,22 @@ def main():
                 )
         tr, q, mean, std = exact_gp(Xtr, Vtr, Xte, args.gp_points)
         rows.append(score(f"exact GP (scikit-learn), {args.gp_points} pts", Vte, Vtr, mean, std, tr, q))
+        if importlib.util.find_spec("gpytorch") is None:
+            print("sparse GP skipped: pip install -e '.[gp]' (torch 2.13.0 CPU, gpytorch)", flush=True)
+        else:
+            tr, q, mean, std = sparse_gp(Xtr, Vtr, Xte, args.inducing, args.sgpr_steps)
+            name = f"sparse GP (GPyTorch SGPR), {args.inducing} inducing, {args.sgpr_steps} Adam steps"
+            rows.append(score(name, Vte, Vtr, mean, std, tr, q, "all training points"))
         title = "random 20% of points" if split == "point" else "20% of whole flights held out"
         report += ["", f"### Split: {title} (train {len(Xtr)}, test {len(Xte)})", "", table(rows)]
+        if args.cv and split == "flight":
+            report += [
+                "",
+                "Track-weighted, flight-grouped 5-fold cross-validation on this training set "
+                "(`bdf.tuning.cross_validate`, alpha = beta = auto):",
+                "",
+                cv_table(weighted_cv(obs.subset(~test), lower, upper)),
+            ]
         if not args.skip_reference:
             ref64 = next(r for r in rows if r["method"].endswith("float64"))
             report.append(

@@ -286,7 +286,7 @@ async def query(name: RegionName, request: Request):
             formats.media_type(request.headers.get("content-type")),
             app.state.settings.max_query_points,
         )
-        pred = app.state.maps.predict(name, X, spec=info.spec)
+        pred = app.state.maps.predict(name, X, info)
         headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
         if out == ARROW:
             columns = {
@@ -313,7 +313,7 @@ def _grid_prediction(request: Request, name: str, bbox: str | None, step: str):
     if not_modified:
         return None, None, not_modified
     axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
-    return info.spec, axes, app.state.maps.predict_grid(name, axes, spec=info.spec)
+    return info.spec, axes, app.state.maps.predict_grid(name, axes, info)
 
 
 BBox = Annotated[str | None, Query(description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")]
@@ -462,7 +462,7 @@ def slice_png(
         raise Problem(422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m")
     box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
     x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
-    pred = request.app.state.maps.predict_grid(name, [x, y, np.array([alt_m])], spec=spec)
+    pred = request.app.state.maps.predict_grid(name, [x, y, np.array([alt_m])], info)
     png = slices.render_slice(
         x,
         y,

@@ -18,9 +18,11 @@ import numpy as np
 from bdf._validate import noise_std_rows
 from bdf.field import Posterior
 from bdf.tiles import Increment, RegionSpec, TileKey
-from service.store import MapStore, payload_digest
+from service.store import MapStore, RegionInfo, payload_digest
 
 log = logging.getLogger(__name__)
+#: Region versions whose tile versions a :class:`RegionMaps` remembers.
+VERSIONS_KEPT = 64
 
 
 class PosteriorCache:
@@ -76,6 +78,10 @@ class RegionMaps:
     def __init__(self, store: MapStore, cache_mb: float = 512.0):
         self.store = store
         self.cache = PosteriorCache(cache_mb)
+        # (region_id, region version) -> tile versions: every upload bumps the region's
+        # version, so a region version names its tiles' versions for good
+        self._tile_versions: OrderedDict[tuple[str, int], dict[TileKey, int]] = OrderedDict()
+        self._lock = threading.Lock()
 
     def upload(
         self,
@@ -113,34 +119,43 @@ class RegionMaps:
             summary=summary,
         )
 
-    def predict(self, region: str, X, spec: RegionSpec | None = None) -> Prediction:
+    def predict(self, region: str, X, info: RegionInfo | None = None) -> Prediction:
         """Blended mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region.
 
-        ``spec``: the region's spec if the caller has read it (the snapshot checks it).
+        ``info``: the region as the caller read it; its spec applies, and at its version
+        cached posteriors answer without reading the store again.
         """
-        spec = spec or self.store.region(region).spec
+        info = info or self.store.region(region)
         X = np.asarray(X, float)
-        groups = spec.tiles_containing(X)  # validates X, names the outside rows
-        posteriors, info = self._posteriors(region, spec, groups)
+        groups = info.spec.tiles_containing(X)  # validates X, names the outside rows
+        posteriors, info = self._posteriors(region, info, groups)
         if posteriors is None:  # the name was re-created in between: start again
             return self.predict(region, X)  # without the stale spec
-        mean, std, known = spec.predict(X, posteriors, groups)
+        mean, std, known = info.spec.predict(X, posteriors, groups)
         return Prediction(mean, std, known, info.version, info.region_id)
 
-    def predict_grid(self, region: str, axes, spec: RegionSpec | None = None) -> Prediction:
+    def predict_grid(self, region: str, axes, info: RegionInfo | None = None) -> Prediction:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
         (nx, ny, nz, 3) and (nx, ny, nz)."""
-        spec = spec or self.store.region(region).spec
-        keys = spec.tiles_overlapping([np.min(a) for a in axes], [np.max(a) for a in axes])
-        posteriors, info = self._posteriors(region, spec, keys)
+        info = info or self.store.region(region)
+        keys = info.spec.tiles_overlapping([np.min(a) for a in axes], [np.max(a) for a in axes])
+        posteriors, info = self._posteriors(region, info, keys)
         if posteriors is None:
             return self.predict_grid(region, axes)
-        mean, std, known = spec.predict_grid(axes, posteriors)
+        mean, std, known = info.spec.predict_grid(axes, posteriors)
         return Prediction(mean, std, known, info.version, info.region_id)
 
-    def _posteriors(self, region: str, spec, keys):
-        """Posteriors of those ``keys`` that hold data, from one snapshot (cache first), and
-        the region's info; ``(None, info)`` if the region no longer has ``spec``."""
+    def _posteriors(self, region: str, info: RegionInfo, keys):
+        """Posteriors of those ``keys`` that hold data and the region's info: from the cache
+        alone when it holds them all at ``info``'s version, else from one snapshot (cache
+        first). ``(None, info)`` if the region no longer has ``info.spec``."""
+        with self._lock:
+            versions = self._tile_versions.get((info.region_id, info.version))
+        if versions is not None:
+            cached = {k: self.cache.get((info.region_id, k, versions[k])) for k in keys if k in versions}
+            if all(post is not None for post in cached.values()):
+                return cached, info
+        spec = info.spec
         found = {}
 
         def need(region_id: str, key: TileKey, version: int) -> bool:
@@ -150,6 +165,12 @@ class RegionMaps:
         snap = self.store.snapshot(region, keys, need=need)
         if snap.region.spec != spec:
             return None, snap.region
+        with self._lock:  # the tile versions at this region version, for the next query
+            self._tile_versions[(snap.region.region_id, snap.region.version)] = {
+                k: t.version for k, t in snap.tiles.items()
+            }
+            while len(self._tile_versions) > VERSIONS_KEPT:
+                self._tile_versions.popitem(last=False)
         posteriors = {}
         for key in keys:
             tile = snap.tiles.get(key)

@@ -170,6 +170,34 @@ def test_variance_is_the_mixture_variance(small):
     np.testing.assert_allclose(std, np.sqrt(second - mu**2), rtol=1e-9)
 
 
+@pytest.mark.parametrize("upper_x", [300.0, 250.0])  # 250: the last tiles have fewer hinges
+def test_batched_query_equals_tile_by_tile_blending(upper_x):
+    spec = RegionSpec.model_validate({**SMALL, "bounds_m": {"min": [0, 0, 0], "max": [upper_x, 200, 60]}})
+    rng = np.random.default_rng(3)
+    X = rng.uniform(spec.lower, spec.upper, (3000, 3))
+    V = small_flow(X) + 0.3 * rng.standard_normal(X.shape)
+    post = posteriors(spec, spec.increments(X, V))
+    assert len({p.grid.shape for p in post.values()}) == (1 if upper_x == 300 else 2)
+    q = rng.uniform(spec.lower, spec.upper, (400, 3))
+    q[:4, :2] = [[100.0, 100.0], [95.0, 105.0], [100.0, 0.0], [upper_x, 200.0]]  # corners, faces
+    total, first, second = np.zeros(len(q)), np.zeros((len(q), 3)), np.zeros((len(q), 3))
+    for key, idx in spec.tiles_containing(q).items():  # each tile on its own, plain gathers
+        w = spec.tile_weights(key, q[idx])[:, None]
+        m, s = post[key].predict(q[idx], return_std=True)
+        total[idx] += w[:, 0]
+        first[idx] += w * m
+        second[idx] += w * (s**2 + m**2)
+    mu = first / total[:, None]
+    mean, std, known = spec.predict(q, post)
+    np.testing.assert_allclose(mean, mu, rtol=1e-10, atol=1e-12 * np.abs(mu).max())
+    np.testing.assert_allclose(std, np.sqrt(second / total[:, None] - mu**2), rtol=1e-8)
+    assert known.all()
+    again = spec.predict(q, post, spec.tiles_containing(q))
+    np.testing.assert_array_equal(again[0], mean)
+    empty = spec.predict(np.zeros((0, 3)), post)
+    assert [a.shape for a in empty] == [(0, 3), (0, 3), (0,)]
+
+
 def test_tiles_without_data_answer_with_the_prior(small):
     spec, X, V = small
     left = X[:, 0] < 50  # data only in the first tile column, away from its border

@@ -169,9 +169,13 @@ def test_queries_blend_cached_posteriors_and_follow_updates(store, spec):
     np.testing.assert_allclose(got.mean, ref_mean, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(got.std, ref_std, rtol=1e-9)
     assert got.known.all() and got.version == 1
-    misses = maps.cache.misses
-    maps.predict("town", Q)
+    misses, snapshots = maps.cache.misses, []
+    read = store.snapshot
+    store.snapshot = lambda *a, **k: snapshots.append(a) or read(*a, **k)
+    again = maps.predict("town", Q)
     assert maps.cache.misses == misses and len(maps.cache) == 6  # warm: no recomputation
+    assert snapshots == []  # and no tile read: the region version names the tile versions
+    np.testing.assert_array_equal(again.mean, got.mean)
     X2, V2 = data(8, n=100)
     maps.upload("town", "b", X2, V2)
     newer = maps.predict("town", Q)
@@ -183,6 +187,7 @@ def test_queries_blend_cached_posteriors_and_follow_updates(store, spec):
         },
     )
     np.testing.assert_allclose(newer.mean, ref_mean, rtol=1e-9, atol=1e-12)
+    assert newer.version == 2 and len(snapshots) == 1
     with pytest.raises(ValueError, match="outside region"):
         maps.predict("town", [[400.0, 0.0, 0.0]])
 
