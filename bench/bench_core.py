@@ -1,6 +1,7 @@
 """Core benchmark on real ADS-B traffic around Paris: bdf vs the paper's algorithm vs an exact GP.
 
-    .venv/bin/python bench/bench_core.py [--gp-points 2000] [--skip-reference] [--cv] [--no-append]
+    .venv/bin/python bench/bench_core.py [--gp-points 2000] [--skip-reference] [--cv]
+        [--splits point flight] [--no-append]
 
 The sparse GP row (flight split only: it trains for minutes) needs ``pip install -e '.[gp]'``
 (PyTorch 2.13.0 CPU and GPyTorch).
@@ -73,12 +74,10 @@ def best_of(repeat, fn):
     return min(times), out
 
 
-def run_bdf(
-    lower, upper, Xtr, Vtr, Xte, alpha, beta, repeat, weight=None, spacing=PARIS_SPACING_M, gamma=None
-):
+def run_bdf(lower, upper, Xtr, Vtr, Xte, alpha, beta, repeat, weight=None, spacing=PARIS_SPACING_M):
     """Train = statistics + posterior + variance precompute; query = mean and std of the test set.
-    ``gamma`` defaults to 1 / spacing^2."""
-    gamma = 1.0 / np.asarray(spacing) ** 2 if gamma is None else gamma
+    Gamma is 1 / spacing^2."""
+    gamma = 1.0 / np.asarray(spacing) ** 2
 
     def train():
         field = BayesianDynamicField(lower, upper, spacing, gamma, alpha=alpha, beta=beta)
@@ -141,7 +140,7 @@ def exact_gp(Xtr, Vtr, Xte, n, seed=0):
     return train_s, query_s, mean, std if std.ndim == 2 else np.repeat(std[:, None], 3, 1)
 
 
-def sparse_gp(Xtr, Vtr, Xte, inducing=256, steps=20, seed=0):
+def sparse_gp(Xtr, Vtr, Xte, inducing, steps, seed=0):
     """GPyTorch SGPR (Titsias' collapsed bound), ARD RBF, one GP per component, float32
     (GPyTorch's default), inducing points started on a random subset, Adam (lr 0.1);
     inputs and outputs standardised.
@@ -268,15 +267,20 @@ def main():
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--gp-points", type=int, default=2000, help="training subset of the exact GP")
+    parser.add_argument(
+        "--gp-points", type=int, default=2000, help="training subset of the exact GP (0: skip it)"
+    )
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--skip-reference", action="store_true", help="skip the paper's algorithm (slow)")
     parser.add_argument(
         "--cv", action="store_true", help="weighted, flight-grouped CV of grids (flight split)"
     )
-    parser.add_argument("--inducing", type=int, default=500, help="inducing points of the sparse GP")
+    parser.add_argument("--inducing", type=int, default=256, help="inducing points of the sparse GP")
     parser.add_argument(
-        "--sgpr-steps", type=int, default=60, help="Adam steps of the sparse GP, per component"
+        "--sgpr-steps", type=int, default=20, help="Adam steps of the sparse GP, per component"
+    )
+    parser.add_argument(
+        "--splits", nargs="+", choices=["point", "flight"], default=["point", "flight"], help="splits to run"
     )
     parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
     args = parser.parse_args()
@@ -295,7 +299,7 @@ def main():
         "crosses (`bdf.ingest.track_weights`). Train = statistics + factorisation(s) + variance "
         "precompute; query = mean and std of the whole test set.",
     ]
-    for split in ("point", "flight"):
+    for split in args.splits:
         test = ingest.train_test_split(obs, by=split, test_fraction=0.2, seed=0)
         Xtr, Vtr, Xte, Vte = obs.X[~test], obs.V[~test], obs.X[test], obs.V[test]
         rows = []
@@ -350,8 +354,9 @@ def main():
                         f"{tr / tr_fixed:.0f}x our train time; min eig of precision {min_eig:.2g}",
                     )
                 )
-        tr, q, mean, std = exact_gp(Xtr, Vtr, Xte, args.gp_points)
-        rows.append(score(f"exact GP (scikit-learn), {args.gp_points} pts", Vte, Vtr, mean, std, tr, q))
+        if args.gp_points:
+            tr, q, mean, std = exact_gp(Xtr, Vtr, Xte, args.gp_points)
+            rows.append(score(f"exact GP (scikit-learn), {args.gp_points} pts", Vte, Vtr, mean, std, tr, q))
         if importlib.util.find_spec("gpytorch") is None:
             print("sparse GP skipped: pip install -e '.[gp]' (torch 2.13.0 CPU, gpytorch)", flush=True)
         elif split == "flight":  # minutes per split: only where prediction away from tracks is tested

@@ -11,6 +11,8 @@ generator is asyncio + httpx in this process (it shares the 2 cores with the ser
   CPU time the server (all its processes) and the load generator spent per request;
 * grid: 100 x 100 x 30 voxels over the whole region, npz and Arrow, warm cache, median of 5;
 * uploads: 10 concurrent uploaders, 1,000 rows each request (Arrow), distinct keys.
+* library: the same 1,000-point queries through ``RegionSpec.predict`` in this process
+  (median of 50): the compute inside one request.
 """
 
 from __future__ import annotations
@@ -150,6 +152,22 @@ async def upload_load(url, obs, uploaders, per_uploader) -> dict:
     return out
 
 
+def library_query_ms(spec, obs, test, repeat=50) -> float:
+    """Median ms of ``RegionSpec.predict`` at 1,000 test points on the same map, in this
+    process: the compute inside one query request, without HTTP or store."""
+    train = obs.subset(~test)
+    posts = {k: spec.posterior(k, inc.evidence) for k, inc in spec.increments(train.X, train.V).items()}
+    rng = np.random.default_rng(0)
+    points = obs.X[test]
+    times = []
+    for _ in range(repeat):
+        X = points[rng.choice(len(points), QUERY_POINTS, replace=False)]
+        t0 = time.perf_counter()
+        spec.predict(X, posts)
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
 def grid_times(url, spec, accept, repeat=5) -> dict:
     lo, hi = spec.lower, spec.upper
     step = (hi - lo) / (np.array([100, 100, 30]) - 1)
@@ -194,6 +212,7 @@ def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], 
             rows.append({"what": f"grid 100x100x30, {name}, warm", "p50 ms": g["median ms"], "MB": g["MB"]})
         up = asyncio.run(upload_load(svc.url, obs, UPLOADERS, 10))
         rows.append({"what": f"upload 1,000 rows, arrow, {UPLOADERS} uploaders", **up})
+    rows.append({"what": "query 1,000 pts, library (no HTTP)", "p50 ms": library_query_ms(spec, obs, test)})
     return rows, fit_s
 
 
