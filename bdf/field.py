@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg as sla
 
-from bdf import features, tuning
+from bdf import features, noise, tuning
 from bdf._blas import threads_for
 from bdf._validate import (
     as_hyper,
@@ -26,10 +26,23 @@ class Posterior:
     """What a factorisation of the evidence gives: weights now, the variance density on demand.
 
     Derived data only (tiles cache these per version); the evidence is the source of truth.
+    With ``noise_lattice`` (and the evidence's moments), the noise term of the predictive
+    variance is local (:mod:`bdf.noise`) with prior weight ``noise_prior``.
     """
 
-    def __init__(self, grid: HingeGrid, gamma, evidence: Evidence, alpha, beta, cutoff):
+    def __init__(
+        self,
+        grid: HingeGrid,
+        gamma,
+        evidence: Evidence,
+        alpha,
+        beta,
+        cutoff,
+        noise_lattice=None,
+        noise_prior=None,
+    ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
+        self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
         gram = evidence.gram(grid, gamma)
         self.alpha, self.beta, sols = tuning.fit_evidence(
             gram, evidence.proj, evidence.v_sq, evidence.count, alpha, beta
@@ -69,7 +82,20 @@ class Posterior:
         densities, columns = self._variance
         mean = features.gather_grid(self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma)
         var = features.gather_grid(self.grid.midpoints(), axes, densities, 2.0 * self.gamma)[..., columns]
-        return mean, np.maximum(var / self.beta, 0.0) + 1.0 / self.beta
+        if self._moments is None:
+            scatter = 1.0 / self.beta
+        else:
+            scatter = noise.noise_variance_grid(
+                self.noise_lattice, self._moments, axes, mean, self.beta, self.noise_prior
+            )
+        return mean, np.maximum(var / self.beta, 0.0) + scatter
+
+    def noise_variance(self, X: np.ndarray, mean: np.ndarray) -> np.ndarray:
+        """The noise term of the predictive variance at ``X`` (n, 3): ``1/beta``, or the
+        local estimate of :mod:`bdf.noise` where the posterior mean is ``mean``."""
+        if self._moments is None:
+            return np.broadcast_to(1.0 / self.beta, mean.shape)
+        return noise.noise_variance(self.noise_lattice, self._moments, X, mean, self.beta, self.noise_prior)
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """Mean (N, 3), and the std if asked: predictive, or epistemic without ``1/beta``."""
@@ -78,12 +104,14 @@ class Posterior:
             return mean
         var = self.epistemic_variance(X)
         if include_noise:
-            var = var + 1.0 / self.beta
+            var = var + self.noise_variance(X, mean)
         return mean, np.sqrt(var)
 
     def gather_tables(self) -> tuple[np.ndarray, np.ndarray]:
         """Weights and variance density (one column per component) in
         :func:`features.contract`'s layout: what a region's batched point query reads."""
+        if self._moments is not None:
+            raise ValueError("tiled maps keep the global noise: local noise is for single fields")
         if self._tables is None:
             if self._variance is None:
                 self._variance = self._variance_density()
@@ -102,7 +130,7 @@ class Posterior:
     @property
     def nbytes(self) -> int:
         """Memory held by the arrays of this posterior."""
-        held = self.weights.nbytes
+        held = self.weights.nbytes + (0 if self._moments is None else self._moments.nbytes)
         if self._variance is not None:
             held += self._variance[0].nbytes
         if self._tables is not None:
@@ -149,6 +177,14 @@ class BayesianDynamicField:
     half_life : float or None
         Exponential forgetting: before each :meth:`partial_fit`, old evidence is weighted
         by ``0.5 ** ((time - previous_time) / half_life)``. None keeps everything.
+    noise_spacing : None, number or 3 numbers
+        None: the noise variance is ``1/beta`` everywhere (the paper's model). A spacing:
+        it is local, the data's mean squared residual smoothed at about this scale and
+        shrunk towards ``1/beta`` (:mod:`bdf.noise`); the mean is unchanged. Finer than the
+        hinge spacing (Paris: 1 km x 1 km x 125 m under 4 km x 4 km x 1 km hinges).
+    noise_prior : float
+        With ``noise_spacing``: the weight of ``1/beta`` in the local estimate, in units of
+        sample weight (the data near a point outweigh it once they weigh more).
 
     Attributes
     ----------
@@ -186,6 +222,8 @@ class BayesianDynamicField:
         *,
         cutoff=features.DEFAULT_CUTOFF,
         half_life=None,
+        noise_spacing=None,
+        noise_prior=0.1,
     ):
         self.lower = lower
         self.upper = upper
@@ -195,6 +233,8 @@ class BayesianDynamicField:
         self.beta = beta
         self.cutoff = cutoff
         self.half_life = half_life
+        self.noise_spacing = noise_spacing
+        self.noise_prior = noise_prior
 
     def get_params(self, deep=True) -> dict:
         """Constructor arguments as given (scikit-learn convention)."""
@@ -210,7 +250,12 @@ class BayesianDynamicField:
             raise ValueError(f"cutoff must be in (0, 1), got {self.cutoff!r}")
         if self.half_life is not None and not float(self.half_life) > 0:
             raise ValueError(f"half_life must be positive or None, got {self.half_life!r}")
-        return grid, gamma, alpha, beta
+        lattice = None
+        if self.noise_spacing is not None:
+            lattice = noise.noise_lattice(self.lower, self.upper, self.noise_spacing)
+            if not float(self.noise_prior) > 0:
+                raise ValueError(f"noise_prior must be positive, got {self.noise_prior!r}")
+        return grid, gamma, alpha, beta, lattice
 
     @property
     def hinges(self) -> np.ndarray:
@@ -220,8 +265,8 @@ class BayesianDynamicField:
     # -- learning --------------------------------------------------------------------------
     def fit(self, X, V, *, input_noise_std=None, sample_weight=None, time=None):
         """Learn from ``(X, V)`` only, replacing what was learned. Returns self."""
-        self._grid, self._gamma, self._alpha, self._beta = self._setup()
-        self.evidence_ = Evidence.zeros(self._grid)
+        self._grid, self._gamma, self._alpha, self._beta, self._noise_lattice = self._setup()
+        self.evidence_ = Evidence.zeros(self._grid, self._noise_lattice)
         self.time_ = None
         return self.partial_fit(X, V, input_noise_std=input_noise_std, sample_weight=sample_weight, time=time)
 
@@ -247,11 +292,18 @@ class BayesianDynamicField:
         if not hasattr(self, "evidence_"):
             return self.fit(X, V, input_noise_std=input_noise_std, sample_weight=sample_weight, time=time)
         X, V = as_observations(X, V)
-        noise = as_noise_std(input_noise_std, len(X))
+        input_noise = as_noise_std(input_noise_std, len(X))
         weight = as_sample_weight(sample_weight, len(X))
         time = self._advance(time)
         self.evidence_ = self.evidence_ + Evidence.from_points(
-            self._grid, self._gamma, X, V, noise, weight, cutoff=self.cutoff
+            self._grid,
+            self._gamma,
+            X,
+            V,
+            input_noise,
+            weight,
+            cutoff=self.cutoff,
+            noise_lattice=self._noise_lattice,
         )
         self._posterior = None
         return self
@@ -279,7 +331,14 @@ class BayesianDynamicField:
             raise ValueError("this field has not been fitted: call fit(X, V) first")
         if getattr(self, "_posterior", None) is None:
             self._posterior = Posterior(
-                self._grid, self._gamma, self.evidence_, self._alpha, self._beta, self.cutoff
+                self._grid,
+                self._gamma,
+                self.evidence_,
+                self._alpha,
+                self._beta,
+                self.cutoff,
+                self._noise_lattice,
+                float(self.noise_prior),
             )
         return self._posterior
 
@@ -308,8 +367,8 @@ class BayesianDynamicField:
             Also return the std (n, 3). Only then is any variance computed.
         include_noise : bool
             True: predictive std ``sqrt(1/beta + phi^T Sigma phi)`` (what a new
-            observation would scatter by). False: epistemic std ``sqrt(phi^T Sigma phi)``
-            (the uncertainty of the mean field itself).
+            observation would scatter by; local with ``noise_spacing``). False: epistemic
+            std ``sqrt(phi^T Sigma phi)`` (the uncertainty of the mean field itself).
         """
         return self.posterior_.predict(as_points(X, "X", allow_empty=True), return_std, include_noise)
 
@@ -339,25 +398,39 @@ class BayesianDynamicField:
             arrays = {k.removeprefix("evidence_"): data[k] for k in data.files if k.startswith("evidence_")}
         time = params.pop("time_")
         field = cls(**params)
-        return field.set_evidence(
-            Evidence.from_arrays(arrays, HingeGrid(field.lower, field.upper, field.spacing)), time
-        )
+        grid, *_, lattice = field._setup()
+        return field.set_evidence(Evidence.from_arrays(arrays, grid, lattice), time)
 
     def set_evidence(self, evidence: Evidence, time=None) -> BayesianDynamicField:
         """Take ``evidence`` (made on this field's grid, e.g. stored per tile) as everything
         learned. Returns self."""
-        self._grid, self._gamma, self._alpha, self._beta = self._setup()
+        self._grid, self._gamma, self._alpha, self._beta, self._noise_lattice = self._setup()
         if evidence.proj.shape != (self._grid.size, 3):
             raise ValueError(
                 f"evidence for {len(evidence.proj)} hinges given to a field of {self._grid.size}"
             )
+        lattice = self._noise_lattice
+        expected = None if lattice is None else (*lattice.shape, noise.CHANNELS)
+        if (None if evidence.moments is None else evidence.moments.shape) != expected:
+            raise ValueError(f"evidence moments do not fit this field's noise_spacing (expected {expected})")
         self.evidence_ = evidence
         self.time_ = time
         self._posterior = None
         return self
 
 
-_PARAMS = ("lower", "upper", "spacing", "gamma", "alpha", "beta", "cutoff", "half_life")
+_PARAMS = (
+    "lower",
+    "upper",
+    "spacing",
+    "gamma",
+    "alpha",
+    "beta",
+    "cutoff",
+    "half_life",
+    "noise_spacing",
+    "noise_prior",
+)
 
 
 def _jsonable(value):

@@ -18,12 +18,14 @@ Stored format (version 1), all float64:
     count       ()                       sum of sample weights (decayed when forgetting)
     v_sum       (3,)                     sum of V per component
     v_sq        (3,)                     sum of V^2 per component
+    moments     noise lattice + (7,)     only with local noise: see :mod:`bdf.noise`
 
 As one blob (:meth:`Evidence.to_bytes`, what the map stores keep per tile): little-endian
 float64 values in the order count, v_sum, v_sq, proj (C order), density (C order), then,
 only if present, the lower triangle of the symmetric ``gram_noisy`` packed row by row
 (M (M + 1) / 2 values). Shapes follow from the tile's hinge grid; the length tells
-whether ``gram_noisy`` is there.
+whether ``gram_noisy`` is there. Local-noise moments have no blob form (tiles keep the
+global noise); :meth:`Evidence.to_bytes` refuses them.
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from bdf import features
-from bdf.grid import HingeGrid
+from bdf import features, noise
+from bdf.grid import HingeGrid, Lattice
 
 FORMAT_VERSION = 1
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
@@ -51,15 +53,17 @@ class Evidence:
     v_sum: np.ndarray
     v_sq: np.ndarray
     gram_noisy: np.ndarray | None = None
+    moments: np.ndarray | None = None
 
     @classmethod
-    def zeros(cls, grid: HingeGrid) -> Evidence:
+    def zeros(cls, grid: HingeGrid, noise_lattice: Lattice | None = None) -> Evidence:
         return cls(
             density=np.zeros(grid.midpoints().shape),
             proj=np.zeros((grid.size, 3)),
             count=0.0,
             v_sum=np.zeros(3),
             v_sq=np.zeros(3),
+            moments=None if noise_lattice is None else np.zeros((*noise_lattice.shape, noise.CHANNELS)),
         )
 
     @classmethod
@@ -73,12 +77,14 @@ class Evidence:
         sample_weight: np.ndarray | None = None,
         *,
         cutoff: float = features.DEFAULT_CUTOFF,
+        noise_lattice: Lattice | None = None,
     ) -> Evidence:
         """The statistics increment of observations ``(X, V)``: everything that learns calls this.
 
         ``X``, ``V`` are validated (N, 3) arrays; ``input_noise_std`` is None or (N, 3);
         ``sample_weight`` is None or (N,) >= 0: each point's log-likelihood counts that many
-        times (a weight of 2 equals the point given twice).
+        times (a weight of 2 equals the point given twice). With ``noise_lattice``, the
+        local-noise moments are kept too (at the given positions, input noise or not).
         """
         w = np.ones(len(X)) if sample_weight is None else sample_weight
         noisy = np.zeros(len(X), bool) if input_noise_std is None else np.any(input_noise_std > 0, 1)
@@ -101,6 +107,7 @@ class Evidence:
             v_sum=wV.sum(axis=0),
             v_sq=(wV * V).sum(axis=0),
             gram_noisy=gram_noisy,
+            moments=None if noise_lattice is None else noise.moments(noise_lattice, X, V, w),
         )
 
     def __add__(self, other: Evidence) -> Evidence:
@@ -110,6 +117,9 @@ class Evidence:
             gram_noisy = self.gram_noisy if other.gram_noisy is None else other.gram_noisy
         else:
             gram_noisy = self.gram_noisy + other.gram_noisy
+        if (self.moments is None) != (other.moments is None):
+            raise ValueError("cannot add evidence with local-noise moments to evidence without")
+        moments = None if self.moments is None else self.moments + other.moments
         return Evidence(
             density=self.density + other.density,
             proj=self.proj + other.proj,
@@ -117,6 +127,7 @@ class Evidence:
             v_sum=self.v_sum + other.v_sum,
             v_sq=self.v_sq + other.v_sq,
             gram_noisy=gram_noisy,
+            moments=moments,
         )
 
     def __sub__(self, other: Evidence) -> Evidence:
@@ -131,6 +142,7 @@ class Evidence:
             v_sum=self.v_sum * factor,
             v_sq=self.v_sq * factor,
             gram_noisy=None if self.gram_noisy is None else self.gram_noisy * factor,
+            moments=None if self.moments is None else self.moments * factor,
         )
 
     def gram(self, grid: HingeGrid, gamma: np.ndarray) -> np.ndarray:
@@ -144,13 +156,16 @@ class Evidence:
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain arrays for storage (format documented in the module docstring)."""
-        out = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
-        if self.gram_noisy is None:
-            del out["gram_noisy"]
-        return out
+        return {
+            f.name: np.asarray(getattr(self, f.name))
+            for f in fields(self)
+            if getattr(self, f.name) is not None
+        }
 
     def to_bytes(self) -> bytes:
         """The stored blob (layout in the module docstring)."""
+        if self.moments is not None:
+            raise ValueError("evidence with local-noise moments has no blob form; save the field instead")
         parts = [[self.count], self.v_sum, self.v_sq, self.proj.ravel(), self.density.ravel()]
         if self.gram_noisy is not None:
             parts.append(self.gram_noisy[np.tril_indices(len(self.gram_noisy))])
@@ -181,7 +196,7 @@ class Evidence:
         )
 
     @classmethod
-    def from_arrays(cls, arrays, grid: HingeGrid) -> Evidence:
+    def from_arrays(cls, arrays, grid: HingeGrid, noise_lattice: Lattice | None = None) -> Evidence:
         M = grid.size
         expected = {
             "density": grid.midpoints().shape,
@@ -192,6 +207,10 @@ class Evidence:
         }
         if "gram_noisy" in arrays:
             expected["gram_noisy"] = (M, M)
+        if noise_lattice is not None:
+            expected["moments"] = (*noise_lattice.shape, noise.CHANNELS)
+        elif "moments" in arrays:
+            raise ValueError("evidence has local-noise moments but the field has no noise_spacing")
         values = {}
         for name, shape in expected.items():
             if name not in arrays:
