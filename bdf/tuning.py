@@ -22,7 +22,7 @@ import numpy as np
 import scipy.linalg as sla
 from scipy.optimize import minimize_scalar
 
-from bdf import features, metrics
+from bdf import features, metrics, noise
 from bdf._blas import threads_for
 from bdf._validate import as_observations, as_sample_weight
 from bdf.grid import HingeGrid
@@ -52,10 +52,11 @@ def solve(gram: np.ndarray, proj: np.ndarray, v_sq: np.ndarray, lam: float, out=
     """Factor ``gram + lam I`` (float64 Cholesky, in place) and solve for the three components.
 
     ``out``: an M x M buffer to factor in (a search reuses two instead of allocating,
-    and faulting in, a fresh M^2 array per step).
+    and faulting in, a fresh M^2 array per step); ``gram`` itself when it is not needed
+    afterwards.
     """
     a = gram.copy() if out is None else out
-    if out is not None:
+    if out is not None and out is not gram:
         np.copyto(a, gram)
     a.flat[:: len(a) + 1] += lam
     # the transpose of a C-order symmetric matrix is itself in Fortran order: no copy
@@ -100,7 +101,8 @@ def fit_evidence(gram, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.n
 
     ``alpha``/``beta``: "auto" or 3-vectors. Fixed values need no search. "auto" for
     alpha shares ``lam`` over the components; a fixed alpha with "auto" beta searches
-    each component on its own (up to three factorisations).
+    each component on its own (up to three factorisations). With fixed values ``gram``
+    is factored in place: the caller must not read it afterwards.
     """
     auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
     if (auto_a or auto_b) and count <= 0:
@@ -112,7 +114,9 @@ def fit_evidence(gram, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.n
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
         lams = alpha_v / beta_v
-        cache = {lam: solve(gram, proj, v_sq, lam) for lam in np.unique(lams)}
+        unique = np.unique(lams)
+        # the last factorisation may take the Gram matrix itself: nothing reads it after
+        cache = {lam: solve(gram, proj, v_sq, lam, out=gram if lam == unique[-1] else None) for lam in unique}
         return alpha_v.copy(), beta_v.copy(), [cache[lam] for lam in lams]
 
     scale = max(float(np.mean(np.diag(gram))), 1e-300)
@@ -159,6 +163,8 @@ def cross_validate(
     beta="auto",
     score="msll",
     seed=0,
+    noise_spacing=None,
+    noise_prior=0.1,
 ):
     """Pick ``(spacing, gamma)`` from ``candidates`` by K-fold cross-validation.
 
@@ -176,6 +182,8 @@ def cross_validate(
         Likelihood weights of the training points (see :func:`bdf.ingest.track_weights`).
     score : "msll" or "rmse"
         What to minimise (averaged over the three components).
+    noise_spacing, noise_prior
+        Local noise for every candidate, as in :class:`bdf.BayesianDynamicField`.
 
     Returns
     -------
@@ -192,6 +200,9 @@ def cross_validate(
     weight = np.ones(len(X)) if sample_weight is None else as_sample_weight(sample_weight, len(X))
     if n_splits < 2:
         raise ValueError(f"n_splits must be at least 2, got {n_splits}")
+    lattice = None if noise_spacing is None else noise.noise_lattice(lower, upper, noise_spacing)
+    if lattice is not None and not float(noise_prior) > 0:
+        raise ValueError(f"noise_prior must be positive, got {noise_prior!r}")
     rng = np.random.default_rng(seed)
     if groups is None:
         fold = rng.permutation(len(X)) % n_splits
@@ -206,7 +217,7 @@ def cross_validate(
         grid = HingeGrid(lower, upper, spacing)
         gamma_v = np.broadcast_to(np.asarray(gamma, float), (3,)).copy()
         parts = [
-            Evidence.from_points(grid, gamma_v, X[f], V[f], None, weight[f])
+            Evidence.from_points(grid, gamma_v, X[f], V[f], None, weight[f], noise_lattice=lattice)
             for f in (fold == k for k in range(n_splits))
         ]
         total = parts[0]
@@ -215,7 +226,16 @@ def cross_validate(
         rmses, mslls = [], []
         for k in range(n_splits):
             test = fold == k
-            post = Posterior(grid, gamma_v, total - parts[k], alpha, beta, features.DEFAULT_CUTOFF)
+            post = Posterior(
+                grid,
+                gamma_v,
+                total - parts[k],
+                alpha,
+                beta,
+                features.DEFAULT_CUTOFF,
+                lattice,
+                float(noise_prior),
+            )
             mean, std = post.predict(X[test], return_std=True)
             train = V[~test]
             rmses.append(metrics.rmse(V[test], mean))

@@ -6,7 +6,7 @@ import pytest
 from bdf import BayesianDynamicField
 from bdf.noise import NOISE_CUTOFF
 from bdf.stats import Evidence
-from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER, flow
+from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER
 from tests.bdf.test_field import assert_close
 
 NOISE_SPACING = np.array([1.0, 1.0, 0.5])

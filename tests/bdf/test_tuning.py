@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from bdf import BayesianDynamicField
+from bdf import BayesianDynamicField, metrics
 from bdf.tuning import cross_validate
 from tests.bdf.conftest import LOWER, UPPER, flow
 
@@ -26,12 +26,35 @@ def test_cross_validation_prefers_the_bandwidth_that_resolves_the_flow():
     assert double[0]["msll"] != table[0]["msll"]
 
 
+def test_cross_validation_scores_local_noise():
+    """Half the box scatters 20x more than the other: local noise wins the CV MSLL, and
+    its score is that of fields fitted on the folds by hand."""
+    rng = np.random.default_rng(1)
+    X = rng.uniform(LOWER, UPPER, (3000, 3))
+    V = flow(X) + np.where(X[:, :1] < 5.0, 0.05, 1.0) * rng.standard_normal(X.shape)
+    candidates = [(2.0, 0.3)]
+    _, (plain,) = cross_validate(X, V, LOWER, UPPER, candidates, n_splits=2)
+    _, (local,) = cross_validate(X, V, LOWER, UPPER, candidates, n_splits=2, noise_spacing=1.0)
+    assert local["msll"] < plain["msll"] - 0.2
+    assert local["rmse"] == pytest.approx(plain["rmse"], rel=1e-9)  # the mean is unchanged
+    fold = np.random.default_rng(0).permutation(len(X)) % 2
+    by_hand = []
+    for k in range(2):
+        test = fold == k
+        field = BayesianDynamicField(LOWER, UPPER, 2.0, 0.3, "auto", "auto", noise_spacing=1.0)
+        mean, std = field.fit(X[~test], V[~test]).predict(X[test], return_std=True)
+        by_hand.append(metrics.msll(V[test], mean, std, V[~test].mean(0), V[~test].std(0)))
+    assert local["msll"] == pytest.approx(np.mean(by_hand), rel=1e-9)
+
+
 def test_cross_validation_rejects_bad_arguments():
     X = np.zeros((10, 3))
     with pytest.raises(ValueError, match="score must be"):
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], score="r2")
     with pytest.raises(ValueError, match="2 groups cannot fill 3 folds"):
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], n_splits=3, groups=np.arange(10) % 2)
+    with pytest.raises(ValueError, match="noise_prior must be positive"):
+        cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], noise_spacing=1.0, noise_prior=-1)
 
 
 def test_auto_beta_is_bounded_for_a_constant_component():
