@@ -196,8 +196,9 @@ def sample_origin(name: str = "paris") -> ENUFrame:
 #: The Paris map's hinge spacing (bench/RESULTS.md "core grid"), picked by hand, and its gamma.
 PARIS_SPACING_M = np.array([4000.0, 4000.0, 1000.0])
 PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
-#: Its local-noise lattice (:mod:`bdf.noise`): picked by weighted, flight-grouped CV on the
-#: bench's training flights (bench/RESULTS.md), within 0.02 of the best MSLL at half its size.
+#: Its local-noise lattice (:mod:`bdf.noise`), picked by weighted, flight-grouped CV on the
+#: bench's training flights (bench/RESULTS.md): within 0.005 of the best CV MSLL, with a
+#: quarter of the best lattice's points.
 PARIS_NOISE_SPACING_M = np.array([1000.0, 1000.0, 125.0])
 
 
