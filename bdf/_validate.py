@@ -82,6 +82,15 @@ def as_hyper(value, name: str):
     return as_vector3(value, name, positive=True)
 
 
+def as_positive(value, name: str) -> float:
+    """One finite positive number."""
+    if isinstance(value, bool | str) or not (np.ndim(value) == 0 and np.isreal(value)):
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive number, got {value!r}")
+    return float(value)
+
+
 def as_sample_weight(value, n: int) -> np.ndarray | None:
     """None, or (n,) finite non-negative weights."""
     if value is None:

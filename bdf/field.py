@@ -15,6 +15,7 @@ from bdf._validate import (
     as_noise_std,
     as_observations,
     as_points,
+    as_positive,
     as_sample_weight,
     as_vector3,
 )
@@ -148,8 +149,9 @@ class Posterior:
                     inv, info = sla.lapack.dpotri(sol.factor, lower=0)
                 if info != 0:
                     raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
-                # the upper triangle of the inverse; the lower one is the clean factor's zeros
-                densities[id(sol)] = variance_density(self.grid, self.gamma, inv)
+                # one triangle of the inverse, the clean factor's zeros in the other; LAPACK
+                # leaves it in Fortran order, so its transpose is the C-order one to read
+                densities[id(sol)] = variance_density(self.grid, self.gamma, inv.T)
             columns.append(list(densities).index(id(sol)))
         return np.stack(list(densities.values()), axis=-1), columns
 
@@ -253,8 +255,7 @@ class BayesianDynamicField:
         lattice = None
         if self.noise_spacing is not None:
             lattice = noise.noise_lattice(self.lower, self.upper, self.noise_spacing)
-            if not float(self.noise_prior) > 0:
-                raise ValueError(f"noise_prior must be positive, got {self.noise_prior!r}")
+            as_positive(self.noise_prior, "noise_prior")
         return grid, gamma, alpha, beta, lattice
 
     @property

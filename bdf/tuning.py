@@ -24,7 +24,7 @@ from scipy.optimize import minimize_scalar
 
 from bdf import features, metrics, noise
 from bdf._blas import threads_for
-from bdf._validate import as_observations, as_sample_weight
+from bdf._validate import as_observations, as_positive, as_sample_weight
 from bdf.grid import HingeGrid
 from bdf.stats import Evidence
 
@@ -201,8 +201,7 @@ def cross_validate(
     if n_splits < 2:
         raise ValueError(f"n_splits must be at least 2, got {n_splits}")
     lattice = None if noise_spacing is None else noise.noise_lattice(lower, upper, noise_spacing)
-    if lattice is not None and not float(noise_prior) > 0:
-        raise ValueError(f"noise_prior must be positive, got {noise_prior!r}")
+    noise_prior = as_positive(noise_prior, "noise_prior")
     rng = np.random.default_rng(seed)
     if groups is None:
         fold = rng.permutation(len(X)) % n_splits
@@ -234,7 +233,7 @@ def cross_validate(
                 beta,
                 features.DEFAULT_CUTOFF,
                 lattice,
-                float(noise_prior),
+                noise_prior,
             )
             mean, std = post.predict(X[test], return_std=True)
             train = V[~test]

@@ -143,7 +143,8 @@ def test_local_noise_saves_loads_and_refuses_mismatches(tmp_path, data):
         ({"noise_spacing": 0.0}, "noise_spacing must be positive"),
         ({"noise_spacing": [1.0, 1.0]}, "noise_spacing must be a number or 3 numbers"),
         ({"noise_spacing": 0.01}, "more than 2000000; increase noise_spacing"),
-        ({"noise_spacing": 1.0, "noise_prior": 0.0}, "noise_prior must be positive"),
+        ({"noise_spacing": 1.0, "noise_prior": 0.0}, "noise_prior must be a positive number"),
+        ({"noise_spacing": 1.0, "noise_prior": "auto"}, "noise_prior must be a positive number"),
     ],
 )
 def test_bad_local_noise_settings_are_clear_value_errors(change, message):

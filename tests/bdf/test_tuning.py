@@ -53,7 +53,7 @@ def test_cross_validation_rejects_bad_arguments():
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], score="r2")
     with pytest.raises(ValueError, match="2 groups cannot fill 3 folds"):
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], n_splits=3, groups=np.arange(10) % 2)
-    with pytest.raises(ValueError, match="noise_prior must be positive"):
+    with pytest.raises(ValueError, match="noise_prior must be a positive number"):
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], noise_spacing=1.0, noise_prior=-1)
 
 
