@@ -111,8 +111,6 @@ class Posterior:
     def gather_tables(self) -> tuple[np.ndarray, np.ndarray]:
         """Weights and variance density (one column per component) in
         :func:`features.contract`'s layout: what a region's batched point query reads."""
-        if self._moments is not None:
-            raise ValueError("tiled maps keep the global noise: local noise is for single fields")
         if self._tables is None:
             if self._variance is None:
                 self._variance = self._variance_density()

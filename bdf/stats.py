@@ -21,11 +21,11 @@ Stored format (version 1), all float64:
     moments     noise lattice + (7,)     only with local noise: see :mod:`bdf.noise`
 
 As one blob (:meth:`Evidence.to_bytes`, what the map stores keep per tile): little-endian
-float64 values in the order count, v_sum, v_sq, proj (C order), density (C order), then,
-only if present, the lower triangle of the symmetric ``gram_noisy`` packed row by row
-(M (M + 1) / 2 values). Shapes follow from the tile's hinge grid; the length tells
-whether ``gram_noisy`` is there. Local-noise moments have no blob form (tiles keep the
-global noise); :meth:`Evidence.to_bytes` refuses them.
+float64 values in the order count, v_sum, v_sq, proj (C order), density (C order), then
+the moments (C order) if the tile has local noise (its spec says so), then, only if
+present, the lower triangle of the symmetric ``gram_noisy`` packed row by row
+(M (M + 1) / 2 values). Shapes follow from the tile's hinge grid and noise lattice; the
+length tells whether ``gram_noisy`` is there.
 """
 
 from __future__ import annotations
@@ -171,21 +171,24 @@ class Evidence:
 
     def to_bytes(self) -> bytes:
         """The stored blob (layout in the module docstring)."""
-        if self.moments is not None:
-            raise ValueError("evidence with local-noise moments has no blob form; save the field instead")
         parts = [[self.count], self.v_sum, self.v_sq, self.proj.ravel(), self.density.ravel()]
+        if self.moments is not None:
+            parts.append(self.moments.ravel())
         if self.gram_noisy is not None:
             parts.append(self.gram_noisy[np.tril_indices(len(self.gram_noisy))])
         return np.concatenate(parts).astype("<f8", copy=False).tobytes()
 
     @classmethod
-    def from_bytes(cls, blob: bytes, grid: HingeGrid) -> Evidence:
+    def from_bytes(cls, blob: bytes, grid: HingeGrid, noise_lattice: Lattice | None = None) -> Evidence:
         values = np.frombuffer(blob, dtype="<f8").astype(np.float64)
         M, n_density = grid.size, grid.midpoints().size
-        plain = 7 + 3 * M + n_density
+        dense = 7 + 3 * M + n_density
+        shape = None if noise_lattice is None else (*noise_lattice.shape, noise.CHANNELS)
+        plain = dense + (0 if shape is None else int(np.prod(shape)))
         if len(values) not in (plain, plain + M * (M + 1) // 2):
             raise ValueError(
                 f"an evidence blob of {len(values)} values does not fit a grid of {M} hinges "
+                f"{'without' if shape is None else 'with'} local noise "
                 f"(expected {plain} or {plain + M * (M + 1) // 2})"
             )
         gram_noisy = None
@@ -198,7 +201,8 @@ class Evidence:
             v_sum=values[1:4],
             v_sq=values[4:7],
             proj=values[7 : 7 + 3 * M].reshape(M, 3),
-            density=values[7 + 3 * M : plain].reshape(grid.midpoints().shape),
+            density=values[7 + 3 * M : dense].reshape(grid.midpoints().shape),
+            moments=None if shape is None else values[dense:plain].reshape(shape),
             gram_noisy=gram_noisy,
         )
 

@@ -15,7 +15,8 @@ the C2 ramp ``s(t) = 6t^5 - 15t^4 + 10t^3`` (and falls likewise at the top). Sin
 ``s(t) + s(1 - t) = 1`` the weights of neighbours sum to one, and since each tile's mean is
 smooth where its weight is non-zero, the blended mean is continuous (C2) across borders.
 The variance is the mixture variance ``sum_t w_t (var_t + (mean_t - mean)^2)``. With zero
-overlap on an axis the tiles meet with a hard border there.
+overlap on an axis the tiles meet with a hard border there. With ``noise_spacing_m`` each
+tile's noise term is local (:mod:`bdf.noise`), its moments stored with its evidence.
 """
 
 from __future__ import annotations
@@ -28,12 +29,12 @@ from typing import Annotated, Literal, NamedTuple
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bdf import features
+from bdf import features, noise
 from bdf._blas import single_threaded
 from bdf._validate import _bad_rows, as_noise_std, as_observations, as_points, as_sample_weight
 from bdf.field import BayesianDynamicField, Posterior
 from bdf.frames import ENUFrame
-from bdf.grid import HingeGrid
+from bdf.grid import HingeGrid, Lattice
 from bdf.stats import Evidence
 from bdf.tuning import EMPTY_ALPHA, EMPTY_BETA
 
@@ -91,6 +92,8 @@ class RegionSpec(BaseModel):
     gamma: PositiveVec3
     alpha: Hyper = "auto"
     beta: Hyper = "auto"
+    noise_spacing_m: PositiveVec3 | None = None
+    noise_prior: Positive = 0.1
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -102,7 +105,9 @@ class RegionSpec(BaseModel):
         n = self.tile_counts
         if int(np.prod(n)) > MAX_TILES:
             raise ValueError(f"{int(np.prod(n))} tiles ({n} per axis) is more than {MAX_TILES}")
-        self.tile_grid(tuple(int(c) // 2 for c in n))  # an inner tile: raises if it has too many hinges
+        inner = tuple(int(c) // 2 for c in n)
+        self.tile_grid(inner)  # raises if a tile would have too many hinges
+        self.tile_noise_lattice(inner)  # or too many noise lattice points
         return self
 
     # -- geometry ---------------------------------------------------------------------------
@@ -138,6 +143,13 @@ class RegionSpec(BaseModel):
         last = self.lower + np.ceil((hi - self.lower) / s - 1e-9) * s
         return HingeGrid(self._grid_origins(np.array([key]))[0], last, s)
 
+    def tile_noise_lattice(self, key: TileKey) -> Lattice | None:
+        """The tile's local-noise lattice (its field's), or None with the global noise."""
+        if self.noise_spacing_m is None:
+            return None
+        grid = self.tile_grid(key)
+        return noise.noise_lattice(grid.origin, _last_hinge(grid), self.noise_spacing_m)
+
     def _grid_origins(self, keys: np.ndarray) -> np.ndarray:
         """First hinge of the tiles ``keys`` (n, 3): the grown box's low corner, widened."""
         s = np.array(self.spacing_m)
@@ -147,8 +159,16 @@ class RegionSpec(BaseModel):
     def tile_field(self, key: TileKey) -> BayesianDynamicField:
         """An (unfitted) field with this tile's grid and the region's model settings."""
         grid = self.tile_grid(key)
-        upper = grid.origin + grid.step * (np.array(grid.shape) - 1)
-        return BayesianDynamicField(grid.origin, upper, grid.step, self.gamma, self.alpha, self.beta)
+        return BayesianDynamicField(
+            grid.origin,
+            _last_hinge(grid),
+            grid.step,
+            self.gamma,
+            self.alpha,
+            self.beta,
+            noise_spacing=self.noise_spacing_m,
+            noise_prior=self.noise_prior,
+        )
 
     def inside(self, X: np.ndarray) -> np.ndarray:
         """Rows of ``X`` (n, 3) inside the region's box (closed)."""
@@ -231,6 +251,7 @@ class RegionSpec(BaseModel):
                 V[idx],
                 None if noise is None else noise[idx],
                 None if weight is None else weight[idx],
+                noise_lattice=self.tile_noise_lattice(key),
             )
             out[key] = Increment(evidence, len(idx))
             if progress is not None:
@@ -257,7 +278,8 @@ class RegionSpec(BaseModel):
         All (point, tile) pairs are evaluated in one batch: the kernel factors of every
         pair come from a few vectorised calls (tiles share the region's hinge lattice, so
         only their origins differ), then each tile costs two small GEMMs
-        (:func:`features.contract`) on its weights and variance density.
+        (:func:`features.contract`) on its weights and variance density (and, with local
+        noise, one gather on its noise lattice).
         """
         if isinstance(posterior, Mapping):
             posterior = posterior.get
@@ -290,6 +312,7 @@ class RegionSpec(BaseModel):
         half_yz = half[1][:, :, None] * half[2][:, None, :]
         mu, var = np.zeros((len(rows), 3)), np.empty((len(rows), 3))
         beta = np.empty((len(rows), 3))  # noise precision of each pair's tile, NaN: no data
+        scatter = np.empty((len(rows), 3))  # noise variance of each pair with data
         for (a, b, key), post in zip(tiles, posts, strict=True):
             if post is None:
                 var[a:b], beta[a:b] = self._prior_variance(key, X[rows[a:b]]), np.nan
@@ -301,8 +324,10 @@ class RegionSpec(BaseModel):
                 half[0][a:b, : 2 * nx - 1], half_yz[a:b, : 2 * ny - 1, : 2 * nz - 1], var_table
             )
             beta[a:b] = post.beta
+            local = self.noise_spacing_m is not None
+            scatter[a:b] = post.noise_variance(X[rows[a:b]], mu[a:b]) if local else 1.0 / post.beta
         known = ~np.isnan(beta[:, 0])
-        var[known] = np.maximum(var[known] / beta[known], 0.0) + 1.0 / beta[known]
+        var[known] = np.maximum(var[known] / beta[known], 0.0) + scatter[known]
         # partition-of-unity blend: weighted mean, mixture variance
         n = len(X)
         weight_sum = np.bincount(rows, w, n)
@@ -396,6 +421,10 @@ def parse_key(text: str) -> TileKey:
     if len(parts) != 3 or not all(p.lstrip("-").isdigit() for p in parts):
         raise ValueError(f"a tile key is three integers joined by '_', got {text!r}")
     return tuple(int(p) for p in parts)
+
+
+def _last_hinge(grid: HingeGrid) -> np.ndarray:
+    return grid.origin + grid.step * (np.array(grid.shape) - 1)
 
 
 def _ramp(t: np.ndarray) -> np.ndarray:

@@ -392,7 +392,7 @@ def _decode(spec: RegionSpec, key: TileKey, blob, format_version) -> Evidence:
         raise StoreError(
             f"tile {key_str(key)} has statistics format {format_version}, this code reads {FORMAT_VERSION}"
         )
-    return Evidence.from_bytes(bytes(blob), spec.tile_grid(key))
+    return Evidence.from_bytes(bytes(blob), spec.tile_grid(key), spec.tile_noise_lattice(key))
 
 
 @functools.lru_cache(maxsize=256)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField, Evidence
+from bdf.noise import NOISE_CUTOFF
 from bdf.tiles import RegionSpec, key_str, parse_key
 
 PARIS = {
@@ -28,6 +29,8 @@ SMALL = {
     "spacing_m": [20, 20, 20],
     "gamma": [1 / 800, 1 / 800, 1 / 800],
 }
+#: the same with local noise on a 10 m lattice
+LOCAL = {"noise_spacing_m": [10, 10, 10], "noise_prior": 0.5}
 
 
 def small_flow(X):
@@ -59,6 +62,8 @@ def test_spec_json_is_the_service_body():
         "tile_size_m": [10000.0, 10000.0, 6000.0],
         "overlap_m": [1000.0, 1000.0, 0.0],
         "spacing_m": [1000.0, 1000.0, 300.0],
+        "noise_spacing_m": None,  # the global noise
+        "noise_prior": 0.1,
     }
     assert spec.tile_counts == (8, 8, 1)
     grid = spec.tile_grid((3, 3, 0))
@@ -80,6 +85,8 @@ def test_spec_json_is_the_service_body():
         ({"tile_size_m": [100, 100, 100], "overlap_m": [0, 0, 0]}, "tiles"),
         ({"origin": {"lat": 91, "lon": 0}}, "lat"),
         ({"extra": 1}, "extra"),
+        ({"noise_spacing_m": [1, 1, 1]}, "noise lattice would have"),
+        ({"noise_spacing_m": [10, 10, 10], "noise_prior": 0}, "greater than 0"),
     ],
 )
 def test_spec_rejects_bad_values(change, message):
@@ -99,9 +106,10 @@ def test_points_reach_every_tile_whose_grown_box_holds_them(small):
         spec.tiles_containing([[1, 1, 1], [301, 1, 1]])
 
 
-def test_one_tile_region_is_exactly_one_field(small):
+@pytest.mark.parametrize("local", [{}, LOCAL])
+def test_one_tile_region_is_exactly_one_field(small, local):
     _, X, V = small
-    one = RegionSpec.model_validate({**SMALL, "tile_size_m": [300, 200, 60]})
+    one = RegionSpec.model_validate({**SMALL, **local, "tile_size_m": [300, 200, 60]})
     assert one.tile_counts == (1, 1, 1)
     incs = one.increments(X, V)
     mean, std, known = one.predict(X[:50], posteriors(one, incs))
@@ -110,6 +118,7 @@ def test_one_tile_region_is_exactly_one_field(small):
     np.testing.assert_allclose(mean, ref_mean, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(std, ref_std, rtol=1e-10)
     assert known.all()
+    assert (field.evidence_.moments is None) == (not local)
 
 
 def test_increments_are_additive(small):
@@ -122,6 +131,13 @@ def test_increments_are_additive(small):
         np.testing.assert_allclose(total.density, inc.evidence.density, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(total.proj, inc.evidence.proj, rtol=1e-12, atol=1e-12)
         assert a[key].points + b[key].points == inc.points
+    local = RegionSpec.model_validate({**SMALL, **LOCAL})
+    whole = local.increments(X, V)
+    a, b = local.increments(X[:1000], V[:1000]), local.increments(X[1000:], V[1000:])
+    for key, inc in whole.items():
+        total = a[key].evidence + b[key].evidence
+        scale = np.abs(inc.evidence.moments).max()
+        np.testing.assert_allclose(total.moments, inc.evidence.moments, rtol=1e-9, atol=1e-10 * scale)
 
 
 def test_weights_are_a_partition_of_unity(small):
@@ -170,9 +186,12 @@ def test_variance_is_the_mixture_variance(small):
     np.testing.assert_allclose(std, np.sqrt(second - mu**2), rtol=1e-9)
 
 
-@pytest.mark.parametrize("upper_x", [300.0, 250.0])  # 250: the last tiles have fewer hinges
-def test_batched_query_equals_tile_by_tile_blending(upper_x):
-    spec = RegionSpec.model_validate({**SMALL, "bounds_m": {"min": [0, 0, 0], "max": [upper_x, 200, 60]}})
+@pytest.mark.parametrize(
+    ("upper_x", "local"), [(300.0, {}), (250.0, {}), (250.0, LOCAL)]
+)  # 250: the last tiles have fewer hinges
+def test_batched_query_equals_tile_by_tile_blending(upper_x, local):
+    bounds = {"min": [0, 0, 0], "max": [upper_x, 200, 60]}
+    spec = RegionSpec.model_validate({**SMALL, **local, "bounds_m": bounds})
     rng = np.random.default_rng(3)
     X = rng.uniform(spec.lower, spec.upper, (3000, 3))
     V = small_flow(X) + 0.3 * rng.standard_normal(X.shape)
@@ -216,28 +235,33 @@ def test_tiles_without_data_answer_with_the_prior(small):
     np.testing.assert_allclose(mean[0], ref.predict(q[:1])[0], rtol=1e-10)
 
 
-def test_stored_blob_round_trips_with_and_without_noisy_points(small):
+def test_stored_blob_round_trips_with_and_without_noisy_points_and_local_noise(small):
     spec, X, V = small
     grid, gamma = spec.tile_grid((0, 0, 0)), np.array(spec.gamma)
+    lattice = RegionSpec.model_validate({**SMALL, **LOCAL}).tile_noise_lattice((0, 0, 0))
     noise = np.zeros((50, 3))
     noise[:10] = 4.0  # ten noisy-input points: a dense (packed) Gram part
-    for evidence in (
-        Evidence.from_points(grid, gamma, X[:50], V[:50]),
-        Evidence.from_points(grid, gamma, X[:50], V[:50], noise),
+    for evidence, with_lattice in (
+        (Evidence.from_points(grid, gamma, X[:50], V[:50]), None),
+        (Evidence.from_points(grid, gamma, X[:50], V[:50], noise), None),
+        (Evidence.from_points(grid, gamma, X[:50], V[:50], noise_lattice=lattice), lattice),
+        (Evidence.from_points(grid, gamma, X[:50], V[:50], noise, noise_lattice=lattice), lattice),
     ):
-        back = Evidence.from_bytes(evidence.to_bytes(), grid)
+        back = Evidence.from_bytes(evidence.to_bytes(), grid, with_lattice)
+        assert back.to_arrays().keys() == evidence.to_arrays().keys()
         for name, value in evidence.to_arrays().items():
             np.testing.assert_array_equal(back.to_arrays()[name], value)
-        assert (back.gram_noisy is None) == (evidence.gram_noisy is None)
-    with pytest.raises(ValueError, match="does not fit a grid"):
-        Evidence.from_bytes(evidence.to_bytes()[:-8], grid)
+        with pytest.raises(ValueError, match="does not fit a grid"):
+            Evidence.from_bytes(evidence.to_bytes()[:-8], grid, with_lattice)
+        with pytest.raises(ValueError, match="does not fit a grid"):  # read with the other spec
+            Evidence.from_bytes(evidence.to_bytes(), grid, lattice if with_lattice is None else None)
 
 
-@pytest.mark.parametrize("overlap", [[20, 20, 0], [0, 0, 0]])
-def test_grid_prediction_equals_point_prediction(small, overlap):
+@pytest.mark.parametrize(("overlap", "local"), [([20, 20, 0], {}), ([0, 0, 0], {}), ([20, 20, 0], LOCAL)])
+def test_grid_prediction_equals_point_prediction(small, overlap, local):
     """The separable grid path against the per-point path, with a tile left empty (prior)."""
     _, X, V = small
-    spec = RegionSpec.model_validate({**SMALL, "overlap_m": overlap})
+    spec = RegionSpec.model_validate({**SMALL, **local, "overlap_m": overlap})
     keep = X[:, 0] < 170  # the tiles (2, *, 0) get no data
     posts = posteriors(spec, spec.increments(X[keep], V[keep]))
     axes = [np.linspace(3, 300, 23), np.linspace(0, 197, 17), np.array([0.0, 31.5, 60.0])]
@@ -247,7 +271,8 @@ def test_grid_prediction_equals_point_prediction(small, overlap):
     assert mean.shape == (23, 17, 3, 3) and known.shape == (23, 17, 3)
     assert 0 < (~k).sum() < len(k)  # both data and prior answers are on the grid
     np.testing.assert_allclose(mean.reshape(-1, 3), m, rtol=1e-9, atol=1e-9 * np.abs(m).max())
-    np.testing.assert_allclose(std.reshape(-1, 3), s, rtol=1e-9)
+    # the grid keeps every lattice term; points drop those below a cutoff (NOISE_CUTOFF for moments)
+    np.testing.assert_allclose(std.reshape(-1, 3), s, rtol=20 * NOISE_CUTOFF if local else 1e-9)
     np.testing.assert_array_equal(known.ravel(), k)
     with pytest.raises(ValueError, match="inside region"):
         spec.predict_grid([axes[0] + 10, axes[1], axes[2]], posts)

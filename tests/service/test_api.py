@@ -155,6 +155,34 @@ def test_chunked_uploads_in_three_formats_replay_and_query_equal_the_library(cli
     assert tiles["region_version"] == 3 and sum(t["points"] for t in tiles["tiles"]) >= 900
 
 
+def test_local_noise_regions_store_their_moments_and_serve_local_std(client):
+    """Tiles keep local-noise moments in their stored blobs: chunked uploads, queries and
+    grids equal the library's local-noise map, whose std differs from the global noise's."""
+    body = {**SPEC, "name": "calm", "noise_spacing_m": [10, 10, 10], "noise_prior": 0.5}
+    spec = RegionSpec.model_validate(body)
+    assert client.post("/v1/regions", json=body).json()["spec"]["noise_spacing_m"] == [10, 10, 10]
+    X, V = data(4, n=400)
+    for i, part in enumerate(np.array_split(np.arange(len(X)), 2)):
+        r = client.post(
+            "/v1/regions/calm/observations",
+            json={"points": X[part].tolist(), "velocities": V[part].tolist()},
+            headers={"Idempotency-Key": f"calm-{i}"},
+        )
+        assert r.json()["accepted"] == len(part), r.text
+    Xq = np.clip(X[:50] + 1.0, spec.lower, spec.upper)
+    got = client.post("/v1/regions/calm/query", json={"points": Xq.tolist()}).json()
+    mean, std, _ = library(spec, X, V, Xq)
+    np.testing.assert_allclose(got["mean"], mean, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(got["std"], std, rtol=1e-9)
+    _, global_std, _ = library(RegionSpec.model_validate({**SPEC, "name": "calm"}), X, V, Xq)
+    assert np.abs(std / global_std - 1).max() > 0.1
+    grid = client.get("/v1/regions/calm/grid", params={"step": "50,50,20"}, headers={"Accept": NPZ})
+    with np.load(io.BytesIO(grid.content)) as npz:
+        mesh = np.stack([m.ravel() for m in np.meshgrid(npz["x"], npz["y"], npz["z"], indexing="ij")], 1)
+        _, grid_std, _ = library(spec, X, V, mesh)
+        np.testing.assert_allclose(npz["std"].reshape(-1, 3), grid_std, rtol=1e-4)
+
+
 def test_wgs84_bodies_equal_enu_bodies(client):
     X, V = data(1, n=300)
     spec = RegionSpec.model_validate(SPEC)
