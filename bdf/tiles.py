@@ -238,7 +238,7 @@ class RegionSpec(BaseModel):
         ``progress(fraction)`` is called after each tile (long fits report it).
         """
         X, V = as_observations(X, V)
-        noise = as_noise_std(input_noise_std, len(X))
+        input_noise = as_noise_std(input_noise_std, len(X))
         weight = as_sample_weight(sample_weight, len(X))
         gamma = np.array(self.gamma)
         out = {}
@@ -249,7 +249,7 @@ class RegionSpec(BaseModel):
                 gamma,
                 X[idx],
                 V[idx],
-                None if noise is None else noise[idx],
+                None if input_noise is None else input_noise[idx],
                 None if weight is None else weight[idx],
                 noise_lattice=self.tile_noise_lattice(key),
             )
@@ -436,4 +436,5 @@ def _runs(keys: np.ndarray) -> list[tuple[int, int, TileKey]]:
     """Runs of equal rows of the sorted ``keys`` (n, 3): (start, stop, key) each."""
     starts = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
     bounds = [0, *starts.tolist(), len(keys)] if len(keys) else []
-    return [(a, b, tuple(int(v) for v in keys[a])) for a, b in itertools.pairwise(bounds)]
+    firsts = keys[bounds[:-1]].tolist()  # Python ints, one conversion for all runs
+    return [(a, b, tuple(k)) for (a, b), k in zip(itertools.pairwise(bounds), firsts, strict=True)]
