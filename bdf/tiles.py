@@ -313,6 +313,7 @@ class RegionSpec(BaseModel):
         mu, var = np.zeros((len(rows), 3)), np.empty((len(rows), 3))
         beta = np.empty((len(rows), 3))  # noise precision of each pair's tile, NaN: no data
         scatter = np.empty((len(rows), 3))  # noise variance of each pair with data
+        local = self.noise_spacing_m is not None
         for (a, b, key), post in zip(tiles, posts, strict=True):
             if post is None:
                 var[a:b], beta[a:b] = self._prior_variance(key, X[rows[a:b]]), np.nan
@@ -324,7 +325,6 @@ class RegionSpec(BaseModel):
                 half[0][a:b, : 2 * nx - 1], half_yz[a:b, : 2 * ny - 1, : 2 * nz - 1], var_table
             )
             beta[a:b] = post.beta
-            local = self.noise_spacing_m is not None
             scatter[a:b] = post.noise_variance(X[rows[a:b]], mu[a:b]) if local else 1.0 / post.beta
         known = ~np.isnan(beta[:, 0])
         var[known] = np.maximum(var[known] / beta[known], 0.0) + scatter[known]
