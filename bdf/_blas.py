@@ -1,11 +1,10 @@
 """BLAS threads: one for the small products this library makes, all cores for large
 factorisations.
 
-Waking a second OpenBLAS thread costs more than it saves on small matrices (measured on
-the 2-core machine of ``bench/``: Cholesky plus inverse at M = 500 takes 6.0 ms on one
-thread and 9.1 ms on two; the kernel GEMMs of a 1,000-point gather take about 3 ms on two
-threads and a fraction of that on one), and gains from M ~ 1,000 up (M = 3,000: 545 ms on
-one thread, 315 ms on two).
+Waking a second OpenBLAS thread costs more than it saves on the small matrices of a
+radar scan or a tile (the scan of ``bench/bench_core.py``, M = 500, runs fastest on one
+thread) and gains on the dense factorisations of a city-scale field (M ~ 3,000); the
+threshold between them is :data:`PARALLEL_MIN_HINGES`.
 """
 
 from __future__ import annotations

@@ -291,8 +291,9 @@ class RegionSpec(BaseModel):
             keys = np.repeat(
                 np.array(list(groups), np.int64).reshape(-1, 3), [len(r) for r in groups.values()], axis=0
             )
-        w = self._weights(keys, X[rows])
-        rows, keys, w = rows[w > 0], keys[w > 0], w[w > 0]
+        points = X[rows]
+        w = self._weights(keys, points)
+        rows, keys, w, points = rows[w > 0], keys[w > 0], w[w > 0], points[w > 0]
         tiles = _runs(keys)
         posts = [posterior(key) for _, _, key in tiles]
         shapes = [
@@ -301,7 +302,7 @@ class RegionSpec(BaseModel):
         ]
         shape = np.max([(1, 1, 1), *shapes], axis=0)
         # per-axis kernel factors of every pair, on the hinge and the midpoint lattice
-        t = (X[rows] - self._grid_origins(keys)) / np.array(self.spacing_m)  # in hinge steps
+        t = (points - self._grid_origins(keys)) / np.array(self.spacing_m)  # in hinge steps
         gamma_steps = np.array(self.gamma) * np.array(self.spacing_m) ** 2
         hinge = [np.exp(-gamma_steps[d] * (t[:, d, None] - np.arange(shape[d])) ** 2) for d in range(3)]
         half = [
@@ -313,10 +314,9 @@ class RegionSpec(BaseModel):
         mu, var = np.zeros((len(rows), 3)), np.empty((len(rows), 3))
         beta = np.empty((len(rows), 3))  # noise precision of each pair's tile, NaN: no data
         scatter = np.empty((len(rows), 3))  # noise variance of each pair with data
-        local = self.noise_spacing_m is not None
         for (a, b, key), post in zip(tiles, posts, strict=True):
             if post is None:
-                var[a:b], beta[a:b] = self._prior_variance(key, X[rows[a:b]]), np.nan
+                var[a:b], beta[a:b] = self._prior_variance(key, points[a:b]), np.nan
                 continue
             mean_table, var_table = post.gather_tables()
             nx, ny, nz = post.grid.shape
@@ -325,7 +325,7 @@ class RegionSpec(BaseModel):
                 half[0][a:b, : 2 * nx - 1], half_yz[a:b, : 2 * ny - 1, : 2 * nz - 1], var_table
             )
             beta[a:b] = post.beta
-            scatter[a:b] = post.noise_variance(X[rows[a:b]], mu[a:b]) if local else 1.0 / post.beta
+            scatter[a:b] = post.noise_variance(points[a:b], mu[a:b])
         known = ~np.isnan(beta[:, 0])
         var[known] = np.maximum(var[known] / beta[known], 0.0) + scatter[known]
         # partition-of-unity blend: weighted mean, mixture variance

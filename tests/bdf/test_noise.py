@@ -13,7 +13,7 @@ NOISE_SPACING = np.array([1.0, 1.0, 0.5])
 PRIOR = 0.3
 
 
-def dense_noise_variance(X, V, weight, Xq, mean, beta, field):
+def dense_noise_variance(X, V, weight, Xq, mean, beta):
     """sigma^2 at Xq from the explicit smoother: lattice points listed, every term kept,
     residuals summed point by point."""
     axes = [np.arange(LOWER[d], UPPER[d] + 1e-9, NOISE_SPACING[d]) for d in range(3)]
@@ -45,7 +45,7 @@ def test_local_noise_matches_dense_computation(data):
     Xq = np.random.default_rng(1).uniform(LOWER - 2, UPPER + 2, (100, 3))
     mean, std = field.predict(Xq, return_std=True)
     _, epistemic = field.predict(Xq, return_std=True, include_noise=False)
-    expected = dense_noise_variance(X, V, weight, Xq, mean, field.beta_, field)
+    expected = dense_noise_variance(X, V, weight, Xq, mean, field.beta_)
     # the moments drop per-axis factors below NOISE_CUTOFF (the dense sum keeps them)
     assert_close(std**2 - epistemic**2, expected, 20 * NOISE_CUTOFF, "local noise variance")
     # the mean and the epistemic part are those of the global-noise field
