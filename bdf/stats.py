@@ -40,6 +40,8 @@ from bdf import features, noise
 from bdf.grid import HingeGrid, Lattice
 
 FORMAT_VERSION = 1
+#: The blob's first values (count, v_sum, v_sq): a store reads a region's totals from them.
+HEAD_BYTES = 7 * 8
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
 MIDPOINT_BLOCK = 2
 
@@ -205,6 +207,14 @@ class Evidence:
             moments=None if shape is None else values[dense:plain].reshape(shape),
             gram_noisy=gram_noisy,
         )
+
+    @staticmethod
+    def head_from_bytes(head: bytes) -> tuple[float, np.ndarray, np.ndarray]:
+        """``count, v_sum, v_sq`` from a blob's first :data:`HEAD_BYTES`."""
+        values = np.frombuffer(bytes(head)[:HEAD_BYTES], dtype="<f8").astype(np.float64)
+        if len(values) != 7:
+            raise ValueError(f"an evidence blob starts with 7 values, got {len(values)}")
+        return float(values[0]), values[1:4], values[4:7]
 
     @classmethod
     def from_arrays(cls, arrays, grid: HingeGrid, noise_lattice: Lattice | None = None) -> Evidence:

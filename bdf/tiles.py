@@ -17,6 +17,13 @@ smooth where its weight is non-zero, the blended mean is continuous (C2) across 
 The variance is the mixture variance ``sum_t w_t (var_t + (mean_t - mean)^2)``. With zero
 overlap on an axis the tiles meet with a hard border there. With ``noise_spacing_m`` each
 tile's noise term is local (:mod:`bdf.noise`), its moments stored with its evidence.
+
+A tile without data answers with mean 0 and, with ``alpha="auto"``, the region's
+climatology as its variance: the weighted mean square of every velocity the region has
+seen (:meth:`RegionSpec.empty_variance`). An auto prior has nothing to be fitted on there,
+and the paper's fixed values (``EMPTY_ALPHA``, ``EMPTY_BETA``) are on the scale of
+normalised data: around Paris they would claim 14 m/s where observed airspace has 40-180.
+With a fixed ``alpha`` the model's own prior answers.
 """
 
 from __future__ import annotations
@@ -258,6 +265,15 @@ class RegionSpec(BaseModel):
                 progress(done / len(groups))
         return out
 
+    def empty_variance(self, count: float, v_sq) -> np.ndarray | None:
+        """The predictive variance (3,) of a tile without data, from the region's totals
+        (``count``: sum of sample weights, ``v_sq``: sum of weighted squared velocities, over
+        its tiles): the climatology ``v_sq / count`` with ``alpha="auto"``; None (the model's
+        prior) with a fixed alpha or before any data."""
+        if self.alpha != "auto" or not count > 0:
+            return None
+        return np.asarray(v_sq, float) / count
+
     def posterior(self, key: TileKey, evidence: Evidence) -> Posterior:
         """The tile's posterior, with its variance density ready and its factors dropped."""
         return self.tile_field(key).set_evidence(evidence).posterior_.compact()
@@ -268,11 +284,13 @@ class RegionSpec(BaseModel):
         X,
         posterior: Callable[[TileKey], Posterior | None] | Mapping[TileKey, Posterior],
         groups: dict[TileKey, np.ndarray] | None = None,
+        empty_variance: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Blended predictive mean (n, 3), std (n, 3) and ``known`` (n,) at ``X``.
 
         ``posterior(key)`` gives a tile's posterior, or None for a tile without data, which
-        answers with the prior (mean 0). ``known`` is False where only such tiles cover.
+        answers with mean 0 and variance ``empty_variance`` (:meth:`empty_variance`; None:
+        the model's prior). ``known`` is False where only such tiles cover.
         ``groups``: :meth:`tiles_containing` of ``X`` if the caller already has it.
 
         All (point, tile) pairs are evaluated in one batch: the kernel factors of every
@@ -316,7 +334,10 @@ class RegionSpec(BaseModel):
         scatter = np.empty((len(rows), 3))  # noise variance of each pair with data
         for (a, b, key), post in zip(tiles, posts, strict=True):
             if post is None:
-                var[a:b], beta[a:b] = self._prior_variance(key, points[a:b]), np.nan
+                var[a:b] = (
+                    self._prior_variance(key, points[a:b]) if empty_variance is None else empty_variance
+                )
+                beta[a:b] = np.nan
                 continue
             mean_table, var_table = post.gather_tables()
             nx, ny, nz = post.grid.shape
@@ -337,7 +358,10 @@ class RegionSpec(BaseModel):
         return mean, np.sqrt(var), np.bincount(rows, known, n) > 0
 
     def predict_grid(
-        self, axes, posterior: Callable[[TileKey], Posterior | None] | Mapping[TileKey, Posterior]
+        self,
+        axes,
+        posterior: Callable[[TileKey], Posterior | None] | Mapping[TileKey, Posterior],
+        empty_variance: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]`` (inside the region):
         mean and std (nx, ny, nz, 3), known (nx, ny, nz). Kernels and blending weights are
@@ -371,7 +395,11 @@ class RegionSpec(BaseModel):
             sub = [axes[d][sel[d]] for d in range(3)]
             post = posterior(key)
             if post is None:
-                mu, var = np.zeros((*w.shape, 3)), self._prior_variance(key, grid_axes=sub)
+                mu = np.zeros((*w.shape, 3))
+                if empty_variance is None:
+                    var = self._prior_variance(key, grid_axes=sub)
+                else:
+                    var = np.broadcast_to(np.asarray(empty_variance, float), mu.shape)
             else:
                 mu, var = post.predict_grid(sub)
                 known[block] = True

@@ -78,9 +78,11 @@ class RegionMaps:
     def __init__(self, store: MapStore, cache_mb: float = 512.0):
         self.store = store
         self.cache = PosteriorCache(cache_mb)
-        # (region_id, region version) -> tile versions: every upload bumps the region's
-        # version, so a region version names its tiles' versions for good
-        self._tile_versions: OrderedDict[tuple[str, int], dict[TileKey, int]] = OrderedDict()
+        # (region_id, region version) -> tile versions and what a tile without data answers:
+        # every upload bumps the region's version, so a region version names both for good
+        self._versions: OrderedDict[tuple[str, int], tuple[dict[TileKey, int], np.ndarray | None]] = (
+            OrderedDict()
+        )
         self._lock = threading.Lock()
 
     def upload(
@@ -128,10 +130,10 @@ class RegionMaps:
         info = info or self.store.region(region)
         X = np.asarray(X, float)
         groups = info.spec.tiles_containing(X)  # validates X, names the outside rows
-        posteriors, info = self._posteriors(region, info, groups)
+        posteriors, info, empty = self._posteriors(region, info, groups)
         if posteriors is None:  # the name was re-created in between: start again
             return self.predict(region, X)  # without the stale spec
-        mean, std, known = info.spec.predict(X, posteriors, groups)
+        mean, std, known = info.spec.predict(X, posteriors, groups, empty)
         return Prediction(mean, std, known, info.version, info.region_id)
 
     def predict_grid(self, region: str, axes, info: RegionInfo | None = None) -> Prediction:
@@ -139,22 +141,24 @@ class RegionMaps:
         (nx, ny, nz, 3) and (nx, ny, nz)."""
         info = info or self.store.region(region)
         keys = info.spec.tiles_overlapping([np.min(a) for a in axes], [np.max(a) for a in axes])
-        posteriors, info = self._posteriors(region, info, keys)
+        posteriors, info, empty = self._posteriors(region, info, keys)
         if posteriors is None:
             return self.predict_grid(region, axes)
-        mean, std, known = info.spec.predict_grid(axes, posteriors)
+        mean, std, known = info.spec.predict_grid(axes, posteriors, empty)
         return Prediction(mean, std, known, info.version, info.region_id)
 
     def _posteriors(self, region: str, info: RegionInfo, keys):
-        """Posteriors of those ``keys`` that hold data and the region's info: from the cache
-        alone when it holds them all at ``info``'s version, else from one snapshot (cache
-        first). ``(None, info)`` if the region no longer has ``info.spec``."""
+        """Posteriors of those ``keys`` that hold data, the region's info and the variance of
+        a tile without data: from the cache alone when it holds them all at ``info``'s
+        version, else from one snapshot (cache first). ``(None, info, None)`` if the region
+        no longer has ``info.spec``."""
         with self._lock:
-            versions = self._tile_versions.get((info.region_id, info.version))
-        if versions is not None:
+            known = self._versions.get((info.region_id, info.version))
+        if known is not None:
+            versions, empty = known
             cached = {k: self.cache.get((info.region_id, k, versions[k])) for k in keys if k in versions}
             if all(post is not None for post in cached.values()):
-                return cached, info
+                return cached, info, empty
         spec = info.spec
         found = {}
 
@@ -164,13 +168,15 @@ class RegionMaps:
 
         snap = self.store.snapshot(region, keys, need=need)
         if snap.region.spec != spec:
-            return None, snap.region
+            return None, snap.region, None
+        empty = snap.empty_variance
         with self._lock:  # the tile versions at this region version, for the next query
-            self._tile_versions[(snap.region.region_id, snap.region.version)] = {
-                k: t.version for k, t in snap.tiles.items()
-            }
-            while len(self._tile_versions) > VERSIONS_KEPT:
-                self._tile_versions.popitem(last=False)
+            self._versions[(snap.region.region_id, snap.region.version)] = (
+                {k: t.version for k, t in snap.tiles.items()},
+                empty,
+            )
+            while len(self._versions) > VERSIONS_KEPT:
+                self._versions.popitem(last=False)
         posteriors = {}
         for key in keys:
             tile = snap.tiles.get(key)
@@ -181,7 +187,7 @@ class RegionMaps:
                 post = spec.posterior(key, snap.evidence[key])
                 self.cache.put((snap.region.region_id, key, tile.version), post)
             posteriors[key] = post
-        return posteriors, snap.region
+        return posteriors, snap.region, empty
 
 
 def _checked(X, V, input_noise_std, sample_weight):

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bdf.stats import FORMAT_VERSION, Evidence
+from bdf.stats import FORMAT_VERSION, HEAD_BYTES, Evidence
 from bdf.tiles import Increment, RegionSpec, TileKey, key_str, parse_key
 
 SCHEMA_VERSION = 1
@@ -84,11 +84,19 @@ class TileInfo:
 
 @dataclass(frozen=True)
 class Snapshot:
-    """One consistent read of a region: its tiles, and the statistics asked for."""
+    """One consistent read of a region: its tiles, the statistics asked for, and the sum of
+    weighted squared velocities over all its tiles (what a tile without data answers with,
+    :meth:`bdf.tiles.RegionSpec.empty_variance`)."""
 
     region: RegionInfo
     tiles: dict[TileKey, TileInfo]
     evidence: dict[TileKey, Evidence] = field(default_factory=dict)
+    v_sq: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def empty_variance(self) -> np.ndarray | None:
+        count = sum(t.count for t in self.tiles.values())
+        return self.region.spec.empty_variance(count, self.v_sq)
 
 
 def payload_digest(kind: str, *arrays: np.ndarray | None) -> str:
@@ -252,14 +260,15 @@ class MapStore(ABC):
         which ``need(region_id, key, version)`` is true (a cache says what it holds)."""
         with self._read() as q:
             region = self._region(q, name)
-            tiles = {}
-            for key, version, count, points, nbytes, updated in q(
-                "SELECT key, version, count, points, length(stats), updated_at"
-                " FROM tiles WHERE region_id = ?",
+            tiles, v_sq = {}, np.zeros(3)
+            for key, version, count, points, nbytes, updated, head in q(
+                "SELECT key, version, count, points, length(stats), updated_at,"
+                f" substr(stats, 1, {HEAD_BYTES}) FROM tiles WHERE region_id = ?",
                 (region.region_id,),
             ):
                 k = parse_key(key)
                 tiles[k] = TileInfo(k, int(version), float(count), int(points), int(nbytes), float(updated))
+                v_sq += Evidence.head_from_bytes(head)[2]
             wanted = tiles if keys is None else [k for k in keys if k in tiles]
             wanted = [k for k in wanted if need is None or need(region.region_id, k, tiles[k].version)]
             evidence = {}
@@ -271,7 +280,7 @@ class MapStore(ABC):
                 ):
                     k = parse_key(key)
                     evidence[k] = _decode(region.spec, k, blob, fmt)
-        return Snapshot(region, dict(sorted(tiles.items())), evidence)
+        return Snapshot(region, dict(sorted(tiles.items())), evidence, v_sq)
 
     # -- uploads ---------------------------------------------------------------------------------
     def upload_result(self, name: str, upload_id: str, digest: str) -> dict | None:

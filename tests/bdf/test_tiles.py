@@ -235,6 +235,29 @@ def test_tiles_without_data_answer_with_the_prior(small):
     np.testing.assert_allclose(mean[0], ref.predict(q[:1])[0], rtol=1e-10)
 
 
+def test_with_auto_alpha_tiles_without_data_answer_with_the_region_climatology(small):
+    spec, X, V = small
+    left = X[:, 0] < 50
+    incs = spec.increments(X[left], V[left])
+    count = sum(i.evidence.count for i in incs.values())
+    v_sq = sum(i.evidence.v_sq for i in incs.values())
+    # points counted once per tile that holds them: the mean square over (point, tile) pairs
+    pairs = np.concatenate([idx for idx in spec.tiles_containing(X[left]).values()])
+    climate = (V[left][pairs] ** 2).mean(axis=0)
+    np.testing.assert_allclose(spec.empty_variance(count, v_sq), climate, rtol=1e-12)
+    q = np.array([[20.0, 50.0, 30.0], [250.0, 150.0, 30.0], [205.0, 150.0, 30.0]])
+    post = posteriors(spec, incs)
+    mean, std, known = spec.predict(q, post, empty_variance=climate)
+    assert known.tolist() == [True, False, False]
+    np.testing.assert_array_equal(mean[1:], 0.0)
+    np.testing.assert_allclose(std[1:] ** 2, [climate, climate], rtol=1e-12)  # two empty tiles blend
+    # where data are, nothing changes; without data the scale is the data's, not the paper's
+    np.testing.assert_array_equal(spec.predict(q[:1], post)[1], std[:1])
+    assert not np.allclose(spec.predict(q[1:2], post)[1][0], std[1], rtol=0.5)
+    fixed = RegionSpec.model_validate({**SMALL, "alpha": 0.5})
+    assert fixed.empty_variance(count, v_sq) is None and spec.empty_variance(0.0, v_sq) is None
+
+
 def test_stored_blob_round_trips_with_and_without_noisy_points_and_local_noise(small):
     spec, X, V = small
     grid, gamma = spec.tile_grid((0, 0, 0)), np.array(spec.gamma)
@@ -265,8 +288,11 @@ def test_grid_prediction_equals_point_prediction(small, overlap, local):
     keep = X[:, 0] < 170  # the tiles (2, *, 0) get no data
     posts = posteriors(spec, spec.increments(X[keep], V[keep]))
     axes = [np.linspace(3, 300, 23), np.linspace(0, 197, 17), np.array([0.0, 31.5, 60.0])]
-    mean, std, known = spec.predict_grid(axes, posts)
     mesh = np.stack([m.ravel() for m in np.meshgrid(*axes, indexing="ij")], axis=1)
+    for empty in (None, np.array([0.3, 0.2, 0.1])):  # the model's prior, a climatology
+        g, p = spec.predict_grid(axes, posts, empty), spec.predict(mesh, posts, None, empty)
+        np.testing.assert_allclose(g[1].reshape(-1, 3), p[1], rtol=1e-9 if not local else 20 * NOISE_CUTOFF)
+    mean, std, known = spec.predict_grid(axes, posts)
     m, s, k = spec.predict(mesh, posts)
     assert mean.shape == (23, 17, 3, 3) and known.shape == (23, 17, 3)
     assert 0 < (~k).sum() < len(k)  # both data and prior answers are on the grid

@@ -192,6 +192,23 @@ def test_queries_blend_cached_posteriors_and_follow_updates(store, spec):
         maps.predict("town", [[400.0, 0.0, 0.0]])
 
 
+def test_tiles_without_data_answer_with_the_stored_climatology(store, spec):
+    maps = RegionMaps(store, cache_mb=64)
+    X, V = data(11, n=300)
+    left = X[:, 0] < 60  # tile column 0 only, away from its border
+    maps.upload("town", "left", X[left], V[left])
+    incs = spec.increments(X[left], V[left])
+    climate = sum(i.evidence.v_sq for i in incs.values()) / sum(i.evidence.count for i in incs.values())
+    np.testing.assert_allclose(store.snapshot("town", keys=()).empty_variance, climate, rtol=1e-12)
+    Q = np.array([[250.0, 150.0, 30.0], [250.0, 20.0, 10.0]])  # in tiles (2, *, 0): no data
+    for _ in range(2):  # read from the store, then from the cache
+        got = maps.predict("town", Q)
+        assert not got.known.any()
+        np.testing.assert_allclose(got.std**2, [climate, climate], rtol=1e-12)
+    grid = maps.predict_grid("town", [np.array([250.0]), np.array([20.0, 150.0]), np.array([10.0, 30.0])])
+    np.testing.assert_allclose(grid.std[0, 1, 1] ** 2, climate, rtol=1e-12)
+
+
 def test_posterior_cache_is_bounded_by_memory():
     spec = RegionSpec.model_validate(SPEC)
     X, V = data(10, n=600)
