@@ -236,7 +236,7 @@ def _data_fetch(args) -> int:
 def _demo(args) -> int:
     from clients.demo import run
 
-    run(Path(args.out))
+    run(Path(args.out), url=args.url, token=args.token)
     return 0
 
 
@@ -332,8 +332,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fetch.set_defaults(run=_data_fetch)
 
-    demo = sub.add_parser("demo", help="learn the Paris map, print its accuracy, write plots")
+    demo = sub.add_parser(
+        "demo",
+        help="learn the Paris map, print its accuracy, plan a route across its busiest flow, write plots",
+    )
     demo.add_argument("--out", default="demo-output", help="folder for the plots (default: demo-output)")
+    demo.add_argument(
+        "--url",
+        help="run against this live service (its 'paris' region as it is, else built there) "
+        "instead of starting one on SQLite in --out",
+    )
+    demo.add_argument(
+        "--token", default=os.environ.get("BDF_TOKEN"), help="bearer token (default $BDF_TOKEN)"
+    )
     demo.set_defaults(run=_demo)
 
     serve = sub.add_parser(

@@ -2,12 +2,18 @@
 
 It fetches the sample (once), starts the service on SQLite on 127.0.0.1, builds the map
 from 80 % of the flights over HTTP, scores it on the held-out flights, draws the map,
-plans a risk-aware route and the shortest path between two points of one tube, writes the
-pictures and the route to ``out``, and stops the service.
+finds the busiest flow of the route band (the cell most flights cross), plans a
+risk-aware route and the shortest path between two tube points on opposite sides of it,
+writes the pictures and the route to ``out``, and stops the service.
+
+With ``url`` it runs against that live service instead: a ``paris`` region already there
+is used as it is (the held-out score is then skipped: its map may hold every flight),
+otherwise it is created and built there first. Nothing on that service is deleted.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from pathlib import Path
@@ -24,40 +30,37 @@ from clients.sdk import BDFClient
 ROUTE_BAND_M = (1000.0, 2500.0)
 #: The tube bound is this quantile of the largest std over the band's voxels with data.
 TUBE_QUANTILE = 0.2
+#: The busiest flow is the horizontal cell of this size (metres) the most flights cross.
+FLOW_CELL_M = 2000.0
+#: Start and goal: the tube points nearest this far (metres) from the flow, on each side.
+SIDE_OFFSET_M = 15_000.0
 
 
-def run(out: Path, plan_time_s: float = 5.0) -> dict:
+def run(out: Path, plan_time_s: float = 5.0, url: str | None = None, token: str | None = None) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     obs, lower, upper = ingest.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     spec = ingest.paris_region(lower, upper)
     report: dict[str, object] = {}
-    with LocalService(out / "bdf-data", log_path=out / "service.log") as svc, BDFClient(svc.url) as bdf:
-        print(f"service on {svc.url} (SQLite in {out / 'bdf-data'}); log in {out / 'service.log'}")
-        if spec.name in [r.spec.name for r in bdf.regions()]:
-            bdf.delete_region(spec.name)
-        bdf.create_region(spec)
-        t0 = time.perf_counter()
-        # each flight counts once per grid cell it crosses: 1 Hz samples are not independent
-        weight = ingest.track_weights(obs.subset(~test), spec.spacing_m)
-        fit = bdf.fit(spec.name, obs.X[~test], obs.V[~test], sample_weight=weight)
-        report["map build over HTTP [s]"] = round(time.perf_counter() - t0, 2)
-        report["train points / tiles updated"] = f"{fit.accepted} / {fit.tiles_updated}"
-        t0 = time.perf_counter()
-        pred = bdf.query(spec.name, obs.X[test])
-        report["query of the held-out points [s]"] = round(time.perf_counter() - t0, 2)
-        train = obs.V[~test]
-        report["held-out flights: points"] = int(test.sum())
-        report["RMSE [m/s]"] = round(float(metrics.rmse(obs.V[test], pred.mean)), 2)
-        report["MSLL"] = round(
-            float(metrics.msll(obs.V[test], pred.mean, pred.std, train.mean(0), train.std(0))), 3
-        )
-        report["95% coverage"] = round(float(metrics.coverage(obs.V[test], pred.mean, pred.std)), 3)
-        _print("Paris velocity map (real ADS-B, OpenSky Network)", report)
-
+    svc = None
+    with contextlib.ExitStack() as stack:
+        if url is None:
+            svc = stack.enter_context(LocalService(out / "bdf-data", log_path=out / "service.log"))
+            url = svc.url
+            print(f"service on {url} (SQLite in {out / 'bdf-data'}); log in {out / 'service.log'}")
+        bdf = stack.enter_context(BDFClient(url, token))
+        existing = spec.name in [r.spec.name for r in bdf.regions()]
+        if existing and svc is None:
+            spec = bdf.region(spec.name).spec
+            print(f"using the map of region {spec.name!r} on {url} as it is")
+        else:
+            if existing:  # the demo's own store, from an earlier run
+                bdf.delete_region(spec.name)
+            bdf.create_region(spec)
+            _build(bdf, spec, obs, test, report)
         pictures = _pictures(bdf, spec, out)
-        plan = _plan(bdf, spec, plan_time_s)
+        plan = _plan(bdf, spec, busiest_flow(obs.subset(~test), ROUTE_BAND_M), plan_time_s)
     print("\nrisk-aware route vs shortest path (metres, m/s, seconds)")
     print(plan.table())
     route_file = out / "route.geojson"
@@ -67,11 +70,35 @@ def run(out: Path, plan_time_s: float = 5.0) -> dict:
     pictures.append(plot_route(plan, out / "route.png"))
     for path in [*pictures, route_file]:
         print(f"  wrote {path}")
-    print(
-        f"\nto browse the map: bdf serve --data-dir {out / 'bdf-data'}, then open http://127.0.0.1:8000/viewer"
-    )
+    if svc is not None:
+        print(
+            f"\nto browse the map: bdf serve --data-dir {out / 'bdf-data'}, then open "
+            "http://127.0.0.1:8000/viewer"
+        )
     report["route"] = plan
     return report
+
+
+def _build(bdf: BDFClient, spec, obs, test, report: dict) -> None:
+    """Learn the map from the training flights over HTTP, score it on the held-out
+    flights, print both."""
+    t0 = time.perf_counter()
+    # each flight counts once per grid cell it crosses: 1 Hz samples are not independent
+    weight = ingest.track_weights(obs.subset(~test), spec.spacing_m)
+    fit = bdf.fit(spec.name, obs.X[~test], obs.V[~test], sample_weight=weight)
+    report["map build over HTTP [s]"] = round(time.perf_counter() - t0, 2)
+    report["train points / tiles updated"] = f"{fit.accepted} / {fit.tiles_updated}"
+    t0 = time.perf_counter()
+    pred = bdf.query(spec.name, obs.X[test])
+    report["query of the held-out points [s]"] = round(time.perf_counter() - t0, 2)
+    train = obs.V[~test]
+    report["held-out flights: points"] = int(test.sum())
+    report["RMSE [m/s]"] = round(float(metrics.rmse(obs.V[test], pred.mean)), 2)
+    report["MSLL"] = round(
+        float(metrics.msll(obs.V[test], pred.mean, pred.std, train.mean(0), train.std(0))), 3
+    )
+    report["95% coverage"] = round(float(metrics.coverage(obs.V[test], pred.mean, pred.std)), 3)
+    _print("Paris velocity map (real ADS-B, OpenSky Network)", report)
 
 
 def _print(title: str, report: dict) -> None:
@@ -109,22 +136,55 @@ def tube_voxels(bdf: BDFClient, spec):
     return grid, bound, np.stack([grid.x[idx[:, 0]], grid.y[idx[:, 1]], grid.z[idx[:, 2]]], axis=1)
 
 
-def farthest_pair(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a = P[np.argmax(np.linalg.norm(P - P.mean(0), axis=1))]
-    return a, P[np.argmax(np.linalg.norm(P - a, axis=1))]
+def busiest_flow(obs: ingest.Observations, band, cell_m: float = FLOW_CELL_M):
+    """The busiest flow in the altitude ``band``: the centre (x, y) of the horizontal cell
+    the most distinct flights cross, the unit direction of their headings there (the
+    principal axis of their unit horizontal velocities, pointing along the mean), and the
+    number of flights."""
+    inside = (obs.X[:, 2] >= band[0]) & (obs.X[:, 2] <= band[1])
+    X, V, flight = obs.X[inside], obs.V[inside], obs.flight[inside]
+    cell = np.floor(X[:, :2] / cell_m).astype(np.int64)
+    pairs = np.unique(np.column_stack([cell, flight]), axis=0)  # one row per flight and cell
+    cells, flights = np.unique(pairs[:, :2], axis=0, return_counts=True)
+    busiest = cells[np.argmax(flights)]
+    here = (cell == busiest).all(axis=1)
+    heading = V[here, :2] / np.maximum(np.linalg.norm(V[here, :2], axis=1, keepdims=True), 1e-9)
+    direction = np.linalg.eigh(heading.T @ heading)[1][:, -1]
+    if direction @ heading.sum(axis=0) < 0:
+        direction = -direction
+    return (busiest + 0.5) * cell_m, direction, int(flights.max())
 
 
-def _plan(bdf: BDFClient, spec, time_s: float):
-    """A route between the two farthest points of the largest piece of the tube."""
+def across_flow(P: np.ndarray, centre, direction, offset_m: float = SIDE_OFFSET_M):
+    """The points of ``P`` (n, 3) nearest ``offset_m`` to each side of the flow through
+    ``centre`` along ``direction`` (horizontal): start on its right, goal on its left."""
+    normal = np.array([-direction[1], direction[0]])  # to the left of the flow
+    side = (P[:, :2] - centre) @ normal
+    along = (P[:, :2] - centre) @ direction
+    ends = []
+    for sign in (-1.0, 1.0):
+        mine = np.flatnonzero(sign * side > 0.25 * offset_m)
+        if len(mine) == 0:
+            raise ValueError(f"the tube has no point {0.25 * offset_m:g} m or more on one side of the flow")
+        ends.append(P[mine[np.argmin((side[mine] - sign * offset_m) ** 2 + along[mine] ** 2)]])
+    return ends[0], ends[1]
+
+
+def _plan(bdf: BDFClient, spec, flow, time_s: float):
+    """A route across the busiest flow, between tube points on either side of it."""
     from planner.costmap import CostWeights
     from planner.routes import plan_route
 
     grid, bound, P = tube_voxels(bdf, spec)
     step = [float(a[1] - a[0]) for a in grid.axes]
-    a, b = farthest_pair(P)
+    centre, direction, flights = flow
+    a, b = across_flow(P, centre, direction)
+    heading = np.degrees(np.arctan2(direction[0], direction[1])) % 360
     print(
-        f"\nplanning {np.linalg.norm(b - a) / 1e3:.1f} km from {a.round().tolist()} to {b.round().tolist()} "
-        f"(ENU m) inside the tube std < {bound:.1f} m/s, band {ROUTE_BAND_M} m, BIT* {time_s:g} s"
+        f"\nbusiest flow in the band {ROUTE_BAND_M} m: {flights} flights cross the {FLOW_CELL_M / 1e3:g} km "
+        f"cell at {np.round(centre / 1e3, 1).tolist()} km (ENU), heading {heading:.0f} deg"
+        f"\nplanning {np.linalg.norm(b - a) / 1e3:.1f} km across it from {a.round().tolist()} to "
+        f"{b.round().tolist()} (ENU m) inside the tube std < {bound:.1f} m/s, BIT* {time_s:g} s"
     )
     return plan_route(
         bdf,

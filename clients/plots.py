@@ -38,17 +38,20 @@ def _level(grid: Grid, alt_m: float) -> int:
 
 
 def plot_slice(grid: Grid, alt_m: float, component: str, path, title: str = "") -> Path:
-    """Mean and std of ``component`` (e, n, u) at the grid level nearest ``alt_m``."""
+    """Mean and std of ``component`` (e, n, u) at the grid level nearest ``alt_m``; the mean
+    is grey where no tile has data (only the prior's 0 is there), as in the viewer."""
     plt = _pyplot()
     c, k = COMPONENTS[component], _level(grid, alt_m)
     extent = [grid.x[0] / 1e3, grid.x[-1] / 1e3, grid.y[0] / 1e3, grid.y[-1] / 1e3]
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.4), constrained_layout=True)
-    mean, std = grid.mean[:, :, k, c].T, grid.std[:, :, k, c].T
-    limit = float(np.abs(mean).max()) or 1.0
+    mean = np.ma.masked_array(grid.mean[:, :, k, c].T, ~grid.known[:, :, k].T)
+    std = grid.std[:, :, k, c].T
+    limit = float(np.abs(mean).max()) if mean.count() else 1.0
     for ax, values, cmap, label, kw in (
         (axes[0], mean, "RdBu_r", f"mean v{component} [m/s]", {"vmin": -limit, "vmax": limit}),
         (axes[1], std, "magma_r", f"predictive std of v{component} [m/s]", {}),
     ):
+        cmap = plt.get_cmap(cmap).with_extremes(bad="0.8")
         im = ax.imshow(values, origin="lower", extent=extent, cmap=cmap, aspect="equal", **kw)
         fig.colorbar(im, ax=ax, label=label)
         ax.set(xlabel="east [km]", ylabel="north [km]")

@@ -213,9 +213,21 @@ def solve(problem: Problem) -> Solution:
 
         return call
 
+    last = [None, None]  # the last segment asked and its (cost, in tube): a check, then its cost
+
+    def segment(a, b):
+        key = (*a[0], *b[0])
+        if last[0] != key:
+            last[:] = key, costmap.segment(a[0], b[0])
+        return last[1]
+
+    def motion_valid(a, b):
+        ok = all(not box.hits(a, b)[0] for box in problem.no_fly)
+        return ok and (not problem.hard_tube or segment(a, b)[1])
+
     state_valid = timed("state_check", lambda p: bool(problem.segments_valid(p, p)[0]))
-    motion_valid = timed("motion_check", lambda a, b: bool(problem.segments_valid(a, b)[0]))
-    motion_cost = timed("motion_cost", lambda a, b: ob.Cost(float(costmap.segment_costs(a, b)[0])))
+    motion_valid = timed("motion_check", motion_valid)
+    motion_cost = timed("motion_cost", lambda a, b: ob.Cost(segment(a, b)[0]))
 
     class Checker(ob.StateValidityChecker):
         def isValid(self, s):
@@ -278,6 +290,7 @@ def solve(problem: Problem) -> Solution:
                     P = best()
                     cost_at[c] = None if P is None else problem.path_cost(P)
     solve_s = time.perf_counter() - t0
+    solve_calls, solve_callback_s = dict(calls), clock[0]  # simplification's calls not counted
     P = best()
     if first is None and P is not None:
         first = solve_s
@@ -293,8 +306,8 @@ def solve(problem: Problem) -> Solution:
         first_solution_s=first,
         cost_at_s={c: cost_at.get(c) for c in checkpoints},
         iterations=iterations,
-        calls=dict(calls),
-        callback_s=clock[0],
+        calls=solve_calls,
+        callback_s=solve_callback_s,
     )
 
 

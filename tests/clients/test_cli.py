@@ -96,3 +96,27 @@ def test_errors_are_one_line_with_meaningful_exit_codes(server, tmp_path):
             client.create_region(SPEC)
     run = bdf("upload", NAME, str(bad), "--url", server.url)
     assert run.returncode == 2 and "need the columns" in run.stderr
+
+
+def test_slice_plot_greys_the_mean_where_no_tile_has_data(tmp_path):
+    from matplotlib.image import imread
+
+    from clients import plots
+    from clients.sdk import Grid
+
+    x, y, z = np.linspace(0, 1000, 40), np.linspace(0, 800, 30), np.array([100.0])
+    mean = np.zeros((40, 30, 1, 3))
+    mean[..., 0] = np.linspace(-5, 5, 40)[:, None, None]
+    std = np.ones_like(mean)
+
+    def grey_pixels(known):
+        path = plots.plot_slice(Grid(x, y, z, mean, std, known, 1), 100.0, "e", tmp_path / "s.png")
+        rgb = (imread(path)[..., :3] * 255).round()
+        return int((np.abs(rgb - 204) < 1).all(-1).sum())
+
+    everything = np.ones((40, 30, 1), bool)
+    half = everything.copy()
+    half[:20] = False  # the west half has no data
+    assert grey_pixels(everything) < 50
+    assert grey_pixels(half) > 20_000
+    assert grey_pixels(np.zeros_like(everything)) > 1.8 * grey_pixels(half)

@@ -94,6 +94,27 @@ def test_linear_risk_integrates_exactly_and_costs_are_at_least_the_length():
     assert (cm.segment_costs(P0, P1) >= np.linalg.norm(P1 - P0, axis=1) - 1e-9).all()
 
 
+def test_one_segment_path_equals_the_batch_cost_and_tube_check():
+    """What the planner's callbacks use, against the vectorised batch path, on segments
+    inside, crossing and outside the tube (and of length 0)."""
+    G = mesh()
+    rng = np.random.default_rng(4)
+    mean = np.stack([np.sin(G[..., 0] / 200), np.cos(G[..., 1] / 150), 0.01 * G[..., 2]], -1)
+    std = 1.0 + np.abs(np.sin(G[..., 0] / 130))[..., None] * np.array([1.0, 0.5, 2.0])
+    cm = CostMap(AXES, mean, std, CostWeights(max_std_mps=2.5, cruise_mps=3.0))
+    P0 = random_points(300, seed=5)
+    P1 = np.clip(P0 + rng.normal(0, 200, P0.shape), [0, -500, 0], [1000, 500, 300])
+    P1[:5] = P0[:5]
+    batch, tube = cm.segment_costs(P0, P1), cm.segments_in_tube(P0, P1)
+    one = np.array([cm.segment(a, b) for a, b in zip(P0, P1, strict=True)])
+    np.testing.assert_allclose(one[:, 0], batch, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(one[:, 1].astype(bool), tube)
+    assert 0.1 < tube.mean() < 0.9 and (batch[:5] == 0).all()
+    # sampled every half of the smallest grid step (50 m): every 25 m
+    X, *_ = cm.samples(np.zeros((1, 3)), np.array([[1000.0, 0, 0]]))
+    assert len(X) == 41
+
+
 def test_exceedance_risk_is_the_gaussian_tail_probability():
     sigma, margin = 1.7, 2.5
     cm = costmap(lambda G: np.full(G.shape[:3], sigma), risk_kind="exceedance", margin_mps=margin, risk=2.0)
