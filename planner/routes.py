@@ -23,6 +23,9 @@ from planner.search import Box, Problem, Solution, solve
 
 log = logging.getLogger(__name__)
 MAX_VOXELS = 400_000
+#: A hard-tube route the service finds above the bound is planned again on a grid of half
+#: the step, at most this many times (and while the grid stays within 4 x MAX_VOXELS).
+REFINES = 2
 
 
 @dataclass
@@ -138,11 +141,39 @@ def plan_route(
     check_m: float = 10.0,
 ) -> RoutePlan:
     """Plan the risk-aware route from ``start`` to ``goal`` (ENU metres, or lat, lon, alt_m
-    with ``frame="wgs84"``) and the shortest path, and measure both."""
+    with ``frame="wgs84"``) and the shortest path, and measure both.
+
+    With the hard tube, the service's std along the route is the judge: a route that
+    rises above the bound between grid nodes is planned again on a grid of half the step
+    (up to ``REFINES`` times); the last plan is returned, with a warning if it still does.
+    """
     spec = client.region(region).spec
     start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
-    lo, hi = planning_box(spec, start, goal, altitude_m, margin_m)
-    step = grid_step(spec, lo, hi, step)
+    box = planning_box(spec, start, goal, altitude_m, margin_m)
+    step = grid_step(spec, *box, step)
+    run = dict(no_fly=no_fly, planner=planner, time_s=time_s, seed=seed, max_iterations=max_iterations)
+    for refine in range(REFINES + 1):
+        plan = _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m)
+        bound, route = weights.max_std_mps, plan.route
+        if weights.tube != "hard" or route is None or route.metrics["service_max_std_mps"] <= bound:
+            return plan
+        finer = step / 2
+        too_big = np.prod(np.floor((box[1] - box[0]) / finer) + 1) > 4 * MAX_VOXELS
+        log.warning(
+            "the route leaves the tube between grid nodes (service std %.3g > %.3g m/s)%s",
+            route.metrics["service_max_std_mps"],
+            bound,
+            "" if refine == REFINES or too_big else f": planning again with a step of {finer.tolist()} m",
+        )
+        if too_big:
+            break
+        step = finer
+    return plan
+
+
+def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m) -> RoutePlan:
+    """One grid request, the two plans on it (worker processes), both routes measured."""
+    lo, hi = box[0].copy(), box[1]
     # on the region's lattice of this step: the same voxels as any other grid of the step
     lo[:2] = spec.lower[:2] + np.floor((lo[:2] - spec.lower[:2]) / step[:2] + 1e-9) * step[:2]
     grid = client.grid(region, step, bbox=[*lo, *hi])
@@ -150,7 +181,15 @@ def plan_route(
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))
     risk = Problem(
-        costmap, tuple(start), tuple(goal), band, tuple(no_fly), planner, time_s, max_iterations, seed
+        costmap,
+        tuple(start),
+        tuple(goal),
+        band,
+        tuple(run["no_fly"]),
+        run["planner"],
+        run["time_s"],
+        run["max_iterations"],
+        run["seed"],
     )
     shortest = dataclasses.replace(risk, objective="length")
     straight = shortest.segments_valid(start[None], goal[None])[0]
@@ -164,7 +203,7 @@ def plan_route(
     if len(baseline_path) < 2:
         raise ValueError(
             f"no path from {start.tolist()} to {goal.tolist()} avoids the no-fly boxes "
-            f"within {time_s} s ({short.status})"
+            f"within {run['time_s']} s ({short.status})"
         )
     route = None
     if solution.exact:
@@ -182,13 +221,6 @@ def _route(name, client, region, spec, costmap, P, solution, check_m) -> Route:
     metrics.update(
         service_max_std_mps=float(std.max()), service_in_tube_fraction=float(np.mean(std <= bound))
     )
-    if solution is not None and costmap.weights.tube == "hard" and name == "risk-aware" and std.max() > bound:
-        log.warning(
-            "the route leaves the tube between grid nodes (service std %.3g > %.3g m/s): "
-            "ask for a finer grid step",
-            std.max(),
-            bound,
-        )
     return Route(name, P, spec.frame().to_geodetic(P), metrics, solution)
 
 

@@ -104,3 +104,25 @@ def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(servi
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "outside the tube" in bad.stderr
     missing = bdf_cli(*common, "--region", "nowhere", "--start", "1,1,1", "--goal", "2,2,2")
     assert missing.returncode == 2 and "404" in missing.stderr
+
+
+def test_a_route_above_the_bound_at_the_service_is_planned_again_on_finer_grids(service, monkeypatch):
+    """The service's std is the judge: each plan it finds above the bound is redone on a grid
+    of half the step, at most REFINES times, and the last plan comes back."""
+    import planner.routes as routes
+
+    steps, real = [], routes._plan_on_grid
+
+    def above_the_bound(*args):
+        steps.append(args[6].copy())
+        plan = real(*args)
+        plan.route.metrics["service_max_std_mps"] = 2 * BOUND  # as if it rose between nodes
+        return plan
+
+    monkeypatch.setattr(routes, "_plan_on_grid", above_the_bound)
+    with BDFClient(service.url) as bdf:
+        plan = plan_route(
+            bdf, "corridor", START, GOAL, weights=CostWeights(max_std_mps=BOUND), step=20.0, time_s=1.0
+        )
+    assert [s.tolist() for s in steps] == [[20.0] * 3, [10.0] * 3, [5.0] * 3]
+    assert plan.costmap.step.tolist() == [5.0] * 3 and plan.route is not None
