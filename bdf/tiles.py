@@ -22,7 +22,7 @@ A tile without data answers with mean 0 and, with ``alpha="auto"``, the region's
 climatology as its variance: the weighted mean square of every velocity the region has
 seen (:meth:`RegionSpec.empty_variance`). An auto prior has nothing to be fitted on there,
 and the paper's fixed values (``EMPTY_ALPHA``, ``EMPTY_BETA``) are on the scale of
-normalised data: around Paris they would claim 14 m/s where observed airspace has 40-180.
+normalised data: on real traffic they claim less uncertainty than observed airspace has.
 With a fixed ``alpha`` the model's own prior answers.
 """
 

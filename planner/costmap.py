@@ -16,9 +16,7 @@ A route's cost is ``∫ (1 + risk(x) + flow(x, direction)) ds`` along it (metres
 Every term is at least 0, so the cost is at least the length: the straight-line length is
 an admissible heuristic for OMPL's informed planners. Per-voxel fields are computed once
 and interpolated trilinearly, vectorised over all samples of all segments; a segment is
-sampled every ``sample_m`` (half the smallest grid step by default: the hard tube's
-check between samples needs it, a sample every half step along each axis let 1 of 20
-Paris routes rise to 1.04 bounds between samples).
+sampled every ``sample_m`` (half the smallest grid step by default).
 """
 
 from __future__ import annotations

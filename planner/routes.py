@@ -151,7 +151,8 @@ def plan_route(
     start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
     box = planning_box(spec, start, goal, altitude_m, margin_m)
     step = grid_step(spec, *box, step)
-    run = dict(no_fly=no_fly, planner=planner, time_s=time_s, seed=seed, max_iterations=max_iterations)
+    # the planner settings of every attempt: Problem's keyword arguments
+    run = dict(no_fly=tuple(no_fly), planner=planner, time_s=time_s, max_iterations=max_iterations, seed=seed)
     for refine in range(REFINES + 1):
         plan = _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m)
         bound, route = weights.max_std_mps, plan.route
@@ -180,17 +181,7 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, ch
     costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known)
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))
-    risk = Problem(
-        costmap,
-        tuple(start),
-        tuple(goal),
-        band,
-        tuple(run["no_fly"]),
-        run["planner"],
-        run["time_s"],
-        run["max_iterations"],
-        run["seed"],
-    )
+    risk = Problem(costmap, tuple(start), tuple(goal), band, **run)
     shortest = dataclasses.replace(risk, objective="length")
     straight = shortest.segments_valid(start[None], goal[None])[0]
     context = multiprocessing.get_context("spawn")

@@ -80,7 +80,7 @@ def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(servi
         "--max-std-mps",
         str(BOUND),
         "--time",
-        "1.5",
+        "2.5",
     ]
     run = bdf_cli(
         *common,
