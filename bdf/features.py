@@ -167,23 +167,33 @@ def gather_grid(lattice: Lattice, axes, T, k) -> np.ndarray:
 
 
 @single_threaded
-def gram(lattice: Lattice, X, k, amplitude, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
-    """Dense ``sum_n a_n^2 phi(x_n) phi(x_n)^T`` (M x M) with per-point widths ``k``.
+def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
+    """``sum_n a_n^2 phi(x_n) phi(x_n)^T`` on ``stencil``'s pairs, as its band (K, M), with
+    per-point widths ``k``.
 
     Used where the midpoint identity does not hold (noisy inputs: ``k`` differs per
-    point). Costs O(N K^2) with K the hinges per window; meant for radar-sized batches.
+    point). Costs O(N W^2) with W the hinges per window; meant for radar-sized batches.
     """
     M = lattice.size
-    out = np.zeros((M, M))
+    out = np.zeros((len(stencil.offsets), M))
     if len(X) == 0:
         return out
     blocks = _Blocks(lattice, X, k, cutoff, block=1)
     fx, fy, fz = blocks.factors
     amplitude = amplitude[blocks.order]
     flat = np.arange(M).reshape(lattice.shape)
+    width = tuple(int(w) for w in blocks.width)
+    local = np.arange(int(np.prod(width))).reshape(width)
     for rows, window in blocks:
-        idx = flat[window].ravel()
         phi = fx[rows, :, None, None] * fy[rows, None, :, None] * fz[rows, None, None, :]
         phi = phi.reshape(len(phi), -1) * amplitude[rows, None]
-        out[np.ix_(idx, idx)] += phi.T @ phi
+        pairs = phi.T @ phi
+        hinges = flat[window]
+        for k, o in enumerate(stencil.offsets):
+            sel = tuple(slice(max(0, -o[d]), width[d] - max(0, o[d])) for d in range(3))
+            if any(s.start >= s.stop for s in sel):
+                continue
+            a = local[sel].ravel()
+            b = a + (o[0] * width[1] + o[1]) * width[2] + o[2]
+            out[k, hinges[sel].ravel()] += pairs[a, b]
     return out

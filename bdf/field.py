@@ -6,10 +6,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-import scipy.linalg as sla
 
-from bdf import features, noise, tuning
-from bdf._blas import threads_for
+from bdf import features, noise
 from bdf._validate import (
     as_hyper,
     as_noise_std,
@@ -20,138 +18,8 @@ from bdf._validate import (
     as_vector3,
 )
 from bdf.grid import HingeGrid
-from bdf.stats import FORMAT_VERSION, MIDPOINT_BLOCK, Evidence, variance_density
-
-
-class Posterior:
-    """What a factorisation of the evidence gives: weights now, the variance density on demand.
-
-    Derived data only (tiles cache these per version); the evidence is the source of truth.
-    With ``noise_lattice`` (and the evidence's moments), the noise term of the predictive
-    variance is local (:mod:`bdf.noise`) with prior weight ``noise_prior``.
-    """
-
-    def __init__(
-        self,
-        grid: HingeGrid,
-        gamma,
-        evidence: Evidence,
-        alpha,
-        beta,
-        cutoff,
-        noise_lattice=None,
-        noise_prior=None,
-    ):
-        self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
-        self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
-        gram = evidence.gram(grid, gamma)
-        self.alpha, self.beta, sols = tuning.fit_evidence(
-            gram, evidence.proj, evidence.v_sq, evidence.count, alpha, beta
-        )
-        self.log_evidence = np.array(
-            [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
-        )
-        self.weights = np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
-        self._solutions = sols
-        self._variance = None
-        self._tables = None
-
-    def mean(self, X: np.ndarray) -> np.ndarray:
-        T = self.weights.reshape(*self.grid.shape, 3)
-        return features.gather(self.grid, X, T, self.gamma, cutoff=self.cutoff)
-
-    def epistemic_variance(self, X: np.ndarray) -> np.ndarray:
-        """``phi(x)^T Sigma_c phi(x)`` per component, (N, 3), via the variance density."""
-        if self._variance is None:
-            self._variance = self._variance_density()
-        densities, columns = self._variance
-        var = features.gather(
-            self.grid.midpoints(),
-            X,
-            densities,
-            2.0 * self.gamma,
-            cutoff=self.cutoff,
-            block=MIDPOINT_BLOCK,
-        )
-        return np.maximum(var[:, columns] / self.beta, 0.0)
-
-    def predict_grid(self, axes) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and predictive variance (noise included) on the grid ``axes`` (three 1-D
-        arrays), each (nx, ny, nz, 3); separable, see :func:`features.gather_grid`."""
-        if self._variance is None:
-            self._variance = self._variance_density()
-        densities, columns = self._variance
-        mean = features.gather_grid(self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma)
-        var = features.gather_grid(self.grid.midpoints(), axes, densities, 2.0 * self.gamma)[..., columns]
-        if self._moments is None:
-            scatter = 1.0 / self.beta
-        else:
-            scatter = noise.noise_variance_grid(
-                self.noise_lattice, self._moments, axes, mean, self.beta, self.noise_prior
-            )
-        return mean, np.maximum(var / self.beta, 0.0) + scatter
-
-    def noise_variance(self, X: np.ndarray, mean: np.ndarray) -> np.ndarray:
-        """The noise term of the predictive variance at ``X`` (n, 3): ``1/beta``, or the
-        local estimate of :mod:`bdf.noise` where the posterior mean is ``mean``."""
-        if self._moments is None:
-            return np.broadcast_to(1.0 / self.beta, mean.shape)
-        return noise.noise_variance(self.noise_lattice, self._moments, X, mean, self.beta, self.noise_prior)
-
-    def predict(self, X: np.ndarray, return_std=False, include_noise=True):
-        """Mean (N, 3), and the std if asked: predictive, or epistemic without ``1/beta``."""
-        mean = self.mean(X)
-        if not return_std:
-            return mean
-        var = self.epistemic_variance(X)
-        if include_noise:
-            var = var + self.noise_variance(X, mean)
-        return mean, np.sqrt(var)
-
-    def gather_tables(self) -> tuple[np.ndarray, np.ndarray]:
-        """Weights and variance density (one column per component) in
-        :func:`features.contract`'s layout: what a region's batched point query reads."""
-        if self._tables is None:
-            if self._variance is None:
-                self._variance = self._variance_density()
-            densities, columns = self._variance
-            weights = features.gather_table(self.weights.reshape(*self.grid.shape, 3))
-            self._tables = weights, features.gather_table(densities[..., columns])
-        return self._tables
-
-    def compact(self) -> Posterior:
-        """Compute the variance density and the gather tables now and drop the M x M
-        factors: what a cache keeps (a few times the midpoint lattice, not M^2 numbers)."""
-        self.gather_tables()
-        self._solutions = None
-        return self
-
-    @property
-    def nbytes(self) -> int:
-        """Memory held by the arrays of this posterior."""
-        held = self.weights.nbytes + (0 if self._moments is None else self._moments.nbytes)
-        if self._variance is not None:
-            held += self._variance[0].nbytes
-        if self._tables is not None:
-            held += self._tables[0].nbytes + self._tables[1].nbytes
-        if self._solutions is not None:
-            held += sum(s.factor.nbytes for s in {id(s): s for s in self._solutions}.values())
-        return held
-
-    def _variance_density(self):
-        # Sigma_c = (G + lam I)^-1 / beta_c; one density per distinct factorisation
-        densities, columns = {}, []
-        for sol in self._solutions:
-            if id(sol) not in densities:
-                with threads_for(len(sol.factor)):
-                    inv, info = sla.lapack.dpotri(sol.factor, lower=0)
-                if info != 0:
-                    raise ValueError(f"could not invert the precision factor (LAPACK info {info})")
-                # one triangle of the inverse, the clean factor's zeros in the other; LAPACK
-                # leaves it in Fortran order, so its transpose is the C-order one to read
-                densities[id(sol)] = variance_density(self.grid, self.gamma, inv.T)
-            columns.append(list(densities).index(id(sol)))
-        return np.stack(list(densities.values()), axis=-1), columns
+from bdf.posterior import Posterior
+from bdf.stats import FORMAT_VERSION, Evidence, stencil_of
 
 
 class BayesianDynamicField:
@@ -397,8 +265,9 @@ class BayesianDynamicField:
             arrays = {k.removeprefix("evidence_"): data[k] for k in data.files if k.startswith("evidence_")}
         time = params.pop("time_")
         field = cls(**params)
-        grid, *_, lattice = field._setup()
-        return field.set_evidence(Evidence.from_arrays(arrays, grid, lattice), time)
+        grid, gamma, _, _, lattice = field._setup()
+        evidence = Evidence.from_arrays(arrays, grid, stencil_of(grid, gamma, field.cutoff), lattice)
+        return field.set_evidence(evidence, time)
 
     def set_evidence(self, evidence: Evidence, time=None) -> BayesianDynamicField:
         """Take ``evidence`` (made on this field's grid, e.g. stored per tile) as everything

@@ -9,11 +9,13 @@ the two hinges and ``c(d) = exp(-sum_d gamma_d d_d^2 / 2)``. Hence
 and the data enter ``Phi^T Phi`` only through the density ``D`` on the midpoint lattice
 ((2 n_d - 1) points per axis): that is what :class:`Evidence` stores, O(N K) to build and
 about 8 M numbers instead of M^2. Points with input noise (the expected kernel has a
-per-point width) do not fit the identity; their Gram part is kept dense in ``gram_noisy``.
+per-point width) do not fit the identity; their Gram part is kept in ``gram_noisy`` as a
+band on the precision's stencil (:mod:`bdf.linalg`).
 
-Stored format (version 1), all float64:
+Stored format (version 2), all float64:
     density     (2nx-1, 2ny-1, 2nz-1)   D above, noise-free points
-    gram_noisy  (M, M) or absent         sum of phi~ phi~^T over noisy-input points
+    gram_noisy  (K, M) or absent         sum of phi~ phi~^T over noisy-input points, as a
+                                         band: [k, m] is the pair (m, m + o_k) of the stencil
     proj        (M, 3)                   Phi^T V
     count       ()                       sum of sample weights (decayed when forgetting)
     v_sum       (3,)                     sum of V per component
@@ -23,23 +25,20 @@ Stored format (version 1), all float64:
 As one blob (:meth:`Evidence.to_bytes`, what the map stores keep per tile): little-endian
 float64 values in the order count, v_sum, v_sq, proj (C order), density (C order), then
 the moments (C order) if the tile has local noise (its spec says so), then, only if
-present, the lower triangle of the symmetric ``gram_noisy`` packed row by row
-(M (M + 1) / 2 values). Shapes follow from the tile's hinge grid and noise lattice; the
-length tells whether ``gram_noisy`` is there.
+present, the band ``gram_noisy`` (C order, K M values). Shapes follow from the tile's hinge
+grid, noise lattice and stencil; the length tells whether ``gram_noisy`` is there.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from functools import lru_cache
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
-from bdf import features, noise
+from bdf import features, linalg, noise
 from bdf.grid import HingeGrid, Lattice
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: The blob's first values (count, v_sum, v_sq): a store reads a region's totals from them.
 HEAD_BYTES = 7 * 8
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
@@ -102,7 +101,9 @@ class Evidence:
             k, amplitude = features.expected_kernel(gamma, input_noise_std[noisy])
             weighted_v = wV[noisy] * amplitude[:, None]
             proj += features.splat(grid, X[noisy], weighted_v, k, cutoff=cutoff).reshape(-1, 3)
-            gram_noisy = features.gram(grid, X[noisy], k, amplitude * np.sqrt(w[noisy]), cutoff=cutoff)
+            gram_noisy = features.gram_band(
+                grid, X[noisy], k, amplitude * np.sqrt(w[noisy]), stencil_of(grid, gamma, cutoff), cutoff=cutoff
+            )
         return cls(
             density=density,
             proj=proj,
@@ -148,17 +149,14 @@ class Evidence:
             moments=None if self.moments is None else self.moments * factor,
         )
 
-    def gram(self, grid: HingeGrid, gamma: np.ndarray) -> np.ndarray:
-        """``Phi^T Phi`` (M x M) from the density by the midpoint identity (plus the noisy part).
-
-        Hinges (i, j, k) and (i', j', k') meet at midpoint (i + i', j + j', k + k'): a
-        strided 6-D view of the density holds ``D`` of every pair: one pass over M^2 values,
-        with no M^2 index array to build, cache and read.
-        """
-        factor = pair_factor(grid, gamma)
-        density = np.ascontiguousarray(self.density)
-        pairs = as_strided(density, grid.shape * 2, density.strides * 2, writeable=False)
-        out = np.multiply(pairs, factor.reshape(grid.shape * 2)).reshape(factor.shape)
+    def gram_band(self, stencil: linalg.Stencil) -> np.ndarray:
+        """``Phi^T Phi`` on the stencil, as a band (K, M): ``c(o) D(midpoint)`` per pair
+        (the midpoint of hinges m and m + o is at index ``2 idx(m) + o``), plus the noisy part."""
+        out = np.zeros((len(stencil.offsets), stencil.size))
+        for k, o in enumerate(stencil.offsets):
+            sel = stencil.valid(k)
+            mid = tuple(slice(2 * s.start + o[d], 2 * (s.stop - 1) + o[d] + 1, 2) for d, s in enumerate(sel))
+            out[k].reshape(stencil.shape)[sel] = stencil.factor[k] * self.density[mid]
         if self.gram_noisy is not None:
             out += self.gram_noisy
         return out
@@ -177,27 +175,26 @@ class Evidence:
         if self.moments is not None:
             parts.append(self.moments.ravel())
         if self.gram_noisy is not None:
-            parts.append(self.gram_noisy[np.tril_indices(len(self.gram_noisy))])
+            parts.append(self.gram_noisy.ravel())
         return np.concatenate(parts).astype("<f8", copy=False).tobytes()
 
     @classmethod
-    def from_bytes(cls, blob: bytes, grid: HingeGrid, noise_lattice: Lattice | None = None) -> Evidence:
+    def from_bytes(
+        cls, blob: bytes, grid: HingeGrid, stencil: linalg.Stencil, noise_lattice: Lattice | None = None
+    ) -> Evidence:
         values = np.frombuffer(blob, dtype="<f8").astype(np.float64)
         M, n_density = grid.size, grid.midpoints().size
         dense = 7 + 3 * M + n_density
         shape = None if noise_lattice is None else (*noise_lattice.shape, noise.CHANNELS)
         plain = dense + (0 if shape is None else int(np.prod(shape)))
-        if len(values) not in (plain, plain + M * (M + 1) // 2):
+        band = len(stencil.offsets) * M
+        if len(values) not in (plain, plain + band):
             raise ValueError(
                 f"an evidence blob of {len(values)} values does not fit a grid of {M} hinges "
                 f"{'without' if shape is None else 'with'} local noise "
-                f"(expected {plain} or {plain + M * (M + 1) // 2})"
+                f"(expected {plain} or {plain + band})"
             )
-        gram_noisy = None
-        if len(values) > plain:
-            gram_noisy = np.zeros((M, M))
-            gram_noisy[np.tril_indices(M)] = values[plain:]
-            gram_noisy += np.tril(gram_noisy, -1).T
+        gram_noisy = values[plain:].reshape(len(stencil.offsets), M) if len(values) > plain else None
         return cls(
             count=float(values[0]),
             v_sum=values[1:4],
@@ -217,7 +214,9 @@ class Evidence:
         return float(values[0]), values[1:4], values[4:7]
 
     @classmethod
-    def from_arrays(cls, arrays, grid: HingeGrid, noise_lattice: Lattice | None = None) -> Evidence:
+    def from_arrays(
+        cls, arrays, grid: HingeGrid, stencil: linalg.Stencil, noise_lattice: Lattice | None = None
+    ) -> Evidence:
         M = grid.size
         expected = {
             "density": grid.midpoints().shape,
@@ -227,7 +226,7 @@ class Evidence:
             "v_sq": (3,),
         }
         if "gram_noisy" in arrays:
-            expected["gram_noisy"] = (M, M)
+            expected["gram_noisy"] = (len(stencil.offsets), M)
         if noise_lattice is not None:
             expected["moments"] = (*noise_lattice.shape, noise.CHANNELS)
         elif "moments" in arrays:
@@ -244,48 +243,6 @@ class Evidence:
         return cls(**values)
 
 
-def pair_factor(grid: HingeGrid, gamma: np.ndarray) -> np.ndarray:
-    """``c(h_m - h_m') = exp(-sum_d gamma_d (h_md - h_m'd)^2 / 2)`` per hinge pair (M x M).
-    Cached: every posterior of a grid needs it."""
-    return _pair_factor(grid.shape, tuple(grid.step), tuple(gamma))
-
-
-@lru_cache(maxsize=2)
-def _pair_factor(shape, step, gamma):
-    factor = np.ones((1, 1))
-    for d in range(3):
-        i = np.arange(shape[d])
-        gap = (i[:, None] - i[None, :]) * step[d]
-        factor = np.kron(factor, np.exp(-0.5 * gamma[d] * gap * gap))
-    factor.flags.writeable = False
-    return factor
-
-
-def variance_density(grid: HingeGrid, gamma: np.ndarray, triangle: np.ndarray) -> np.ndarray:
-    """``S(g) = sum over hinge pairs with midpoint g of Sigma[m, m'] c(h_m - h_m')``.
-
-    Then ``phi(x)^T Sigma phi(x) = sum_g S(g) exp(-sum_d 2 gamma_d (x_d - g_d)^2)``, a
-    gather on the midpoint lattice: O(K) per query point instead of O(K^2).
-
-    ``triangle``: one triangle of the symmetric ``Sigma``, zeros in the other (what LAPACK's
-    ``dpotri`` leaves from a clean factor). Pairs (m, m') and (m', m) share a midpoint and
-    a factor, so the sum is twice the triangle's minus the diagonal's.
-
-    Hinges (i, j, k) and (i', j', k') meet at midpoint (i + i', j + j', k + k'), so the sum
-    runs one axis at a time: n_d shifted slice additions per axis, one pass over the M^2
-    pairs in all, with no M^2 index array.
-    """
-    nx, ny, nz = grid.shape
-    pairs = (triangle * pair_factor(grid, gamma)).reshape(nx, ny, nz, nx, ny, nz)
-    sx = np.zeros((2 * nx - 1, ny, nz, ny, nz))  # (i + i', j, k, j', k')
-    for i in range(nx):
-        sx[i : i + nx] += np.moveaxis(pairs[i], 2, 0)
-    sxy = np.zeros((2 * nx - 1, 2 * ny - 1, nz, nz))  # (i + i', j + j', k, k')
-    for j in range(ny):
-        sxy[:, j : j + ny] += np.moveaxis(sx[:, j], 2, 1)
-    out = np.zeros(grid.midpoints().shape)
-    for k in range(nz):
-        out[:, :, k : k + nz] += sxy[:, :, k]
-    out *= 2.0
-    out[::2, ::2, ::2] -= np.diagonal(triangle).reshape(nx, ny, nz)  # the pairs (m, m)
-    return out
+def stencil_of(grid: HingeGrid, gamma, cutoff: float = features.DEFAULT_CUTOFF) -> linalg.Stencil:
+    """The precision's stencil on ``grid`` for kernel ``gamma`` (cached)."""
+    return linalg.stencil(grid.shape, tuple(grid.step), tuple(np.asarray(gamma, float)), float(cutoff))

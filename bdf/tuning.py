@@ -1,4 +1,4 @@
-"""Hyperparameters: evidence maximisation for alpha and beta, cross-validation for gamma and spacing.
+"""Evidence maximisation for alpha and beta (cross-validation of gamma and spacing: :mod:`bdf.crossval`).
 
 Log marginal likelihood of Bayesian linear regression for one velocity component
 (Bishop, PRML eq. 3.86), with ``A = alpha I + beta G``, ``G = Phi^T Phi``, ``b = Phi^T v``:
@@ -11,6 +11,8 @@ ln|G + lam I|``. Everything comes from the additive statistics. For a fixed rati
 the best beta is ``N / R`` in closed form, so with both hyperparameters "auto" a 1-D
 search over ``lam`` with one Cholesky factorisation per step fits alpha and a separate
 beta for each of the three components (they share ``lam``, hence one factorisation).
+Factorisations are sparse (:mod:`bdf.linalg`): one symbolic analysis per stencil, then a
+numeric factorisation of ``G + lam I`` per step.
 """
 
 from __future__ import annotations
@@ -19,14 +21,9 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 from scipy.optimize import minimize_scalar
 
-from bdf import features, metrics, noise
-from bdf._blas import threads_for
-from bdf._validate import as_observations, as_positive, as_sample_weight
-from bdf.grid import HingeGrid
-from bdf.stats import Evidence
+from bdf import linalg
 
 log = logging.getLogger(__name__)
 
@@ -39,38 +36,28 @@ MAX_AUTO_BETA = 1e6
 
 @dataclass
 class Solution:
-    """One factorisation ``G + lam I = U^T U`` and what it gives."""
+    """One factorisation of ``G + lam I`` and what it gives."""
 
     lam: float
-    factor: np.ndarray  # upper Cholesky factor U, Fortran order (what LAPACK takes without a copy)
+    factor: linalg.Factor
     weights: np.ndarray  # (M, 3) posterior means m for every component
     logdet: float  # ln|G + lam I|
     residual: np.ndarray  # (3,) R per component
 
 
-def solve(gram: np.ndarray, proj: np.ndarray, v_sq: np.ndarray, lam: float, out=None) -> Solution:
-    """Factor ``gram + lam I`` (float64 Cholesky, in place) and solve for the three components.
-
-    ``out``: an M x M buffer to factor in (a search reuses two instead of allocating,
-    and faulting in, a fresh M^2 array per step); ``gram`` itself when it is not needed
-    afterwards.
-    """
-    a = gram.copy() if out is None else out
-    if out is not None and out is not gram:
-        np.copyto(a, gram)
-    a.flat[:: len(a) + 1] += lam
-    # the transpose of a C-order symmetric matrix is itself in Fortran order: no copy
-    with threads_for(len(a)):
-        factor, info = sla.lapack.dpotrf(a.T, lower=0, overwrite_a=1, clean=1)
-        if info != 0:
-            raise ValueError(
-                f"the precision matrix is not positive definite (alpha/beta = {lam:.3g}); "
-                "increase alpha or decrease beta"
-            )
-        weights, info = sla.lapack.dpotrs(factor, proj, lower=0)
+def solve(stencil: linalg.Stencil, band, proj: np.ndarray, v_sq: np.ndarray, lam: float) -> Solution:
+    """Factor ``G + lam I`` (``G`` given as its band on ``stencil``) and solve for the three
+    components."""
+    try:
+        factor = stencil.factor_of(band, lam)
+    except linalg.NotPositiveDefinite:
+        raise linalg.NotPositiveDefinite(
+            f"the precision matrix is not positive definite (alpha/beta = {lam:.3g}); "
+            "increase alpha or decrease beta"
+        ) from None
+    weights = factor.solve(proj)
     residual = np.maximum(v_sq - np.einsum("mc,mc->c", proj, weights), 1e-300)
-    logdet = 2.0 * float(np.sum(np.log(np.diag(factor))))
-    return Solution(lam, factor, weights, logdet, residual)
+    return Solution(lam, factor, weights, factor.logdet(), residual)
 
 
 def log_evidence(sol: Solution, alpha, beta, count: float) -> np.ndarray:
@@ -96,13 +83,12 @@ def _hyper_for(sol: Solution, alpha, beta, count: float):
     return sol.lam * beta, beta
 
 
-def fit_evidence(gram, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.ndarray, list]:
+def fit_evidence(stencil, band, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.ndarray, list]:
     """alpha (3,), beta (3,) and the factorisation(s) serving component 0, 1, 2.
 
-    ``alpha``/``beta``: "auto" or 3-vectors. Fixed values need no search. "auto" for
-    alpha shares ``lam`` over the components; a fixed alpha with "auto" beta searches
-    each component on its own (up to three factorisations). With fixed values ``gram``
-    is factored in place: the caller must not read it afterwards.
+    ``band``: ``G`` on ``stencil``. ``alpha``/``beta``: "auto" or 3-vectors. Fixed values
+    need no search. "auto" for alpha shares ``lam`` over the components; a fixed alpha
+    with "auto" beta searches each component on its own (up to three factorisations).
     """
     auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
     if (auto_a or auto_b) and count <= 0:
@@ -114,22 +100,20 @@ def fit_evidence(gram, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.n
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
         lams = alpha_v / beta_v
-        unique = np.unique(lams)
-        # the last factorisation may take the Gram matrix itself: nothing reads it after
-        cache = {lam: solve(gram, proj, v_sq, lam, out=gram if lam == unique[-1] else None) for lam in unique}
+        cache = {lam: solve(stencil, band, proj, v_sq, lam) for lam in np.unique(lams)}
         return alpha_v.copy(), beta_v.copy(), [cache[lam] for lam in lams]
 
-    scale = max(float(np.mean(np.diag(gram))), 1e-300)
+    scale = max(float(np.mean(band[0])), 1e-300)
     groups = [[0], [1], [2]] if (auto_b and not auto_a) else [[0, 1, 2]]
     alpha_v, beta_v, sols = np.empty(3), np.empty(3), [None] * 3
     for comps in groups:
-        # two buffers: the best factorisation so far stays in one, the next step uses the other
-        buffers, best = [np.empty_like(gram), np.empty_like(gram)], [np.inf, None]
+        best = [np.inf, None]
 
-        def cost(log_lam, comps=comps, buffers=buffers, best=best):
-            in_use = best[1] is not None and np.shares_memory(best[1].factor, buffers[0])
-            scratch = buffers[1] if in_use else buffers[0]
-            sol = solve(gram, proj, v_sq, scale * np.exp(log_lam), out=scratch)
+        def cost(log_lam, comps=comps, best=best):
+            try:
+                sol = solve(stencil, band, proj, v_sq, scale * np.exp(log_lam))
+            except linalg.NotPositiveDefinite:
+                return np.inf  # rounding at the smallest ratios: the search moves up
             a, b = _hyper_for(sol, alpha, beta, count)
             value = -float(np.sum(log_evidence(sol, a, b, count)[comps]))
             if value < best[0]:
@@ -145,108 +129,4 @@ def fit_evidence(gram, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.n
         for c in comps:
             sols[c] = sol
         log.debug("evidence fit for components %s: lam=%.4g in %d steps", comps, sol.lam, res.nfev)
-        del buffers[:]
     return alpha_v, beta_v, sols
-
-
-def cross_validate(
-    X,
-    V,
-    lower,
-    upper,
-    candidates,
-    *,
-    n_splits=5,
-    groups=None,
-    sample_weight=None,
-    alpha="auto",
-    beta="auto",
-    score="msll",
-    seed=0,
-    noise_spacing=None,
-    noise_prior=0.1,
-):
-    """Pick ``(spacing, gamma)`` from ``candidates`` by K-fold cross-validation.
-
-    Evidence is additive, so each candidate builds one increment per fold and trains on
-    ``total - fold``: one pass over the data per candidate, whatever ``n_splits``.
-
-    Parameters
-    ----------
-    candidates : iterable of (spacing, gamma)
-        Each a number or 3 numbers per axis.
-    groups : (N,) or None
-        Keep each group (e.g. a flight) within one fold, so the score measures prediction
-        away from the tracks seen, not interpolation along them.
-    sample_weight : (N,) or None
-        Likelihood weights of the training points (see :func:`bdf.ingest.track_weights`).
-    score : "msll" or "rmse"
-        What to minimise (averaged over the three components).
-    noise_spacing, noise_prior
-        Local noise for every candidate, as in :class:`bdf.BayesianDynamicField`.
-
-    Returns
-    -------
-    best : dict
-        The winning row of ``table``.
-    table : list of dict
-        Per candidate: spacing, gamma, hinges, rmse, msll (means over folds).
-    """
-    from bdf.field import Posterior  # bdf.field imports this module
-
-    if score not in ("msll", "rmse"):
-        raise ValueError(f"score must be 'msll' or 'rmse', got {score!r}")
-    X, V = as_observations(X, V)
-    weight = np.ones(len(X)) if sample_weight is None else as_sample_weight(sample_weight, len(X))
-    if n_splits < 2:
-        raise ValueError(f"n_splits must be at least 2, got {n_splits}")
-    lattice = None if noise_spacing is None else noise.noise_lattice(lower, upper, noise_spacing)
-    noise_prior = as_positive(noise_prior, "noise_prior")
-    rng = np.random.default_rng(seed)
-    if groups is None:
-        fold = rng.permutation(len(X)) % n_splits
-    else:
-        labels, inverse = np.unique(np.asarray(groups), return_inverse=True)
-        if len(labels) < n_splits:
-            raise ValueError(f"{len(labels)} groups cannot fill {n_splits} folds")
-        fold = (rng.permutation(len(labels)) % n_splits)[inverse]
-
-    table = []
-    for spacing, gamma in candidates:
-        grid = HingeGrid(lower, upper, spacing)
-        gamma_v = np.broadcast_to(np.asarray(gamma, float), (3,)).copy()
-        parts = [
-            Evidence.from_points(grid, gamma_v, X[f], V[f], None, weight[f], noise_lattice=lattice)
-            for f in (fold == k for k in range(n_splits))
-        ]
-        total = parts[0]
-        for part in parts[1:]:
-            total = total + part
-        rmses, mslls = [], []
-        for k in range(n_splits):
-            test = fold == k
-            post = Posterior(
-                grid,
-                gamma_v,
-                total - parts[k],
-                alpha,
-                beta,
-                features.DEFAULT_CUTOFF,
-                lattice,
-                noise_prior,
-            )
-            mean, std = post.predict(X[test], return_std=True)
-            train = V[~test]
-            rmses.append(metrics.rmse(V[test], mean))
-            mslls.append(metrics.msll(V[test], mean, std, train.mean(0), train.std(0)))
-        row = {
-            "spacing": np.broadcast_to(spacing, (3,)).tolist(),
-            "gamma": gamma_v.tolist(),
-            "hinges": grid.size,
-            "rmse": float(np.mean(rmses)),
-            "msll": float(np.mean(mslls)),
-        }
-        log.info("cross-validation %s", row)
-        table.append(row)
-    best = min(table, key=lambda r: r[score])
-    return best, table

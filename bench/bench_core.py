@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bdf import BayesianDynamicField, ingest, metrics, tuning
+from bdf import BayesianDynamicField, crossval, ingest, metrics
 from bdf.ingest import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M
 
 PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
@@ -229,14 +229,14 @@ def microscopic(repeat=200):
 def weighted_cv(obs: ingest.Observations, lower, upper) -> list[dict]:
     """Flight-grouped 5-fold CV (MSLL) of grids and gammas with track weights, on ``obs``.
 
-    Track weights depend on the grid, so each spacing is one :func:`tuning.cross_validate`
+    Track weights depend on the grid, so each spacing is one :func:`crossval.cross_validate`
     call with its own weights; gamma is 1 or 2 times 1 / spacing^2.
     """
     rows = []
     for spacing in CV_SPACINGS_M:
         weight = ingest.track_weights(obs, spacing)
         t0 = time.perf_counter()
-        _, found = tuning.cross_validate(
+        _, found = crossval.cross_validate(
             obs.X,
             obs.V,
             lower,
@@ -261,7 +261,7 @@ def noise_cv(obs: ingest.Observations, lower, upper) -> list[dict]:
         (s, p) for s in CV_NOISE_SPACINGS_M for p in CV_NOISE_PRIORS
     ]:
         t0 = time.perf_counter()
-        _, (row,) = tuning.cross_validate(
+        _, (row,) = crossval.cross_validate(
             obs.X,
             obs.V,
             lower,
@@ -443,7 +443,7 @@ def main():
             report += [
                 "",
                 "Track-weighted, flight-grouped 5-fold cross-validation on this training set "
-                "(`bdf.tuning.cross_validate`, alpha = beta = auto):",
+                "(`bdf.crossval.cross_validate`, alpha = beta = auto):",
                 "",
                 cv_table(weighted_cv(obs.subset(~test), lower, upper)),
                 "",

@@ -228,7 +228,7 @@ BAD_INPUTS = [
     ({"alpha": "best"}, "alpha must be a positive number, 3 numbers or 'auto'"),
     ({"beta": -1.0}, "beta must be positive"),
     ({"upper": [0, 8, 6]}, "must exceed lower"),
-    ({"spacing": 0.01}, "more than 20000; increase spacing"),
+    ({"spacing": 0.01}, "more than 250000; increase spacing"),
     ({"noise": -1.0}, "input_noise_std must be finite and >= 0"),
 ]
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField, metrics
-from bdf.tuning import cross_validate
+from bdf.crossval import cross_validate
 from tests.bdf.conftest import LOWER, UPPER, flow
 
 

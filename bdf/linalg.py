@@ -1,0 +1,285 @@
+"""The precision's sparse algebra: stencil, CHOLMOD factorisation, selected inversion.
+
+Two hinges couple through ``c(h_m - h_m') = exp(-sum_d gamma_d (h_md - h_m'd)^2 / 2)``
+(:mod:`bdf.stats`), so pairs whose factor is below the kernel ``cutoff`` are dropped:
+the precision is a 3-D *stencil* (the offsets ``o`` with ``c(o) >= cutoff``) around every
+hinge. Matrices on that pattern are kept as *bands*: ``band[k, m] = A[m, m + o_k]`` for
+the half of the offsets that is lexicographically >= 0 (the other half by symmetry),
+zeros where ``m + o_k`` leaves the lattice.
+
+A band is factored by CHOLMOD (scikit-sparse; fill-reducing ordering, supernodal, BLAS)
+after one symbolic analysis per pattern; the factor gives the log-determinant (evidence)
+and the solves (posterior mean). The variance density needs the posterior covariance
+only on the stencil's pairs, which lie in the factor's pattern: :func:`selected_inverse`
+computes the inverse on that pattern by the Takahashi recursions, supernode by supernode
+(dense blocks with BLAS), compiled with numba.
+"""
+
+from __future__ import annotations
+
+import functools
+import threading
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
+
+from bdf.grid import Lattice
+
+#: Diagonal blocks wider than this are inverted by LAPACK, smaller ones by a loop.
+_LAPACK_MIN_WIDTH = 24
+
+
+class NotPositiveDefinite(ValueError):
+    """The precision lost positive definiteness (a bad fixed alpha or beta)."""
+
+
+@functools.lru_cache(maxsize=16)
+def stencil(shape: tuple[int, int, int], step: tuple, gamma: tuple, cutoff: float) -> Stencil:
+    """The pattern of a lattice's precision: cached per lattice and kernel."""
+    return Stencil(shape, np.array(step), np.array(gamma), cutoff)
+
+
+class Stencil:
+    """Offsets ``o`` (hinge steps) with ``c(o) >= cutoff``: the half kept in bands
+    (``offsets``, lexicographically >= 0, zero first) and the CSC pattern they give."""
+
+    def __init__(self, shape, step, gamma, cutoff):
+        self.shape = tuple(shape)
+        steps = gamma * step**2 / 2.0  # exponent per squared hinge step, per axis
+        limit = np.log(1.0 / cutoff)
+        reach = np.minimum(np.floor(np.sqrt(limit / steps)).astype(int), np.array(shape) - 1)
+        axes = [np.arange(-r, r + 1) for r in reach]
+        o = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        o = o[(o**2 @ steps) <= limit]
+        half = (o[:, 0] > 0) | ((o[:, 0] == 0) & ((o[:, 1] > 0) | ((o[:, 1] == 0) & (o[:, 2] >= 0))))
+        o = o[half]
+        self.offsets = o[np.lexsort((o[:, 2], o[:, 1], o[:, 0]))]
+        self.factor = np.exp(-(self.offsets**2 @ steps))  # c(o)
+        self.reach = reach
+        self._lock = threading.Lock()
+        self._pattern = None
+        self._symbolic = None
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def valid(self, k: int) -> tuple[slice, slice, slice]:
+        """Slices of the hinges ``m`` whose partner ``m + o_k`` is on the lattice."""
+        o = self.offsets[k]
+        return tuple(slice(max(0, -o[d]), self.shape[d] - max(0, o[d])) for d in range(3))
+
+    def pattern(self):
+        """``(csc_template, source)``: a symmetric CSC matrix of the pattern and, per stored
+        entry, its index into a flattened band (``k * M + m``)."""
+        with self._lock:
+            if self._pattern is None:
+                M = self.size
+                index = np.arange(M).reshape(self.shape)
+                rows, cols, src = [], [], []
+                for k, o in enumerate(self.offsets):
+                    m = index[self.valid(k)].ravel()
+                    partner = m + (o[0] * self.shape[1] + o[1]) * self.shape[2] + o[2]
+                    rows += [m, partner] if k else [m]
+                    cols += [partner, m] if k else [m]
+                    src += [k * M + m] * (2 if k else 1)
+                rows, cols, src = np.concatenate(rows), np.concatenate(cols), np.concatenate(src)
+                order = np.lexsort((rows, cols))
+                rows, cols, src = rows[order], cols[order], src[order]
+                indptr = np.searchsorted(cols, np.arange(M + 1))
+                template = sp.csc_matrix((np.ones(len(rows)), rows, indptr), shape=(M, M))
+                self._pattern = template, src
+            return self._pattern
+
+    def matrix(self, band: np.ndarray) -> sp.csc_matrix:
+        """The symmetric sparse matrix of ``band`` (len(offsets), M)."""
+        template, src = self.pattern()
+        out = template.copy()
+        out.data = np.asarray(band).ravel()[src]
+        return out
+
+    def factor_of(self, band: np.ndarray, shift: float) -> Factor:
+        """CHOLMOD's factor of ``matrix(band) + shift I``; the analysis (ordering, pattern of
+        the factor) is done once per stencil."""
+        A = self.matrix(band)
+        with self._lock:
+            if self._symbolic is None:
+                self._symbolic = analyze(A, mode="supernodal")
+            symbolic = self._symbolic
+        try:
+            numeric = symbolic.cholesky(A, beta=shift)
+        except CholmodNotPositiveDefiniteError as exc:
+            raise NotPositiveDefinite(str(exc)) from None
+        return Factor(self, numeric)
+
+
+class Factor:
+    """One numeric factorisation ``P (A + shift I) P^T = L L^T``."""
+
+    def __init__(self, stencil: Stencil, numeric):
+        self.stencil, self._numeric = stencil, numeric
+
+    def logdet(self) -> float:
+        return float(self._numeric.logdet())
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._numeric.solve_A(b)
+
+    @property
+    def nnz(self) -> int:
+        """Entries of L (what the factorisation and the selected inversion work on)."""
+        return int(self._numeric.L().nnz)
+
+    def inverse_band(self) -> np.ndarray:
+        """The inverse on the stencil, as a band (len(offsets), M): selected inversion."""
+        st = self.stencil
+        L = self._numeric.L().tocsc()
+        L.sort_indices()
+        starts = _supernodes(L.indptr, L.indices)
+        values = _selected_inverse(L.indptr, L.indices, L.data, starts)
+        # entries of the stencil, in the factor's (permuted) order, lower triangle
+        inverse_perm = np.empty(st.size, np.int64)
+        inverse_perm[self._numeric.P()] = np.arange(st.size)
+        index = np.arange(st.size).reshape(st.shape)
+        band = np.zeros((len(st.offsets), st.size))
+        for k, o in enumerate(st.offsets):
+            m = index[st.valid(k)].ravel()
+            partner = m + (o[0] * st.shape[1] + o[1]) * st.shape[2] + o[2]
+            a, b = inverse_perm[m], inverse_perm[partner]
+            row, col = np.maximum(a, b), np.minimum(a, b)
+            band[k, m] = values[_positions(L.indptr, L.indices, row, col)]
+        return band
+
+
+def flops(stencil_factor: Factor) -> float:
+    """Multiply-adds of the factorisation: sum over columns of (entries below the diagonal)^2."""
+    L = stencil_factor._numeric.L()
+    counts = np.diff(L.tocsc().indptr).astype(float)
+    return float(np.sum(counts * counts))
+
+
+def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.ndarray:
+    """``S(g) = sum over hinge pairs (m, m') with midpoint g of band[m, m'] c(h_m - h_m')``
+    on the midpoint lattice: pair (m, m + o) meets at index ``2 idx(m) + o``; the half
+    offsets count twice (the pair and its mirror), the diagonal once."""
+    out = np.zeros(midpoints.shape)
+    for k, o in enumerate(stencil.offsets):
+        sel = stencil.valid(k)
+        weight = stencil.factor[k] * (1.0 if k == 0 else 2.0)
+        target = tuple(slice(2 * s.start + o[d], 2 * (s.stop - 1) + o[d] + 1, 2) for d, s in enumerate(sel))
+        out[target] += weight * band[k].reshape(stencil.shape)[sel]
+    return out
+
+
+@numba.njit(cache=True)
+def _positions(indptr, indices, rows, cols):  # pragma: no cover - compiled
+    """Index into ``indices`` of every (row, col) entry (sorted columns; must exist)."""
+    out = np.empty(len(rows), np.int64)
+    for t in range(len(rows)):
+        lo, hi = indptr[cols[t]], indptr[cols[t] + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if indices[mid] < rows[t]:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo == indptr[cols[t] + 1] or indices[lo] != rows[t]:
+            raise ValueError("an entry of the stencil is missing from the factor's pattern")
+        out[t] = lo
+    return out
+
+
+@numba.njit(cache=True)
+def _supernodes(indptr, indices):  # pragma: no cover - compiled
+    """First column of each fundamental supernode (columns j, j+1 share one when column
+    j + 1's pattern is column j's without j), and the column count at the end."""
+    n = len(indptr) - 1
+    starts = [0]
+    for j in range(1, n):
+        previous = indptr[j] - indptr[j - 1]
+        if not (indptr[j + 1] - indptr[j] == previous - 1 and previous > 1 and indices[indptr[j - 1] + 1] == j):
+            starts.append(j)
+    starts.append(n)
+    return np.array(starts)
+
+
+@numba.njit(cache=True)
+def _selected_inverse(indptr, indices, data, starts):  # pragma: no cover - compiled
+    """``(L L^T)^-1`` on the pattern of the lower factor ``L`` (CSC, sorted, diagonal first).
+
+    Takahashi, by supernodes from the last: for columns J with rows R below them,
+    ``Y = L_RJ L_JJ^-1``, ``S_RJ = -S_RR Y`` and ``S_JJ = L_JJ^-T L_JJ^-1 - Y^T S_RJ``;
+    ``S_RR`` is gathered from later supernodes (R is a clique of the filled graph, so each
+    of its entries is stored there).
+    """
+    n = len(indptr) - 1
+    ns = len(starts) - 1
+    col_sn = np.empty(n, np.int64)
+    offs = np.zeros(ns + 1, np.int64)
+    for s in range(ns):
+        f, l = starts[s], starts[s + 1]
+        col_sn[f:l] = s
+        offs[s + 1] = offs[s] + (indptr[f + 1] - indptr[f]) * (l - f)
+    blocks = np.empty(offs[ns])
+    pos = np.full(n, -1, np.int64)
+    out = np.empty_like(data)
+    for s in range(ns - 1, -1, -1):
+        f, l = starts[s], starts[s + 1]
+        w = l - f
+        rows = indices[indptr[f] : indptr[f + 1]]
+        nr = len(rows)
+        r = nr - w
+        Lb = np.zeros((nr, w))
+        for c in range(w):
+            p = indptr[f + c]
+            for t in range(nr - c):
+                Lb[c + t, c] = data[p + t]
+        if w > _LAPACK_MIN_WIDTH:
+            Linv = np.ascontiguousarray(np.linalg.inv(np.ascontiguousarray(Lb[:w])))
+        else:
+            Linv = np.zeros((w, w))
+            for c in range(w):
+                Linv[c, c] = 1.0 / Lb[c, c]
+                for i in range(c + 1, w):
+                    acc = 0.0
+                    for k in range(c, i):
+                        acc += Lb[i, k] * Linv[k, c]
+                    Linv[i, c] = -acc / Lb[i, i]
+        LinvT = np.ascontiguousarray(Linv.T)
+        SJJ = LinvT @ Linv
+        blk = blocks[offs[s] : offs[s + 1]].reshape(nr, w)
+        if r > 0:
+            Y = np.ascontiguousarray(Lb[w:]) @ Linv
+            R = rows[w:]
+            Srr = np.empty((r, r))
+            b = 0
+            while b < r:
+                s2 = col_sn[R[b]]
+                f2, l2 = starts[s2], starts[s2 + 1]
+                rows2 = indices[indptr[f2] : indptr[f2 + 1]]
+                for t in range(len(rows2)):
+                    pos[rows2[t]] = t
+                blk2 = blocks[offs[s2] : offs[s2 + 1]].reshape(len(rows2), l2 - f2)
+                b1 = b
+                while b1 < r and R[b1] < l2:
+                    b1 += 1
+                for bb in range(b, b1):
+                    cc = R[bb] - f2
+                    for a in range(bb, r):
+                        v = blk2[pos[R[a]], cc]
+                        Srr[a, bb] = v
+                        Srr[bb, a] = v
+                for t in range(len(rows2)):
+                    pos[rows2[t]] = -1
+                b = b1
+            SRJ = -(Srr @ Y)
+            SJJ -= np.ascontiguousarray(Y.T) @ SRJ
+            blk[w:] = SRJ
+        blk[:w] = SJJ
+        for c in range(w):
+            p = indptr[f + c]
+            for t in range(nr - c):
+                out[p + t] = blk[c + t, c]
+    return out
