@@ -199,7 +199,9 @@ def _supernodes(indptr, indices):  # pragma: no cover - compiled
     starts = [0]
     for j in range(1, n):
         previous = indptr[j] - indptr[j - 1]
-        if not (indptr[j + 1] - indptr[j] == previous - 1 and previous > 1 and indices[indptr[j - 1] + 1] == j):
+        if not (
+            indptr[j + 1] - indptr[j] == previous - 1 and previous > 1 and indices[indptr[j - 1] + 1] == j
+        ):
             starts.append(j)
     starts.append(n)
     return np.array(starts)

@@ -31,8 +31,16 @@ class Posterior:
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
         self.stencil = stencil_of(grid, gamma, cutoff)
+        #: alpha or beta came from evidence maximisation ("auto" and some data)
+        self.fitted = (isinstance(alpha, str) or isinstance(beta, str)) and evidence.count > 0
         self.alpha, self.beta, sols = tuning.fit_evidence(
-            self.stencil, evidence.gram_band(self.stencil), evidence.proj, evidence.v_sq, evidence.count, alpha, beta
+            self.stencil,
+            evidence.gram_band(self.stencil),
+            evidence.proj,
+            evidence.v_sq,
+            evidence.count,
+            alpha,
+            beta,
         )
         self.log_evidence = np.array(
             [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
@@ -40,7 +48,6 @@ class Posterior:
         self.weights = np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
         self._solutions = sols
         self._variance = None
-        self._tables = None
 
     def mean(self, X: np.ndarray) -> np.ndarray:
         T = self.weights.reshape(*self.grid.shape, 3)
@@ -94,21 +101,11 @@ class Posterior:
             var = var + self.noise_variance(X, mean)
         return mean, np.sqrt(var)
 
-    def gather_tables(self) -> tuple[np.ndarray, np.ndarray]:
-        """Weights and variance density (one column per component) in
-        :func:`features.contract`'s layout: what a region's batched point query reads."""
-        if self._tables is None:
-            if self._variance is None:
-                self._variance = self._variance_density()
-            densities, columns = self._variance
-            weights = features.gather_table(self.weights.reshape(*self.grid.shape, 3))
-            self._tables = weights, features.gather_table(densities[..., columns])
-        return self._tables
-
     def compact(self) -> Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
         what a cache keeps (a few times the midpoint lattice)."""
-        self.gather_tables()
+        if self._variance is None:
+            self._variance = self._variance_density()
         self._solutions = None
         return self
 
@@ -118,8 +115,6 @@ class Posterior:
         held = self.weights.nbytes + (0 if self._moments is None else self._moments.nbytes)
         if self._variance is not None:
             held += self._variance[0].nbytes
-        if self._tables is not None:
-            held += self._tables[0].nbytes + self._tables[1].nbytes
         if self._solutions is not None:
             held += sum(12 * s.factor.nnz for s in {id(s): s for s in self._solutions}.values())
         return held

@@ -102,7 +102,12 @@ class Evidence:
             weighted_v = wV[noisy] * amplitude[:, None]
             proj += features.splat(grid, X[noisy], weighted_v, k, cutoff=cutoff).reshape(-1, 3)
             gram_noisy = features.gram_band(
-                grid, X[noisy], k, amplitude * np.sqrt(w[noisy]), stencil_of(grid, gamma, cutoff), cutoff=cutoff
+                grid,
+                X[noisy],
+                k,
+                amplitude * np.sqrt(w[noisy]),
+                stencil_of(grid, gamma, cutoff),
+                cutoff=cutoff,
             )
         return cls(
             density=density,

@@ -86,6 +86,8 @@ class JobView(BaseModel):
 
 
 def _view(info: RegionInfo) -> dict:
+    alpha, beta = info.hyperparameters()
+    fitted = info.hyper or {}
     return {
         "spec": info.spec.model_dump(mode="json"),
         "version": info.version,
@@ -93,6 +95,14 @@ def _view(info: RegionInfo) -> dict:
         "tiles": info.tiles,
         "created_at": info.created_at,
         "updated_at": info.updated_at,
+        "hyperparameters": {
+            # "auto" until the region's first data fits them; fitted values as lists of 3
+            "alpha": alpha,
+            "beta": beta,
+            "fitted_at": fitted.get("fitted_at"),
+            "evidence_version": fitted.get("evidence_version"),
+            "log_evidence": fitted.get("log_evidence"),
+        },
     }
 
 
@@ -113,6 +123,16 @@ def _region_or_304(request: Request, name: str) -> tuple[RegionInfo, Response | 
     info = request.app.state.maps.store.region(name)
     etag = _etag(info.region_id, info.version)
     return info, Response(status_code=304, headers={"ETag": etag}) if _not_modified(request, etag) else None
+
+
+MinVersion = Annotated[
+    int,
+    Query(
+        ge=0,
+        description="answer from at least this region version (read your writes): waits for its "
+        "map; without it the newest ready map answers while a refresh runs (X-Region-Version says which)",
+    ),
+]
 
 
 def _floats(text: str, n: int, name: str) -> np.ndarray:
@@ -257,6 +277,13 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 
+@router.post("/regions/{name}/hyperparameters", **scoped("write"))
+def post_hyperparameters(name: RegionName, request: Request):
+    """Refit the region's "auto" alpha and beta at the evidence maximum of all its data and
+    make them the ones in force (a new region version); uploads keep them until then."""
+    return _view(request.app.state.maps.fit_hyperparameters(name))
+
+
 @router.get("/jobs/{job_id}", response_model=JobView, **scoped("write"))
 def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Request):
     job = request.app.state.jobs.get(job_id)
@@ -270,7 +297,7 @@ def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Re
     response_model=formats.QueryResult,
     **scoped("read", **_body_doc(formats.QueryBody, binary=(ARROW,))),
 )
-async def query(name: RegionName, request: Request):
+async def query(name: RegionName, request: Request, min_version: MinVersion = 0):
     """Predictive mean and std at points; Arrow in and out on request."""
     body = await request.body()
     out = formats.negotiate(request.headers.get("accept"), [JSON, ARROW])
@@ -286,7 +313,7 @@ async def query(name: RegionName, request: Request):
             formats.media_type(request.headers.get("content-type")),
             app.state.settings.max_query_points,
         )
-        pred = app.state.maps.predict(name, X, info)
+        pred = app.state.maps.predict(name, X, info, min_version)
         headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
         if out == ARROW:
             columns = {
@@ -306,14 +333,14 @@ async def query(name: RegionName, request: Request):
     return await run_in_threadpool(work)
 
 
-def _grid_prediction(request: Request, name: str, bbox: str | None, step: str):
+def _grid_prediction(request: Request, name: str, bbox: str | None, step: str, min_version: int):
     """(spec, axes, prediction on the grid), or (None, None, a 304 response)."""
     app = request.app
     info, not_modified = _region_or_304(request, name)
     if not_modified:
         return None, None, not_modified
     axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
-    return info.spec, axes, app.state.maps.predict_grid(name, axes, info)
+    return info.spec, axes, app.state.maps.predict_grid(name, axes, info, min_version)
 
 
 BBox = Annotated[str | None, Query(description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")]
@@ -325,12 +352,12 @@ Step = Annotated[str, Query(description="dx,dy,dz metres (or one number for all 
     responses={200: {"content": {NPZ: {}, ARROW: {}}}},
     **scoped("read"),
 )
-def grid(name: RegionName, request: Request, step: Step, bbox: BBox = None):
+def grid(name: RegionName, request: Request, step: Step, bbox: BBox = None, min_version: MinVersion = 0):
     """Mean and std on the voxel grid ``bbox`` x ``step``: npz (arrays mean, std (nx, ny, nz,
     3), known (nx, ny, nz), x, y, z), Arrow (one row per voxel, C order; ``shape`` in the
     schema metadata), or JSON for small grids."""
     out = formats.negotiate(request.headers.get("accept"), [JSON, NPZ, ARROW])
-    _, axes, pred = _grid_prediction(request, name, bbox, step)
+    _, axes, pred = _grid_prediction(request, name, bbox, step, min_version)
     if axes is None:
         return pred
     shape = pred.known.shape
@@ -386,12 +413,13 @@ def tubes(
     step: Step,
     bbox: BBox = None,
     component: Annotated[Literal["all", "e", "n", "u"], Query(description="whose std is bounded")] = "all",
+    min_version: MinVersion = 0,
 ):
     """The voxels whose predictive std is below ``max_std_mps`` (all components, or one),
-    where some tile has data, with their mean velocity: GeoJSON points (lon, lat, alt),
+    where data lies within the kernel's reach, with their mean velocity: GeoJSON points (lon, lat, alt),
     npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow."""
     out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
-    spec, axes, pred = _grid_prediction(request, name, bbox, step)
+    spec, axes, pred = _grid_prediction(request, name, bbox, step, min_version)
     if axes is None:
         return pred
     bounded = pred.std if component == "all" else pred.std[..., ["e", "n", "u"].index(component), None]
@@ -452,6 +480,7 @@ def slice_png(
     max_std_mps: Annotated[float, Query(gt=0, description="tube bound (layer=tube), m/s")] = 1.0,
     bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax in region ENU metres")] = None,
     step: Annotated[float | None, Query(gt=0, description="horizontal cell size, metres")] = None,
+    min_version: MinVersion = 0,
 ):
     """A PNG of one horizontal slice with its colour scale and units (the viewer's image)."""
     info, not_modified = _region_or_304(request, name)
@@ -462,7 +491,7 @@ def slice_png(
         raise Problem(422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m")
     box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
     x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
-    pred = request.app.state.maps.predict_grid(name, [x, y, np.array([alt_m])], info)
+    pred = request.app.state.maps.predict_grid(name, [x, y, np.array([alt_m])], info, min_version)
     png = slices.render_slice(
         x,
         y,

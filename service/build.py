@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from bdf.tiles import Increment, RegionSpec, TileKey
 from service import formats
-from service.maps import observations_evidence
+from service.maps import fitted, observations_evidence, write_posterior
 from service.problems import Problem
 from service.store import MapStore, payload_digest
 
@@ -94,7 +94,7 @@ def build(
         if not p.is_file():
             raise ValueError(f"{p}: no such file")
     info = store.region(region)
-    spec_json = info.spec.model_dump_json()
+    spec_id, spec_json = info.region_id, info.spec.model_dump_json()
     parts = client.map(file_evidence, [spec_json] * len(paths), [str(p) for p in paths], pure=False)
     _follow(parts, progress)
     while len(parts) > 1:  # pairwise tree sum, on the workers
@@ -102,8 +102,10 @@ def build(
         parts = [client.submit(merge, *pair, pure=False) if len(pair) == 2 else pair[0] for pair in pairs]
     total = parts[0].result()
     digest = hashlib.sha256(f"build:{replace}:{','.join(total.digests)}".encode()).hexdigest()
-    if store.region(region).region_id != info.region_id:
+    info = store.region(region)
+    if info.region_id != spec_id:
         raise ValueError(f"region {region!r} was deleted and re-created during the build: run it again")
+    post = write_posterior(info, total.increments, replace)
     return store.apply(
         region,
         upload_id or f"build-{digest[:40]}",
@@ -112,6 +114,7 @@ def build(
         observations=total.summary["accepted"],
         replace=replace,
         summary=total.summary,
+        hyper=None if post is None else fitted(post),
     )
 
 

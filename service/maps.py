@@ -1,14 +1,19 @@
-"""The map layer the routes call: uploads into tiles, queries blended from cached posteriors.
+"""The map layer the routes call: uploads into tiles, queries of the region's one field.
 
-The store holds the truth (statistics, versions, ledger); posteriors are derived data,
-kept per ``(region_id, tile, version)`` in a memory-bounded LRU and recomputed when a
-tile's version changes.
+The store holds the truth (tile statistics, versions, ledger, hyperparameters in force);
+a region's posterior is derived data, computed from the sum of its tiles' evidence per
+``(region_id, version)``, kept in a memory-bounded LRU, and refreshed in the background
+after a write: until the new version's posterior is ready, queries answer from the
+newest one this process has (the answer names its version), unless they ask for at
+least a given version (``min_version``: read your own writes), which waits for it.
 """
 
 from __future__ import annotations
 
 import logging
+import queue
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -16,41 +21,54 @@ from dataclasses import dataclass
 import numpy as np
 
 from bdf._validate import noise_std_rows
-from bdf.field import Posterior
+from bdf.posterior import Posterior
 from bdf.tiles import Increment, RegionSpec, TileKey
-from service.store import MapStore, RegionInfo, payload_digest
+from service.store import MapStore, RegionInfo, Snapshot, payload_digest
 
 log = logging.getLogger(__name__)
-#: Region versions whose tile versions a :class:`RegionMaps` remembers.
-VERSIONS_KEPT = 64
+
+
+@dataclass(frozen=True)
+class MapState:
+    """The map of one region version: the posterior of its field and the tiles with data."""
+
+    spec: RegionSpec
+    region_id: str
+    version: int
+    posterior: Posterior
+    data_tiles: frozenset
+
+    @property
+    def nbytes(self) -> int:
+        return self.posterior.nbytes
 
 
 class PosteriorCache:
-    """Least-recently-used posteriors, bounded by their memory (``max_mb``)."""
+    """Least-recently-used map states, bounded by their memory (``max_mb``)."""
 
     def __init__(self, max_mb: float = 512.0):
         self.max_bytes = int(max_mb * 2**20)
-        self._items: OrderedDict[tuple, Posterior] = OrderedDict()
+        self._items: OrderedDict[tuple, MapState] = OrderedDict()
         self._bytes = 0
         self._lock = threading.Lock()
         self.hits = self.misses = 0
 
-    def get(self, key: tuple) -> Posterior | None:
+    def get(self, key: tuple) -> MapState | None:
         with self._lock:
-            post = self._items.get(key)
-            if post is None:
+            state = self._items.get(key)
+            if state is None:
                 self.misses += 1
                 return None
             self._items.move_to_end(key)
             self.hits += 1
-            return post
+            return state
 
-    def put(self, key: tuple, post: Posterior) -> None:
+    def put(self, key: tuple, state: MapState) -> None:
         with self._lock:
             if key in self._items:
                 return
-            self._items[key] = post
-            self._bytes += post.nbytes
+            self._items[key] = state
+            self._bytes += state.nbytes
             while self._bytes > self.max_bytes and len(self._items) > 1:
                 _, old = self._items.popitem(last=False)
                 self._bytes -= old.nbytes
@@ -67,23 +85,24 @@ class PosteriorCache:
 class Prediction:
     mean: np.ndarray  # (n, 3) m/s
     std: np.ndarray  # (n, 3) predictive std, m/s
-    known: np.ndarray  # (n,) some tile with data covers the point
+    known: np.ndarray  # (n,) data lies within the kernel's reach
     version: int  # region version the answer was computed from
     region_id: str  # with the version, names the map state (ETag)
 
 
 class RegionMaps:
-    """Tiled maps over a :class:`MapStore`: exactly-once uploads, blended queries."""
+    """Region maps over a :class:`MapStore`: exactly-once uploads, queries of the region's
+    field, posteriors refreshed in the background."""
 
     def __init__(self, store: MapStore, cache_mb: float = 512.0):
         self.store = store
         self.cache = PosteriorCache(cache_mb)
-        # (region_id, region version) -> tile versions and what a tile without data answers:
-        # every upload bumps the region's version, so a region version names both for good
-        self._versions: OrderedDict[tuple[str, int], tuple[dict[TileKey, int], np.ndarray | None]] = (
-            OrderedDict()
-        )
+        self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
         self._lock = threading.Lock()
+        self._building: dict[str, threading.Lock] = {}  # region name -> one computation at a time
+        self._queue: queue.SimpleQueue[str] = queue.SimpleQueue()
+        self._pending: set[str] = set()
+        self._worker: threading.Thread | None = None
 
     def upload(
         self,
@@ -100,18 +119,24 @@ class RegionMaps:
         """Apply observations (ENU metres, m/s) to a region once per ``upload_id``.
 
         Rows with a non-finite value or outside the region are rejected and counted, the
-        rest accepted. ``replace``: the region's map becomes this data alone (a fit).
-        Returns the ledger result: accepted, rejected (by reason), tiles_updated,
-        region_version, replayed. ``progress(fraction)`` follows the per-tile work.
+        rest accepted. ``replace``: the map becomes this data alone (a fit): its posterior
+        is computed before anything is stored (with "auto", at the evidence maximum, which
+        becomes the region's hyperparameters), so a fit that cannot be solved raises
+        ``ValueError`` and changes nothing. The region's first data fits "auto" likewise;
+        later uploads keep the hyperparameters in force. Returns the ledger result:
+        accepted, rejected (by reason), tiles_updated, region_version, replayed.
+        ``progress(fraction)`` follows the per-tile work.
         """
         X, V, noise, weight = _checked(X, V, input_noise_std, sample_weight)
         digest = payload_digest("fit" if replace else "observations", X, V, noise, weight)
         first = self.store.upload_result(region, upload_id, digest)
         if first is not None:
             return first
-        spec = self.store.region(region).spec
+        info = self.store.region(region)
+        spec = info.spec
         increments, summary = _evidence(spec, X, V, noise, weight, progress)
-        return self.store.apply(
+        post = write_posterior(info, increments, replace)
+        result = self.store.apply(
             region,
             upload_id,
             digest,
@@ -119,75 +144,149 @@ class RegionMaps:
             observations=summary["accepted"],
             replace=replace,
             summary=summary,
+            hyper=None if post is None else fitted(post),
         )
+        version = result["region_version"]
+        if post is not None and not result["replayed"] and (replace or version == info.version + 1):
+            # the posterior of exactly this version: nothing else reached the region
+            self._publish(MapState(spec, info.region_id, version, post, frozenset(increments)))
+        else:
+            self._schedule(region)
+        return result
 
-    def predict(self, region: str, X, info: RegionInfo | None = None) -> Prediction:
-        """Blended mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region.
+    def fit_hyperparameters(self, region: str) -> RegionInfo:
+        """Refit the region's "auto" hyperparameters at its evidence maximum and make them
+        the ones in force (a new version). ``ValueError`` if the spec fixes both or the
+        region has no data."""
+        snap = self.store.snapshot(region)
+        spec = snap.region.spec
+        if not spec.auto:
+            raise ValueError(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
+        if not snap.tiles:
+            raise ValueError(f"region {region!r} has no data to fit its hyperparameters on")
+        post = spec.posterior(spec.region_evidence(snap.evidence))
+        info = self.store.set_hyperparameters(region, fitted(post), snap.region.version)
+        if info.region_id == snap.region.region_id and info.version == snap.region.version + 1:
+            self._publish(MapState(spec, info.region_id, info.version, post, frozenset(snap.tiles)))
+        return info
 
-        ``info``: the region as the caller read it; its spec applies, and at its version
-        cached posteriors answer without reading the store again.
+    def predict(self, region: str, X, info: RegionInfo | None = None, min_version: int = 0) -> Prediction:
+        """Mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region.
+
+        ``info``: the region as the caller read it (its version names the map wanted).
+        ``min_version``: answer from at least this version (waiting for its posterior).
         """
-        info = info or self.store.region(region)
-        X = np.asarray(X, float)
-        groups = info.spec.tiles_containing(X)  # validates X, names the outside rows
-        posteriors, info, empty = self._posteriors(region, info, groups)
-        if posteriors is None:  # the name was re-created in between: start again
-            return self.predict(region, X)  # without the stale spec
-        mean, std, known = info.spec.predict(X, posteriors, groups, empty)
-        return Prediction(mean, std, known, info.version, info.region_id)
+        state = self._state(region, info or self.store.region(region), min_version)
+        mean, std, known = state.spec.predict(np.asarray(X, float), state.posterior, state.data_tiles)
+        return Prediction(mean, std, known, state.version, state.region_id)
 
-    def predict_grid(self, region: str, axes, info: RegionInfo | None = None) -> Prediction:
+    def predict_grid(
+        self, region: str, axes, info: RegionInfo | None = None, min_version: int = 0
+    ) -> Prediction:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
         (nx, ny, nz, 3) and (nx, ny, nz)."""
-        info = info or self.store.region(region)
-        keys = info.spec.tiles_overlapping([np.min(a) for a in axes], [np.max(a) for a in axes])
-        posteriors, info, empty = self._posteriors(region, info, keys)
-        if posteriors is None:
-            return self.predict_grid(region, axes)
-        mean, std, known = info.spec.predict_grid(axes, posteriors, empty)
-        return Prediction(mean, std, known, info.version, info.region_id)
+        state = self._state(region, info or self.store.region(region), min_version)
+        mean, std, known = state.spec.predict_grid(axes, state.posterior, state.data_tiles)
+        return Prediction(mean, std, known, state.version, state.region_id)
 
-    def _posteriors(self, region: str, info: RegionInfo, keys):
-        """Posteriors of those ``keys`` that hold data, the region's info and the variance of
-        a tile without data: from the cache alone when it holds them all at ``info``'s
-        version, else from one snapshot (cache first). ``(None, info, None)`` if the region
-        no longer has ``info.spec``."""
+    def refresh(self, region: str) -> MapState:
+        """The map state of the region's current version, computed now if need be."""
+        return self._compute(region)
+
+    def _state(self, region: str, info: RegionInfo, min_version: int) -> MapState:
+        """The state at ``info``'s version if ready; else the newest ready one (a refresh
+        is scheduled) if it is at least ``min_version``; else computed now."""
+        state = self.cache.get((info.region_id, info.version))
+        if state is not None:
+            return state
         with self._lock:
-            known = self._versions.get((info.region_id, info.version))
-        if known is not None:
-            versions, empty = known
-            cached = {k: self.cache.get((info.region_id, k, versions[k])) for k in keys if k in versions}
-            if all(post is not None for post in cached.values()):
-                return cached, info, empty
-        spec = info.spec
-        found = {}
+            newest = self._newest.get(info.region_id)
+        if newest is not None and newest.version >= min_version and newest.spec == info.spec:
+            self._schedule(region)
+            return newest
+        return self._compute(region)
 
-        def need(region_id: str, key: TileKey, version: int) -> bool:
-            found[key] = self.cache.get((region_id, key, version))
-            return found[key] is None
+    def _compute(self, region: str) -> MapState:
+        with self._lock:
+            lock = self._building.setdefault(region, threading.Lock())
+        with lock:
+            info = self.store.region(region)
+            state = self.cache.get((info.region_id, info.version))
+            if state is not None:
+                return state
+            snap = self.store.snapshot(region)
+            state = _state_of(snap)
+            self._publish(state)
+            return state
 
-        snap = self.store.snapshot(region, keys, need=need)
-        if snap.region.spec != spec:
-            return None, snap.region, None
-        empty = snap.empty_variance
-        with self._lock:  # the tile versions at this region version, for the next query
-            self._versions[(snap.region.region_id, snap.region.version)] = (
-                {k: t.version for k, t in snap.tiles.items()},
-                empty,
-            )
-            while len(self._versions) > VERSIONS_KEPT:
-                self._versions.popitem(last=False)
-        posteriors = {}
-        for key in keys:
-            tile = snap.tiles.get(key)
-            if tile is None:
-                continue  # no data: the prior answers
-            post = found.get(key)
-            if post is None:
-                post = spec.posterior(key, snap.evidence[key])
-                self.cache.put((snap.region.region_id, key, tile.version), post)
-            posteriors[key] = post
-        return posteriors, snap.region, empty
+    def _publish(self, state: MapState) -> None:
+        self.cache.put((state.region_id, state.version), state)
+        with self._lock:
+            newest = self._newest.get(state.region_id)
+            if newest is None or newest.version < state.version:
+                self._newest[state.region_id] = state
+
+    def _schedule(self, region: str) -> None:
+        """Refresh the region's posterior in the background (once per burst of writes)."""
+        with self._lock:
+            if region in self._pending:
+                return
+            self._pending.add(region)
+            if self._worker is None or not self._worker.is_alive():
+                self._worker = threading.Thread(target=self._refresh_loop, name="bdf-refresh", daemon=True)
+                self._worker.start()
+        self._queue.put(region)
+
+    def _refresh_loop(self) -> None:
+        while True:
+            region = self._queue.get()
+            with self._lock:
+                self._pending.discard(region)
+            try:
+                started = time.perf_counter()
+                state = self._compute(region)
+                log.info(
+                    "region %s version %d posterior ready in %.2f s",
+                    region,
+                    state.version,
+                    time.perf_counter() - started,
+                )
+            except Exception:  # the previous version keeps answering
+                log.exception("refreshing region %s failed; its previous version keeps answering", region)
+
+
+def _state_of(snap: Snapshot) -> MapState:
+    """The map state of a snapshot holding every tile's evidence."""
+    spec = snap.region.spec
+    alpha, beta = snap.region.hyperparameters()
+    post = spec.posterior(spec.region_evidence(snap.evidence), alpha, beta)
+    return MapState(spec, snap.region.region_id, snap.region.version, post, frozenset(snap.tiles))
+
+
+def write_posterior(
+    info: RegionInfo, increments: dict[TileKey, Increment], replace: bool
+) -> Posterior | None:
+    """The posterior a write computes before it commits, or None: a fit's (``replace``),
+    and, with "auto" hyperparameters, the region's first data's, since either sets them
+    (:func:`fitted`). A precision that cannot be factored raises ``ValueError`` here,
+    before anything is stored."""
+    spec = info.spec
+    if not increments or not (replace or (spec.auto and info.hyper is None)):
+        return None
+    return spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
+
+
+def fitted(post: Posterior) -> dict | None:
+    """The record of hyperparameters fitted by evidence maximisation (store module doc);
+    None when the spec fixes both (nothing was fitted)."""
+    if not post.fitted:
+        return None
+    return {
+        "alpha": post.alpha.tolist(),
+        "beta": post.beta.tolist(),
+        "log_evidence": post.log_evidence.tolist(),
+        "fitted_at": time.time(),
+    }
 
 
 def _checked(X, V, input_noise_std, sample_weight):

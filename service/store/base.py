@@ -1,9 +1,10 @@
 """The MapStore interface, shared by the SQLite and PostgreSQL backends.
 
-What is stored (schema version 1; both backends, same tables):
+What is stored (schema version 2; both backends, same tables):
 
     meta     key, value                          schema_version
-    regions  name, region_id, spec (JSON), version, observations, created_at, updated_at
+    regions  name, region_id, spec (JSON), version, observations, hyper (JSON or NULL),
+             created_at, updated_at
     tiles    region_id, key "i_j_k", version, count, points, stats (blob), format_version, updated_at
     uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
 
@@ -13,6 +14,14 @@ tile. Versions: every applied upload or fit bumps the region's version by one an
 every tile it touched with the new version, so ``(region_id, key, version)`` names one
 state of a tile's statistics (``region_id`` is new for every created region, so a
 deleted and re-created name never reuses cache entries).
+
+``regions.hyper`` holds the hyperparameters in force for a spec with "auto" ones:
+``{"alpha": [3], "beta": [3], "log_evidence": [3], "fitted_at": t, "evidence_version": v}``,
+the evidence maximum of the region at version ``v``. A fit (``apply(replace=True)``)
+writes them with its tiles, an upload writes them only where none are set (the region's
+first data), and :meth:`MapStore.set_hyperparameters` replaces them (a new version, since
+the map changes). Schema 1 stored tiles that overlapped (each observation in up to 8
+tiles), which a region-wide field cannot use: such a store is refused with that reason.
 
 Exactly once: ``apply`` adds the increments of all tiles, bumps the version and writes
 the ledger row in one transaction, under the region's row lock. A replay of an upload id
@@ -35,10 +44,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bdf.stats import FORMAT_VERSION, HEAD_BYTES, Evidence
+from bdf.stats import FORMAT_VERSION, Evidence
 from bdf.tiles import Increment, RegionSpec, TileKey, key_str, parse_key
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
 WRITE_CHUNK = 16
 #: Upload ids are client idempotency keys: printable, bounded.
@@ -70,6 +79,15 @@ class RegionInfo:
     tiles: int
     created_at: float
     updated_at: float
+    hyper: dict | None = None  # the fitted hyperparameters in force (see the module doc)
+
+    def hyperparameters(self) -> tuple:
+        """``(alpha, beta)`` in force: the spec's fixed values, else the fitted ones
+        ("auto" where none are fitted yet)."""
+        spec, fitted = self.spec, self.hyper or {}
+        alpha = fitted.get("alpha", "auto") if spec.alpha == "auto" else spec.alpha
+        beta = fitted.get("beta", "auto") if spec.beta == "auto" else spec.beta
+        return alpha, beta
 
 
 @dataclass(frozen=True)
@@ -84,19 +102,11 @@ class TileInfo:
 
 @dataclass(frozen=True)
 class Snapshot:
-    """One consistent read of a region: its tiles, the statistics asked for, and the sum of
-    weighted squared velocities over all its tiles (what a tile without data answers with,
-    :meth:`bdf.tiles.RegionSpec.empty_variance`)."""
+    """One consistent read of a region: its tiles and the statistics asked for."""
 
     region: RegionInfo
     tiles: dict[TileKey, TileInfo]
     evidence: dict[TileKey, Evidence] = field(default_factory=dict)
-    v_sq: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-    @property
-    def empty_variance(self) -> np.ndarray | None:
-        count = sum(t.count for t in self.tiles.values())
-        return self.region.spec.empty_variance(count, self.v_sq)
 
 
 def payload_digest(kind: str, *arrays: np.ndarray | None) -> str:
@@ -169,7 +179,7 @@ class MapStore(ABC):
             "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
             """CREATE TABLE IF NOT EXISTS regions (
                 name TEXT PRIMARY KEY, region_id TEXT NOT NULL UNIQUE, spec TEXT NOT NULL,
-                version BIGINT NOT NULL, observations BIGINT NOT NULL,
+                version BIGINT NOT NULL, observations BIGINT NOT NULL, hyper TEXT,
                 created_at DOUBLE PRECISION NOT NULL, updated_at DOUBLE PRECISION NOT NULL)""",
             f"""CREATE TABLE IF NOT EXISTS tiles (
                 region_id TEXT NOT NULL REFERENCES regions (region_id) ON DELETE CASCADE,
@@ -188,7 +198,11 @@ class MapStore(ABC):
         if not rows:
             q("INSERT INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
         elif int(rows[0][0]) != SCHEMA_VERSION:
-            raise StoreError(f"store schema version {rows[0][0]}, this code reads {SCHEMA_VERSION}")
+            raise StoreError(
+                f"store schema version {rows[0][0]}, this code reads {SCHEMA_VERSION}: schema 1 kept "
+                "overlapping tiles a region-wide map cannot use; start a new store (data directory "
+                "or PostgreSQL schema) and fit the regions again"
+            )
 
     def ping(self) -> None:
         """One round trip to the database (readiness); raises if it is unreachable."""
@@ -228,14 +242,14 @@ class MapStore(ABC):
 
     def _region(self, q, name: str) -> RegionInfo:
         rows = q(
-            "SELECT r.spec, r.region_id, r.version, r.observations, r.created_at, r.updated_at,"
+            "SELECT r.spec, r.region_id, r.version, r.observations, r.created_at, r.updated_at, r.hyper,"
             " (SELECT COUNT(*) FROM tiles t WHERE t.region_id = r.region_id)"
             " FROM regions r WHERE r.name = ?",
             (name,),
         )
         if not rows:
             raise RegionNotFound(f"no region {name!r}")
-        spec, region_id, version, observations, created, updated, tiles = rows[0]
+        spec, region_id, version, observations, created, updated, hyper, tiles = rows[0]
         return RegionInfo(
             _spec(spec),
             region_id,
@@ -244,6 +258,7 @@ class MapStore(ABC):
             int(tiles),
             float(created),
             float(updated),
+            None if hyper is None else json.loads(hyper),
         )
 
     # -- tiles -----------------------------------------------------------------------------------
@@ -260,15 +275,14 @@ class MapStore(ABC):
         which ``need(region_id, key, version)`` is true (a cache says what it holds)."""
         with self._read() as q:
             region = self._region(q, name)
-            tiles, v_sq = {}, np.zeros(3)
-            for key, version, count, points, nbytes, updated, head in q(
-                "SELECT key, version, count, points, length(stats), updated_at,"
-                f" substr(stats, 1, {HEAD_BYTES}) FROM tiles WHERE region_id = ?",
+            tiles = {}
+            for key, version, count, points, nbytes, updated in q(
+                "SELECT key, version, count, points, length(stats), updated_at"
+                " FROM tiles WHERE region_id = ?",
                 (region.region_id,),
             ):
                 k = parse_key(key)
                 tiles[k] = TileInfo(k, int(version), float(count), int(points), int(nbytes), float(updated))
-                v_sq += Evidence.head_from_bytes(head)[2]
             wanted = tiles if keys is None else [k for k in keys if k in tiles]
             wanted = [k for k in wanted if need is None or need(region.region_id, k, tiles[k].version)]
             evidence = {}
@@ -280,7 +294,7 @@ class MapStore(ABC):
                 ):
                     k = parse_key(key)
                     evidence[k] = _decode(region.spec, k, blob, fmt)
-        return Snapshot(region, dict(sorted(tiles.items())), evidence, v_sq)
+        return Snapshot(region, dict(sorted(tiles.items())), evidence)
 
     # -- uploads ---------------------------------------------------------------------------------
     def upload_result(self, name: str, upload_id: str, digest: str) -> dict | None:
@@ -311,9 +325,12 @@ class MapStore(ABC):
         observations: int,
         replace: bool = False,
         summary: Mapping | None = None,
+        hyper: Mapping | None = None,
     ) -> dict:
         """Add ``increments`` to their tiles (``replace``: drop every tile first, a fit),
         bump the version and record ``upload_id`` in the ledger, all in one transaction.
+        ``hyper``: the fitted hyperparameters (module doc) a fit sets, or an upload sets
+        where the region has none (its first data); ``evidence_version`` is filled in.
 
         Returns the result recorded in the ledger (``summary`` plus upload_id,
         region_version, tiles_updated, replayed); a replay returns the first one.
@@ -322,14 +339,16 @@ class MapStore(ABC):
         now = time.time()
         with self._write() as q:
             rows = q(
-                f"SELECT region_id, version, spec FROM regions WHERE name = ?{self._lock_region()}", (name,)
+                f"SELECT region_id, version, spec, hyper FROM regions WHERE name = ?{self._lock_region()}",
+                (name,),
             )
             if not rows:
                 raise RegionNotFound(f"no region {name!r}")
-            region_id, version, spec = (
+            region_id, version, spec, old_hyper = (
                 rows[0][0],
                 int(rows[0][1]) + 1,
                 _spec(rows[0][2]),
+                rows[0][3],
             )
             first = self._ledger(q, region_id, upload_id, digest)
             if first is not None:
@@ -383,10 +402,14 @@ class MapStore(ABC):
                 "region_version": version,
                 "tiles_updated": len(increments),
             }
+            if replace or (old_hyper is None and hyper is not None):
+                new_hyper = None if hyper is None else json.dumps({**hyper, "evidence_version": version})
+            else:
+                new_hyper = old_hyper
             q(
-                "UPDATE regions SET version = ?, updated_at = ?,"
+                "UPDATE regions SET version = ?, updated_at = ?, hyper = ?,"
                 f" observations = {'' if replace else 'observations + '}? WHERE region_id = ?",
-                (version, now, int(observations), region_id),
+                (version, now, new_hyper, int(observations), region_id),
             )
             q(
                 "INSERT INTO uploads (region_id, upload_id, kind, digest, result, applied_at)"
@@ -395,13 +418,31 @@ class MapStore(ABC):
             )
         return {**result, "replayed": False}
 
+    def set_hyperparameters(self, name: str, hyper: Mapping, evidence_version: int) -> RegionInfo:
+        """Make ``hyper`` (fitted on the evidence at ``evidence_version``) the hyperparameters
+        in force: the map changes, so the region's version goes up by one."""
+        with self._write() as q:
+            rows = q(f"SELECT region_id, version FROM regions WHERE name = ?{self._lock_region()}", (name,))
+            if not rows:
+                raise RegionNotFound(f"no region {name!r}")
+            q(
+                "UPDATE regions SET version = ?, updated_at = ?, hyper = ? WHERE region_id = ?",
+                (
+                    int(rows[0][1]) + 1,
+                    time.time(),
+                    json.dumps({**hyper, "evidence_version": int(evidence_version)}),
+                    rows[0][0],
+                ),
+            )
+        return self.region(name)
+
 
 def _decode(spec: RegionSpec, key: TileKey, blob, format_version) -> Evidence:
     if int(format_version) != FORMAT_VERSION:
         raise StoreError(
             f"tile {key_str(key)} has statistics format {format_version}, this code reads {FORMAT_VERSION}"
         )
-    return Evidence.from_bytes(bytes(blob), spec.tile_grid(key), spec.tile_noise_lattice(key))
+    return spec.decode(key, bytes(blob))
 
 
 @functools.lru_cache(maxsize=256)
