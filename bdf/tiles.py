@@ -125,17 +125,17 @@ class RegionSpec(BaseModel):
         n = np.ceil((self.upper - self.lower) / np.array(self.tile_size_m) - 1e-9).astype(int)
         return tuple(int(c) for c in np.maximum(n, 1))
 
-    @functools.cached_property
+    @property
     def grid(self) -> HingeGrid:
         """The region's hinge lattice: ``bounds.min + i * spacing`` up to ``bounds.max``."""
-        return HingeGrid(self.lower, self.upper, self.spacing_m)
+        return _grid(tuple(self.bounds_m.min), tuple(self.bounds_m.max), tuple(self.spacing_m))
 
-    @functools.cached_property
+    @property
     def noise_lattice(self) -> Lattice | None:
         """The region's local-noise lattice, or None with the global noise."""
         if self.noise_spacing_m is None:
             return None
-        return noise.noise_lattice(self.lower, self.upper, self.noise_spacing_m)
+        return _noise_lattice(tuple(self.bounds_m.min), tuple(self.bounds_m.max), tuple(self.noise_spacing_m))
 
     @property
     def stencil(self):
@@ -331,6 +331,17 @@ class RegionSpec(BaseModel):
         mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
         known = self.known(mesh, data_tiles).reshape(mean.shape[:3])
         return mean, np.sqrt(var), known
+
+
+@functools.lru_cache(maxsize=64)
+def _grid(lower, upper, spacing) -> HingeGrid:
+    """Lattices are shared per spec (specs are frozen; every request reads its region's)."""
+    return HingeGrid(lower, upper, spacing)
+
+
+@functools.lru_cache(maxsize=64)
+def _noise_lattice(lower, upper, spacing) -> Lattice:
+    return noise.noise_lattice(lower, upper, spacing)
 
 
 @functools.lru_cache(maxsize=64)

@@ -2,28 +2,27 @@ import threading
 
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from bdf import _blas
+from bdf import _blas, linalg  # noqa: F401  (linalg loads CHOLMOD and the system BLAS)
 
 
-def blas_threads() -> set[int]:
-    return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+def blas_threads(prefix="libscipy_openblas") -> set[int]:
+    return {lib["num_threads"] for lib in threadpool_info() if lib["prefix"] == prefix}
 
 
 def test_small_work_runs_on_one_blas_thread_and_the_count_comes_back():
     with threadpool_limits(limits=2, user_api="blas"):
         assert blas_threads() == {2}
-        with _blas.threads_for(hinges=_blas.PARALLEL_MIN_HINGES - 1):
+        with _blas.one_thread():
             assert blas_threads() == {1}
+            assert blas_threads("libopenblas") == {2}  # CHOLMOD's BLAS keeps its threads
         assert blas_threads() == {2}
-        with _blas.threads_for(hinges=_blas.PARALLEL_MIN_HINGES):
-            assert blas_threads() == {2}  # a large factorisation keeps every thread
 
 
 def test_a_worker_thread_limits_and_restores_the_count():
     original, seen = blas_threads(), {}
 
     def work():
-        with _blas.threads_for():
+        with _blas.one_thread():
             seen["inside"] = blas_threads()
         seen["after"] = blas_threads()
 
@@ -31,6 +30,6 @@ def test_a_worker_thread_limits_and_restores_the_count():
     worker.start()
     worker.join(10)
     assert seen == {"inside": {1}, "after": original}
-    with _blas.threads_for():  # the worker gave up control: this thread can limit now
+    with _blas.one_thread():  # the worker gave up control: this thread can limit now
         assert blas_threads() == {1}
     assert blas_threads() == original

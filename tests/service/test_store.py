@@ -19,15 +19,14 @@ SPEC = {
     "origin": {"lat": 48.0, "lon": 2.0},
     "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
     "tile_size_m": [100, 100, 60],
-    "overlap_m": [20, 20, 0],
     "spacing_m": [25, 25, 20],
     "gamma": [1 / 1250, 1 / 1250, 1 / 800],
 }
 
 
 def data(seed, n=200, band=False):
-    """Synthetic observations; ``band``: every point in exactly two tiles (x overlap of
-    columns 0 and 1, away from the y border)."""
+    """Synthetic observations; ``band``: points on both sides of the border of tile
+    columns 0 and 1, in four rows of tiles' cores."""
     rng = np.random.default_rng(seed)
     if band:
         X = np.stack(
@@ -155,71 +154,103 @@ def test_fit_replaces_the_map(store, spec):
     assert snap.region.observations == 80
 
 
-def test_queries_blend_cached_posteriors_and_follow_updates(store, spec):
+def assert_map_is_the_field(maps, spec, X, V, version):
+    """The served map at ``version`` equals one field over the region's lattice fitted on
+    (X, V) at the region's hyperparameters in force, everywhere (empty places included)."""
+    info = maps.store.region("town")
+    alpha, beta = info.hyperparameters()
+    field = spec.field(alpha, beta).fit(X, V)
+    Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (400, 3))
+    got = maps.predict("town", Q, min_version=version)
+    mean, std = field.predict(Q, return_std=True)
+    climate = np.sqrt((V**2).mean(0))
+    np.testing.assert_allclose(got.mean, mean, rtol=0, atol=1e-6 * climate.min())
+    np.testing.assert_allclose(got.std, std, rtol=1e-6)
+    assert got.version == version
+    axes = [np.linspace(0, 300, 4), np.linspace(0, 200, 3), np.array([5.0, 55.0])]
+    grid = maps.predict_grid("town", axes, min_version=version)
+    mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    mean, std = field.predict(mesh, return_std=True)
+    np.testing.assert_allclose(grid.mean.reshape(-1, 3), mean, rtol=0, atol=1e-6 * climate.min())
+    np.testing.assert_allclose(grid.std.reshape(-1, 3), std, rtol=1e-6)
+    return got
+
+
+def test_the_served_map_is_one_field_through_uploads_replays_and_refits(store, spec):
     maps = RegionMaps(store, cache_mb=64)
     Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (400, 3))
     empty = maps.predict("town", Q)
     assert not empty.known.any() and np.all(empty.mean == 0) and empty.version == 0
     X, V = data(7, n=400)
-    maps.upload("town", "a", X, V)
-    got = maps.predict("town", Q)
-    ref_mean, ref_std, _ = spec.predict(
-        Q, {k: spec.posterior(k, i.evidence) for k, i in spec.increments(X, V).items()}
-    )
-    np.testing.assert_allclose(got.mean, ref_mean, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(got.std, ref_std, rtol=1e-9)
-    assert got.known.all() and got.version == 1
+    left = X[:, 0] < 150  # the right half of the region stays empty
+    maps.upload("town", "a", X[left], V[left])
+    hyper = store.region("town").hyper  # the region's first data fit "auto"
+    assert hyper["evidence_version"] == 1 and len(hyper["alpha"]) == 3
+    got = assert_map_is_the_field(maps, spec, X[left], V[left], 1)
+    assert got.known[Q[:, 0] < 100].all() and not got.known[Q[:, 0] > 280].any()
     misses, snapshots = maps.cache.misses, []
     read = store.snapshot
     store.snapshot = lambda *a, **k: snapshots.append(a) or read(*a, **k)
     again = maps.predict("town", Q)
-    assert maps.cache.misses == misses and len(maps.cache) == 6  # warm: no recomputation
-    assert snapshots == []  # and no tile read: the region version names the tile versions
+    assert maps.cache.misses == misses and snapshots == []  # warm: no recomputation, no read
     np.testing.assert_array_equal(again.mean, got.mean)
+    store.snapshot = read
     X2, V2 = data(8, n=100)
     maps.upload("town", "b", X2, V2)
-    newer = maps.predict("town", Q)
-    ref_mean, _, _ = spec.predict(
-        Q,
-        {
-            k: spec.posterior(k, i.evidence)
-            for k, i in spec.increments(np.vstack([X, X2]), np.vstack([V, V2])).items()
-        },
-    )
-    np.testing.assert_allclose(newer.mean, ref_mean, rtol=1e-9, atol=1e-12)
-    assert newer.version == 2 and len(snapshots) == 1
+    assert maps.upload("town", "b", X2, V2)["replayed"]
+    assert store.region("town").hyper == hyper  # uploads keep the hyperparameters in force
+    both_X, both_V = np.vstack([X[left], X2]), np.vstack([V[left], V2])
+    assert_map_is_the_field(maps, spec, both_X, both_V, 2)
+    info = maps.fit_hyperparameters("town")  # refit on request: a new version, same evidence
+    assert info.version == 3 and info.hyper["evidence_version"] == 2 and info.hyper != hyper
+    assert_map_is_the_field(maps, spec, both_X, both_V, 3)
+    maps.upload("town", "fit", X, V, replace=True)  # a fit refits
+    assert store.region("town").hyper["evidence_version"] == 4
+    assert_map_is_the_field(maps, spec, X, V, 4)
     with pytest.raises(ValueError, match="outside region"):
         maps.predict("town", [[400.0, 0.0, 0.0]])
 
 
-def test_tiles_without_data_answer_with_the_stored_climatology(store, spec):
+def test_queries_answer_from_the_previous_version_until_the_new_one_is_ready(store, spec):
     maps = RegionMaps(store, cache_mb=64)
-    X, V = data(11, n=300)
-    left = X[:, 0] < 60  # tile column 0 only, away from its border
-    maps.upload("town", "left", X[left], V[left])
-    incs = spec.increments(X[left], V[left])
-    climate = sum(i.evidence.v_sq for i in incs.values()) / sum(i.evidence.count for i in incs.values())
-    np.testing.assert_allclose(store.snapshot("town", keys=()).empty_variance, climate, rtol=1e-12)
-    Q = np.array([[250.0, 150.0, 30.0], [250.0, 20.0, 10.0]])  # in tiles (2, *, 0): no data
-    for _ in range(2):  # read from the store, then from the cache
-        got = maps.predict("town", Q)
-        assert not got.known.any()
-        np.testing.assert_allclose(got.std**2, [climate, climate], rtol=1e-12)
-    grid = maps.predict_grid("town", [np.array([250.0]), np.array([20.0, 150.0]), np.array([10.0, 30.0])])
-    np.testing.assert_allclose(grid.std[0, 1, 1] ** 2, climate, rtol=1e-12)
+    X, V = data(3, n=300)
+    maps.upload("town", "a", X, V)
+    first = maps.predict("town", X[:5])
+    gate = __import__("threading").Event()
+    compute = maps._compute
+    maps._compute = lambda region: gate.wait(30) and compute(region)  # the refresh is slow
+    maps.upload("town", "b", *data(4, n=50))
+    stale = maps.predict("town", X[:5])  # answers at once, from version 1
+    assert stale.version == 1 and np.array_equal(stale.mean, first.mean)
+    gate.set()
+    fresh = maps.predict("town", X[:5], min_version=2)
+    assert fresh.version == 2 and not np.allclose(fresh.mean, first.mean)
 
 
-def test_posterior_cache_is_bounded_by_memory():
-    spec = RegionSpec.model_validate(SPEC)
-    X, V = data(10, n=600)
-    posts = {k: spec.posterior(k, i.evidence) for k, i in spec.increments(X, V).items()}
-    size = max(p.nbytes for p in posts.values())
+def test_a_fit_that_cannot_be_solved_stores_nothing(store, spec):
+    maps = RegionMaps(store, cache_mb=64)
+    X, V = data(5, n=100)
+    bad = RegionSpec.model_validate({**SPEC, "name": "bad", "alpha": 1e-300, "beta": 1e300})
+    store.create_region(bad)
+    with pytest.raises(ValueError, match="increase alpha or decrease beta"):
+        maps.upload("bad", "f", X, V, replace=True)
+    info = store.region("bad")
+    assert (info.version, info.tiles, info.observations) == (0, 0, 0)
+
+
+def test_posterior_cache_is_bounded_by_memory(store, spec):
+    maps = RegionMaps(store)
+    states = []
+    for i in range(4):
+        maps.upload("town", f"u{i}", *data(10 + i, n=100))
+        states.append(maps.refresh("town"))
+    size = max(s.nbytes for s in states)
     cache = PosteriorCache(max_mb=2.5 * size / 2**20)
-    for k, p in posts.items():
-        cache.put(("r", k, 1), p)
+    for s in states:
+        cache.put((s.region_id, s.version), s)
     assert len(cache) == 2 and cache.nbytes <= 2.5 * size
-    assert cache.get(("r", (0, 0, 0), 1)) is None  # the oldest went first
-    assert cache.get(("r", (2, 1, 0), 1)) is posts[(2, 1, 0)]
+    assert cache.get((states[0].region_id, 1)) is None  # the oldest went first
+    assert cache.get((states[3].region_id, 4)) is states[3]
 
 
 # -- many processes -------------------------------------------------------------------------
@@ -235,14 +266,14 @@ def _writer(url, seed, n_uploads):
 
 
 def _reader(url, stop, out):
-    """Every snapshot must show whole uploads only: each point counts in exactly two tiles."""
+    """Every snapshot must show whole uploads only: each point counts in exactly one tile."""
     store = open_store(url)
     reads = torn = 0
     while not stop.is_set() or reads == 0:
         snap = store.snapshot("town", keys=())
         tile_points = sum(t.points for t in snap.tiles.values())
         torn += (
-            tile_points != 2 * snap.region.observations
+            tile_points != snap.region.observations
             or snap.region.observations != 20 * snap.region.version
         )
         reads += 1
