@@ -60,6 +60,7 @@ class Region:
     tiles: int
     created_at: float
     updated_at: float
+    hyperparameters: dict  # alpha, beta in force ("auto" until fitted), fitted_at, evidence_version
 
 
 @dataclass(frozen=True)
@@ -274,6 +275,18 @@ class _Endpoints:
         self._http = self._http_class(
             base_url=self.url, headers=_headers(token), timeout=timeout_s, transport=transport
         )
+        # read your writes: the newest version each region reached through this client;
+        # queries ask the service for at least that version (it waits for its map)
+        self._written: dict[str, int] = {}
+
+    def _wrote(self, name: str, version: int) -> None:
+        self._written[name] = max(self._written.get(name, 0), int(version))
+
+    def _read_params(self, name: str, params: dict | None = None) -> dict:
+        out = dict(params or {})
+        if name in self._written:
+            out["min_version"] = str(self._written[name])
+        return out
 
     def _retrying(self, call: Call) -> Call:
         """``call`` with each request retried after connection errors and 5xx, with backoff."""
@@ -317,6 +330,13 @@ class _Endpoints:
 
     def delete_region(self, name: str) -> None:
         return self._run(self._json("DELETE", f"/v1/regions/{name}", parse=lambda js: None))
+
+    def fit_hyperparameters(self, name: str) -> Region:
+        """Refit the region's "auto" alpha and beta at the evidence maximum of all its data
+        (uploads keep the values in force until then); returns the region."""
+        region = self._run(self._json("POST", f"/v1/regions/{name}/hyperparameters", parse=_region))
+        self._wrote(name, region.version)
+        return region
 
     def tiles(self, name: str) -> dict:
         """``{"region_version", "tiles": [{"key", "version", "count", "points", "bytes", ...}]}``."""
@@ -416,7 +436,9 @@ class _Endpoints:
             params["bbox"] = ",".join(repr(float(v)) for v in bbox)
         if step is not None:
             params["step"] = repr(float(step))
-        return self._run(self._bytes(f"/v1/regions/{name}/slice.png", "image/png", params))
+        return self._run(
+            self._bytes(f"/v1/regions/{name}/slice.png", "image/png", self._read_params(name, params))
+        )
 
     # -- the calls ----------------------------------------------------------------------------
     def _bytes(self, path: str, accept: str, params: dict) -> Call:
@@ -451,6 +473,7 @@ class _Endpoints:
                     idempotency_key=f"{key}-{i}",
                 )
                 results.append(response.json())
+                self._wrote(name, results[-1]["region_version"])
                 bar.update(len(X[part]))
         return _summary(results)
 
@@ -464,6 +487,7 @@ class _Endpoints:
             idempotency_key=key or _upload_key(X, V, noise, weight, len(X), "fit"),
         )
         if response.status_code != 202:
+            self._wrote(name, response.json()["region_version"])
             return _summary([response.json()])
         job = response.json()
         if not wait:
@@ -475,12 +499,15 @@ class _Endpoints:
                 bar.update(round(100 * job["progress"]) - bar.n)
         if job["state"] == "failed":
             raise BDFError(500, "fit job failed", job.get("error") or "unknown error", job)
+        self._wrote(name, job["result"]["region_version"])
         return _summary([job["result"]])
 
     def _query(self, name, X, frame, transport) -> Call:
-        path = f"/v1/regions/{name}/query"
+        path, params = f"/v1/regions/{name}/query", self._read_params(name)
         if transport == "json":
-            response = yield _Request("POST", path, **_json_body({"frame": frame, "points": X.tolist()}))
+            response = yield _Request(
+                "POST", path, params=params, **_json_body({"frame": frame, "points": X.tolist()})
+            )
             js = response.json()
             return Prediction(
                 np.array(js["mean"], float).reshape(-1, 3),
@@ -491,7 +518,12 @@ class _Endpoints:
         if transport != "arrow":
             raise ValueError(f"transport must be 'arrow' or 'json', got {transport!r}")
         response = yield _Request(
-            "POST", path, accept=ARROW, content=_arrow(_position_columns(X, frame)), content_type=ARROW
+            "POST",
+            path,
+            accept=ARROW,
+            params=params,
+            content=_arrow(_position_columns(X, frame)),
+            content_type=ARROW,
         )
         table = _read_arrow(response.content)
         return Prediction(
@@ -502,13 +534,14 @@ class _Endpoints:
         )
 
     def _grid(self, name, step, bbox) -> Call:
-        params = _grid_params(step, bbox)
+        params = self._read_params(name, _grid_params(step, bbox))
         response = yield _Request("GET", f"/v1/regions/{name}/grid", accept=NPZ, params=params)
         a = _npz(response.content)
         return Grid(a["x"], a["y"], a["z"], a["mean"], a["std"], a["known"], _version(response))
 
     def _tubes(self, name, max_std_mps, step, bbox, component, media) -> Call:
         params = {**_grid_params(step, bbox), "max_std_mps": repr(float(max_std_mps)), "component": component}
+        params = self._read_params(name, params)
         response = yield _Request("GET", f"/v1/regions/{name}/tubes", accept=media, params=params)
         if media == GEOJSON:
             return response.json()

@@ -54,6 +54,17 @@ def scoped(scope: str, **extra) -> dict:
     return out
 
 
+class Hyperparameters(BaseModel):
+    """alpha and beta in force: the spec's fixed values, or fitted at the evidence maximum
+    of the region at ``evidence_version`` ("auto" until the region's first data)."""
+
+    alpha: Literal["auto"] | float | list[float]
+    beta: Literal["auto"] | float | list[float]
+    fitted_at: float | None
+    evidence_version: int | None
+    log_evidence: list[float] | None
+
+
 class RegionView(BaseModel):
     spec: RegionSpec
     version: int
@@ -61,6 +72,7 @@ class RegionView(BaseModel):
     tiles: int
     created_at: float
     updated_at: float
+    hyperparameters: Hyperparameters
 
 
 class UploadResult(BaseModel):
@@ -96,7 +108,6 @@ def _view(info: RegionInfo) -> dict:
         "created_at": info.created_at,
         "updated_at": info.updated_at,
         "hyperparameters": {
-            # "auto" until the region's first data fits them; fitted values as lists of 3
             "alpha": alpha,
             "beta": beta,
             "fitted_at": fitted.get("fitted_at"),
@@ -277,7 +288,7 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 
-@router.post("/regions/{name}/hyperparameters", **scoped("write"))
+@router.post("/regions/{name}/hyperparameters", response_model=RegionView, **scoped("write"))
 def post_hyperparameters(name: RegionName, request: Request):
     """Refit the region's "auto" alpha and beta at the evidence maximum of all its data and
     make them the ones in force (a new region version); uploads keep them until then."""

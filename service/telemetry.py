@@ -55,9 +55,9 @@ class _CacheCollector:
         self.cache = cache
 
     def collect(self):
-        hits = CounterMetricFamily("bdf_posterior_cache_hits", "tile posteriors served from memory")
+        hits = CounterMetricFamily("bdf_posterior_cache_hits", "region posteriors served from memory")
         hits.add_metric([], self.cache.hits)
-        misses = CounterMetricFamily("bdf_posterior_cache_misses", "tile posteriors computed")
+        misses = CounterMetricFamily("bdf_posterior_cache_misses", "region posteriors not in memory")
         misses.add_metric([], self.cache.misses)
         size = GaugeMetricFamily("bdf_posterior_cache_bytes", "memory held by cached posteriors")
         size.add_metric([], self.cache.nbytes)

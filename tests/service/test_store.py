@@ -273,8 +273,7 @@ def _reader(url, stop, out):
         snap = store.snapshot("town", keys=())
         tile_points = sum(t.points for t in snap.tiles.values())
         torn += (
-            tile_points != snap.region.observations
-            or snap.region.observations != 20 * snap.region.version
+            tile_points != snap.region.observations or snap.region.observations != 20 * snap.region.version
         )
         reads += 1
     out.put((reads, torn))
