@@ -203,8 +203,8 @@ PARIS_NOISE_SPACING_M = np.array([1000.0, 1000.0, 125.0])
 
 
 def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris"):
-    """The tiled region of :func:`load_paris`'s box: 10 km tiles over the whole altitude band,
-    1 km overlap, gamma = 1 / spacing^2, on the sample's origin."""
+    """The region of :func:`load_paris`'s box: one field, stored in 10 km tiles over the
+    whole altitude band, gamma = 1 / spacing^2, on the sample's origin."""
     from bdf.tiles import RegionSpec
 
     frame = sample_origin("paris")
@@ -217,7 +217,6 @@ def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris"):
             # on the same hinge lattice as the single field
             "bounds_m": {"min": (lower - [0, 0, 1000]).tolist(), "max": upper.tolist()},
             "tile_size_m": [10_000.0, 10_000.0, float(upper[2] - lower[2] + 1000)],
-            "overlap_m": [1000.0, 1000.0, 0.0],
             "spacing_m": spacing.tolist(),
             "gamma": (1.0 / spacing**2).tolist(),
         }

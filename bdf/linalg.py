@@ -22,13 +22,11 @@ import threading
 
 import numba
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sp
 from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
 from bdf.grid import Lattice
-
-#: Diagonal blocks wider than this are inverted by LAPACK, smaller ones by a loop.
-_LAPACK_MIN_WIDTH = 24
 
 
 class NotPositiveDefinite(ValueError):
@@ -207,79 +205,93 @@ def _supernodes(indptr, indices):  # pragma: no cover - compiled
     return np.array(starts)
 
 
-@numba.njit(cache=True)
-def _selected_inverse(indptr, indices, data, starts):  # pragma: no cover - compiled
+def _selected_inverse(indptr, indices, data, starts) -> np.ndarray:
     """``(L L^T)^-1`` on the pattern of the lower factor ``L`` (CSC, sorted, diagonal first).
 
     Takahashi, by supernodes from the last: for columns J with rows R below them,
-    ``Y = L_RJ L_JJ^-1``, ``S_RJ = -S_RR Y`` and ``S_JJ = L_JJ^-T L_JJ^-1 - Y^T S_RJ``;
+    ``Y = L_RJ L_JJ^-1``, ``S_RJ = -S_RR Y`` and ``S_JJ = (L_JJ L_JJ^T)^-1 - Y^T S_RJ``;
     ``S_RR`` is gathered from later supernodes (R is a clique of the filled graph, so each
-    of its entries is stored there).
+    of its entries is stored there). The dense steps are LAPACK/BLAS calls (all cores),
+    the gathers compiled loops.
     """
     n = len(indptr) - 1
     ns = len(starts) - 1
-    col_sn = np.empty(n, np.int64)
-    offs = np.zeros(ns + 1, np.int64)
-    for s in range(ns):
-        f, l = starts[s], starts[s + 1]
-        col_sn[f:l] = s
-        offs[s + 1] = offs[s] + (indptr[f + 1] - indptr[f]) * (l - f)
-    blocks = np.empty(offs[ns])
+    col_sn = np.repeat(np.arange(ns), np.diff(starts))
+    firsts = starts[:-1]
+    heights = indptr[firsts + 1] - indptr[firsts]
+    offs = np.concatenate([[0], np.cumsum(heights * np.diff(starts))])
+    blocks = np.empty(offs[-1])
     pos = np.full(n, -1, np.int64)
-    out = np.empty_like(data)
     for s in range(ns - 1, -1, -1):
         f, l = starts[s], starts[s + 1]
-        w = l - f
-        rows = indices[indptr[f] : indptr[f + 1]]
-        nr = len(rows)
+        w, nr = l - f, heights[s]
         r = nr - w
-        Lb = np.zeros((nr, w))
-        for c in range(w):
-            p = indptr[f + c]
-            for t in range(nr - c):
-                Lb[c + t, c] = data[p + t]
-        if w > _LAPACK_MIN_WIDTH:
-            Linv = np.ascontiguousarray(np.linalg.inv(np.ascontiguousarray(Lb[:w])))
-        else:
-            Linv = np.zeros((w, w))
-            for c in range(w):
-                Linv[c, c] = 1.0 / Lb[c, c]
-                for i in range(c + 1, w):
-                    acc = 0.0
-                    for k in range(c, i):
-                        acc += Lb[i, k] * Linv[k, c]
-                    Linv[i, c] = -acc / Lb[i, i]
-        LinvT = np.ascontiguousarray(Linv.T)
-        SJJ = LinvT @ Linv
+        Lb = _dense_block(indptr, data, f, w, nr)
         blk = blocks[offs[s] : offs[s + 1]].reshape(nr, w)
+        LJJ = Lb[:w]
+        SJJ, info = sla.lapack.dpotri(LJJ, lower=1)
+        if info != 0:
+            raise NotPositiveDefinite(f"selected inversion failed (LAPACK info {info})")
+        SJJ = np.tril(SJJ) + np.tril(SJJ, -1).T
         if r > 0:
-            Y = np.ascontiguousarray(Lb[w:]) @ Linv
-            R = rows[w:]
-            Srr = np.empty((r, r))
-            b = 0
-            while b < r:
-                s2 = col_sn[R[b]]
-                f2, l2 = starts[s2], starts[s2 + 1]
-                rows2 = indices[indptr[f2] : indptr[f2 + 1]]
-                for t in range(len(rows2)):
-                    pos[rows2[t]] = t
-                blk2 = blocks[offs[s2] : offs[s2 + 1]].reshape(len(rows2), l2 - f2)
-                b1 = b
-                while b1 < r and R[b1] < l2:
-                    b1 += 1
-                for bb in range(b, b1):
-                    cc = R[bb] - f2
-                    for a in range(bb, r):
-                        v = blk2[pos[R[a]], cc]
-                        Srr[a, bb] = v
-                        Srr[bb, a] = v
-                for t in range(len(rows2)):
-                    pos[rows2[t]] = -1
-                b = b1
+            Y = sla.solve_triangular(LJJ, Lb[w:].T, lower=True, trans="T", check_finite=False).T
+            R = indices[indptr[f] + w : indptr[f + 1]]
+            Srr = _gather(indptr, indices, starts, col_sn, offs, blocks, pos, R)
             SRJ = -(Srr @ Y)
-            SJJ -= np.ascontiguousarray(Y.T) @ SRJ
+            SJJ -= Y.T @ SRJ
             blk[w:] = SRJ
         blk[:w] = SJJ
+    return _scatter(indptr, starts, offs, blocks, len(data))
+
+
+@numba.njit(cache=True)
+def _dense_block(indptr, data, f, w, nr):  # pragma: no cover - compiled
+    """Columns f .. f + w - 1 of L as a dense (nr, w) block (a supernode's trapezoid)."""
+    Lb = np.zeros((nr, w))
+    for c in range(w):
+        p = indptr[f + c]
+        for t in range(nr - c):
+            Lb[c + t, c] = data[p + t]
+    return Lb
+
+
+@numba.njit(cache=True)
+def _gather(indptr, indices, starts, col_sn, offs, blocks, pos, R):  # pragma: no cover - compiled
+    """``S[R, R]`` (dense, symmetric) from the blocks of the supernodes holding R's columns."""
+    r = len(R)
+    Srr = np.empty((r, r))
+    b = 0
+    while b < r:
+        s2 = col_sn[R[b]]
+        f2, l2 = starts[s2], starts[s2 + 1]
+        rows2 = indices[indptr[f2] : indptr[f2 + 1]]
+        for t in range(len(rows2)):
+            pos[rows2[t]] = t
+        blk2 = blocks[offs[s2] : offs[s2 + 1]].reshape(len(rows2), l2 - f2)
+        b1 = b
+        while b1 < r and R[b1] < l2:
+            b1 += 1
+        for bb in range(b, b1):
+            cc = R[bb] - f2
+            for a in range(bb, r):
+                v = blk2[pos[R[a]], cc]
+                Srr[a, bb] = v
+                Srr[bb, a] = v
+        for t in range(len(rows2)):
+            pos[rows2[t]] = -1
+        b = b1
+    return Srr
+
+
+@numba.njit(cache=True)
+def _scatter(indptr, starts, offs, blocks, nnz):  # pragma: no cover - compiled
+    """The blocks back on L's pattern (lower triangle, column by column)."""
+    out = np.empty(nnz)
+    for s in range(len(starts) - 1):
+        f, l = starts[s], starts[s + 1]
+        w = l - f
+        nr = indptr[f + 1] - indptr[f]
+        blk = blocks[offs[s] : offs[s + 1]].reshape(nr, w)
         for c in range(w):
             p = indptr[f + c]
             for t in range(nr - c):

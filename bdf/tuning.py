@@ -100,8 +100,11 @@ def fit_evidence(stencil, band, proj, v_sq, count, alpha, beta) -> tuple[np.ndar
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
         lams = alpha_v / beta_v
-        cache = {lam: solve(stencil, band, proj, v_sq, lam) for lam in np.unique(lams)}
-        return alpha_v.copy(), beta_v.copy(), [cache[lam] for lam in lams]
+        # ratios equal to rounding (fitted values stored and read back) share a factorisation
+        same = np.isclose(lams[:, None], lams[None, :], rtol=1e-12, atol=0)
+        first = [int(np.argmax(row)) for row in same]
+        cache = {c: solve(stencil, band, proj, v_sq, lams[c]) for c in sorted(set(first))}
+        return alpha_v.copy(), beta_v.copy(), [cache[c] for c in first]
 
     scale = max(float(np.mean(band[0])), 1e-300)
     groups = [[0], [1], [2]] if (auto_b and not auto_a) else [[0, 1, 2]]

@@ -51,7 +51,7 @@ def test_hard_tube_route_stays_below_the_bound_where_the_straight_line_does_not(
         along = bdf.query("corridor", densify(route, 10.0)).std.max(axis=1)
         straight = bdf.query("corridor", densify(np.array([START, GOAL]), 10.0)).std.max(axis=1)
     assert along.max() <= BOUND
-    assert straight.max() > 10 * BOUND
+    assert straight.max() > 5 * BOUND  # across the gap: the prior, on the scale of the flow
     np.testing.assert_allclose(route[[0, -1]], [START, GOAL], atol=1e-3)
     assert plan.route.metrics["service_max_std_mps"] == pytest.approx(along.max(), rel=0.05)
     assert plan.route.metrics["integrated_risk_m"] < plan.baseline.metrics["integrated_risk_m"] / 5
