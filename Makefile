@@ -4,17 +4,25 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install browser test lint demo bench clean
+.PHONY: install sparse browser test lint demo bench clean
 
 $(PY):
 	python3 -m venv $(VENV)
 
-$(STAMP): pyproject.toml | $(PY)
+$(STAMP): pyproject.toml | $(PY) sparse
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev,bench]'
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# scikit-sparse builds against Debian's SuiteSparse 5 (CHOLMOD), whose supernodes run on
+# OpenBLAS; installed here when we may (root with apt-get), else a clear stop
+sparse:
+	@[ -e /usr/include/suitesparse/cholmod.h ] || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	  { apt-get install -y -q libsuitesparse-dev libopenblas0-pthread >/dev/null || \
+	    { apt-get update -q && apt-get install -y -q libsuitesparse-dev libopenblas0-pthread >/dev/null; }; }; } || \
+	  { echo "CHOLMOD headers missing: apt-get install libsuitesparse-dev libopenblas0-pthread, then make again"; exit 1; }
 
 # the viewer test drives Debian's Chromium; installed here when we may (root with apt-get)
 browser:
