@@ -156,14 +156,15 @@ def library_query_ms(spec, obs, test, repeat=50) -> float:
     """Median ms of ``RegionSpec.predict`` at 1,000 test points on the same map, in this
     process: the compute inside one query request, without HTTP or store."""
     train = obs.subset(~test)
-    posts = {k: spec.posterior(k, inc.evidence) for k, inc in spec.increments(train.X, train.V).items()}
+    increments = spec.increments(train.X, train.V)
+    post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
     rng = np.random.default_rng(0)
     points = obs.X[test]
     times = []
     for _ in range(repeat):
         X = points[rng.choice(len(points), QUERY_POINTS, replace=False)]
         t0 = time.perf_counter()
-        spec.predict(X, posts)
+        spec.predict(X, post, increments)
         times.append(time.perf_counter() - t0)
     return 1e3 * float(np.median(times))
 
