@@ -100,9 +100,19 @@ class RegionMaps:
         self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
         self._lock = threading.Lock()
         self._building: dict[str, threading.Lock] = {}  # region name -> one computation at a time
-        self._queue: queue.SimpleQueue[str] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[str | None] = queue.SimpleQueue()
         self._pending: set[str] = set()
         self._worker: threading.Thread | None = None
+        self._closed = False
+        store.on_close(self.close)
+
+    def close(self) -> None:
+        """Stop the background refresh (after the one under way): the store closes next."""
+        with self._lock:
+            self._closed, worker = True, self._worker
+        if worker is not None and worker.is_alive():
+            self._queue.put(None)
+            worker.join(timeout=120)
 
     def upload(
         self,
@@ -229,7 +239,7 @@ class RegionMaps:
     def _schedule(self, region: str) -> None:
         """Refresh the region's posterior in the background (once per burst of writes)."""
         with self._lock:
-            if region in self._pending:
+            if region in self._pending or self._closed:
                 return
             self._pending.add(region)
             if self._worker is None or not self._worker.is_alive():
@@ -240,6 +250,8 @@ class RegionMaps:
     def _refresh_loop(self) -> None:
         while True:
             region = self._queue.get()
+            if region is None:
+                return
             with self._lock:
                 self._pending.discard(region)
             try:

@@ -159,6 +159,11 @@ class MapStore(ABC):
         self._local = threading.local()
         self._connections: list = []
         self._lock = threading.Lock()
+        self._before_close: list[Callable[[], None]] = []
+
+    def on_close(self, fn: Callable[[], None]) -> None:
+        """Call ``fn`` first when the store closes (background users stop before it)."""
+        self._before_close.append(fn)
 
     def _remember(self, conn):
         self._local.conn = conn
@@ -168,6 +173,8 @@ class MapStore(ABC):
 
     def close(self) -> None:
         """Close every connection this store opened, in all threads."""
+        for fn in self._before_close:
+            fn()
         with self._lock:
             for conn in self._connections:
                 conn.close()
