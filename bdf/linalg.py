@@ -55,7 +55,6 @@ class Stencil:
         o = o[half]
         self.offsets = o[np.lexsort((o[:, 2], o[:, 1], o[:, 0]))]
         self.factor = np.exp(-(self.offsets**2 @ steps))  # c(o)
-        self.reach = reach
         self._lock = threading.Lock()
         self._pattern = None
         self._symbolic = None
@@ -69,17 +68,28 @@ class Stencil:
         o = self.offsets[k]
         return tuple(slice(max(0, -o[d]), self.shape[d] - max(0, o[d])) for d in range(3))
 
+    def pairs(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Flat indices of the hinges ``m`` of :meth:`valid` and of their partners ``m + o_k``."""
+        o = self.offsets[k]
+        m = np.arange(self.size).reshape(self.shape)[self.valid(k)].ravel()
+        return m, m + (o[0] * self.shape[1] + o[1]) * self.shape[2] + o[2]
+
+    def midpoints(self, k: int) -> tuple[slice, slice, slice]:
+        """Slices of the midpoint lattice where the pairs of :meth:`valid` meet (``2 m + o_k``)."""
+        o = self.offsets[k]
+        return tuple(
+            slice(2 * s.start + o[d], 2 * (s.stop - 1) + o[d] + 1, 2) for d, s in enumerate(self.valid(k))
+        )
+
     def pattern(self):
         """``(csc_template, source)``: a symmetric CSC matrix of the pattern and, per stored
         entry, its index into a flattened band (``k * M + m``)."""
         with self._lock:
             if self._pattern is None:
                 M = self.size
-                index = np.arange(M).reshape(self.shape)
                 rows, cols, src = [], [], []
-                for k, o in enumerate(self.offsets):
-                    m = index[self.valid(k)].ravel()
-                    partner = m + (o[0] * self.shape[1] + o[1]) * self.shape[2] + o[2]
+                for k in range(len(self.offsets)):
+                    m, partner = self.pairs(k)
                     rows += [m, partner] if k else [m]
                     cols += [partner, m] if k else [m]
                     src += [k * M + m] * (2 if k else 1)
@@ -118,6 +128,7 @@ class Factor:
 
     def __init__(self, stencil: Stencil, numeric):
         self.stencil, self._numeric = stencil, numeric
+        self._lower = None
 
     def logdet(self) -> float:
         return float(self._numeric.logdet())
@@ -125,37 +136,40 @@ class Factor:
     def solve(self, b: np.ndarray) -> np.ndarray:
         return self._numeric.solve_A(b)
 
+    def lower(self) -> sp.csc_matrix:
+        """L, column-sorted CSC (CHOLMOD converts its supernodes once)."""
+        if self._lower is None:
+            self._lower = self._numeric.L().tocsc()
+            self._lower.sort_indices()
+        return self._lower
+
     @property
     def nnz(self) -> int:
         """Entries of L (what the factorisation and the selected inversion work on)."""
-        return int(self._numeric.L().nnz)
+        return int(self.lower().nnz)
+
+    @property
+    def madds(self) -> float:
+        """Multiply-adds of the factorisation: sum over columns of (entries in the column)^2."""
+        counts = np.diff(self.lower().indptr).astype(float)
+        return float(np.sum(counts * counts))
 
     def inverse_band(self) -> np.ndarray:
         """The inverse on the stencil, as a band (len(offsets), M): selected inversion."""
         st = self.stencil
-        L = self._numeric.L().tocsc()
-        L.sort_indices()
+        L = self.lower()
         starts = _supernodes(L.indptr, L.indices)
         values = _selected_inverse(L.indptr, L.indices, L.data, starts)
         # entries of the stencil, in the factor's (permuted) order, lower triangle
         inverse_perm = np.empty(st.size, np.int64)
         inverse_perm[self._numeric.P()] = np.arange(st.size)
-        index = np.arange(st.size).reshape(st.shape)
         band = np.zeros((len(st.offsets), st.size))
-        for k, o in enumerate(st.offsets):
-            m = index[st.valid(k)].ravel()
-            partner = m + (o[0] * st.shape[1] + o[1]) * st.shape[2] + o[2]
+        for k in range(len(st.offsets)):
+            m, partner = st.pairs(k)
             a, b = inverse_perm[m], inverse_perm[partner]
             row, col = np.maximum(a, b), np.minimum(a, b)
             band[k, m] = values[_positions(L.indptr, L.indices, row, col)]
         return band
-
-
-def flops(stencil_factor: Factor) -> float:
-    """Multiply-adds of the factorisation: sum over columns of (entries below the diagonal)^2."""
-    L = stencil_factor._numeric.L()
-    counts = np.diff(L.tocsc().indptr).astype(float)
-    return float(np.sum(counts * counts))
 
 
 def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.ndarray:
@@ -163,11 +177,9 @@ def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.n
     on the midpoint lattice: pair (m, m + o) meets at index ``2 idx(m) + o``; the half
     offsets count twice (the pair and its mirror), the diagonal once."""
     out = np.zeros(midpoints.shape)
-    for k, o in enumerate(stencil.offsets):
-        sel = stencil.valid(k)
+    for k in range(len(stencil.offsets)):
         weight = stencil.factor[k] * (1.0 if k == 0 else 2.0)
-        target = tuple(slice(2 * s.start + o[d], 2 * (s.stop - 1) + o[d] + 1, 2) for d, s in enumerate(sel))
-        out[target] += weight * band[k].reshape(stencil.shape)[sel]
+        out[stencil.midpoints(k)] += weight * band[k].reshape(stencil.shape)[stencil.valid(k)]
     return out
 
 

@@ -39,8 +39,6 @@ from bdf import features, linalg, noise
 from bdf.grid import HingeGrid, Lattice
 
 FORMAT_VERSION = 2
-#: The blob's first values (count, v_sum, v_sq): a store reads a region's totals from them.
-HEAD_BYTES = 7 * 8
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
 MIDPOINT_BLOCK = 2
 
@@ -158,10 +156,10 @@ class Evidence:
         """``Phi^T Phi`` on the stencil, as a band (K, M): ``c(o) D(midpoint)`` per pair
         (the midpoint of hinges m and m + o is at index ``2 idx(m) + o``), plus the noisy part."""
         out = np.zeros((len(stencil.offsets), stencil.size))
-        for k, o in enumerate(stencil.offsets):
-            sel = stencil.valid(k)
-            mid = tuple(slice(2 * s.start + o[d], 2 * (s.stop - 1) + o[d] + 1, 2) for d, s in enumerate(sel))
-            out[k].reshape(stencil.shape)[sel] = stencil.factor[k] * self.density[mid]
+        for k in range(len(stencil.offsets)):
+            out[k].reshape(stencil.shape)[stencil.valid(k)] = (
+                stencil.factor[k] * self.density[stencil.midpoints(k)]
+            )
         if self.gram_noisy is not None:
             out += self.gram_noisy
         return out
@@ -209,14 +207,6 @@ class Evidence:
             moments=None if shape is None else values[dense:plain].reshape(shape),
             gram_noisy=gram_noisy,
         )
-
-    @staticmethod
-    def head_from_bytes(head: bytes) -> tuple[float, np.ndarray, np.ndarray]:
-        """``count, v_sum, v_sq`` from a blob's first :data:`HEAD_BYTES`."""
-        values = np.frombuffer(bytes(head)[:HEAD_BYTES], dtype="<f8").astype(np.float64)
-        if len(values) != 7:
-            raise ValueError(f"an evidence blob starts with 7 values, got {len(values)}")
-        return float(values[0]), values[1:4], values[4:7]
 
     @classmethod
     def from_arrays(

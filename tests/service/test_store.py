@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 
 import numpy as np
 import pytest
@@ -216,7 +217,7 @@ def test_queries_answer_from_the_previous_version_until_the_new_one_is_ready(sto
     X, V = data(3, n=300)
     maps.upload("town", "a", X, V)
     first = maps.predict("town", X[:5])
-    gate = __import__("threading").Event()
+    gate = threading.Event()
     compute = maps._compute
     maps._compute = lambda region: gate.wait(30) and compute(region)  # the refresh is slow
     maps.upload("town", "b", *data(4, n=50))
