@@ -11,10 +11,11 @@ with ``k = gamma`` on the hinge grid (features, ``Phi^T V``, the posterior mean)
 variance density). Points are grouped by blocks of lattice cells; all points of a block
 share the same window of lattice points, so each block costs one dense BLAS product.
 
-Kernel cutoff: a per-axis factor ``exp(-k_d (x_d - g_d)^2)`` below ``cutoff`` is dropped
-(the window half-width is ``sqrt(log(1 / cutoff) / k_d)``): every dropped term is below
-``cutoff`` times the largest possible one. This is the only departure from the dense
-formulas; tests/bdf/test_field.py compares with them to 1e-8 relative.
+Kernel cutoff: a per-axis factor ``exp(-k_d (x_d - g_d)^2)`` below ``cutoff`` is zero
+(the window half-width is ``sqrt(log(1 / cutoff) / k_d)``), in every path alike, so the
+sums do not depend on how points are blocked or windows placed: a tile's support and the
+region's lattice give the same terms at any cutoff. This is the only departure from the
+dense formulas; tests/bdf/test_field.py compares with them to 1e-8 relative.
 """
 
 from __future__ import annotations
@@ -42,6 +43,12 @@ def expected_kernel(gamma: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarra
     return gamma / spread, np.prod(spread, axis=1) ** -0.5
 
 
+def _cut(factor: np.ndarray, cutoff: float) -> np.ndarray:
+    """Per-axis factors below the cutoff set to zero (in place)."""
+    factor[factor < cutoff] = 0.0
+    return factor
+
+
 class _Blocks:
     """Points grouped by lattice-cell blocks, with their per-axis window factors.
 
@@ -57,11 +64,10 @@ class _Blocks:
         reach = np.ceil(np.sqrt(np.log(1.0 / cutoff) / k.min(axis=0)) / lattice.step).astype(int)
         if len(X) < 2 * MIN_POINTS_PER_BLOCK or np.all(2 * reach + 1 >= shape):
             # too few points to split, or every window would span the lattice (small tiles,
-            # radar scans): one window over the whole lattice, which keeps every term and
-            # so differs from the cutoff sum by less than the cutoff
+            # radar scans): one window over the whole lattice
             self.order, self.bounds, self.width = slice(None), [0, len(X)], shape
             self.start = np.zeros((1, 3), np.int64)
-            self._factors(lattice, X, k)
+            self._factors(lattice, X, k, cutoff)
             return
         cells = np.floor((X - lattice.origin) / lattice.step).astype(np.int64)
         cells = np.clip(cells, -1, shape - 1)
@@ -83,16 +89,17 @@ class _Blocks:
         # exist, so no padding is needed and no window is wider than the lattice.
         self.width = np.minimum(edge + 2 * reach + 1, shape)
         self.start = np.clip(blocks[self.order] * edge - reach, 0, shape - self.width)
-        self._factors(lattice, X[self.order], k[self.order])
+        self._factors(lattice, X[self.order], k[self.order], cutoff)
 
-    def _factors(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
-        """Per axis, ``exp(-k (x - g)^2)`` for the lattice points g of each point's window."""
+    def _factors(self, lattice: Lattice, X: np.ndarray, k: np.ndarray, cutoff: float) -> None:
+        """Per axis, ``exp(-k (x - g)^2)`` for the lattice points g of each point's window,
+        zero below the cutoff."""
         t = (X - lattice.origin) / lattice.step - self.start  # in lattice steps
         scale = k * lattice.step**2
         self.factors = []
         for d in range(3):
             q = t[:, d, None] - np.arange(self.width[d])
-            self.factors.append(np.exp(-scale[:, d, None] * (q * q)))
+            self.factors.append(_cut(np.exp(-scale[:, d, None] * (q * q)), cutoff))
 
     def __iter__(self):
         """Yield (slice into the sorted points, window slices into the lattice array)."""
@@ -153,14 +160,13 @@ def contract(fx, yz, table) -> np.ndarray:
     return np.einsum("nxc,nx->nc", txc, fx)
 
 
-def gather_grid(lattice: Lattice, axes, T, k) -> np.ndarray:
+def gather_grid(lattice: Lattice, axes, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
     """:func:`gather` at every point of the grid ``axes[0] x axes[1] x axes[2]``, shape
     (nx, ny, nz, C). The weight is separable, so this is three small contractions with
-    per-axis kernel matrices instead of one product per point; it keeps every lattice
-    term (no cutoff), so it differs from :func:`gather` by less than the cutoff."""
+    per-axis kernel matrices instead of one product per point."""
     k = np.broadcast_to(np.asarray(k, float), (3,))
     K = [
-        np.exp(-k[d] * (np.asarray(axes[d], float)[:, None] - lattice.axis(d)[None, :]) ** 2)
+        _cut(np.exp(-k[d] * (np.asarray(axes[d], float)[:, None] - lattice.axis(d)[None, :]) ** 2), cutoff)
         for d in range(3)
     ]
     return np.einsum("xi,yj,zk,ijkc->xyzc", *K, np.asarray(T), optimize="optimal")

@@ -71,7 +71,7 @@ def noise_variance(lattice: Lattice, moments, X, mean, beta, prior):
 
 def noise_variance_grid(lattice: Lattice, moments, axes, mean, beta, prior):
     """sigma^2 on the grid ``axes`` (nx, ny, nz, 3); ``mean`` on the same grid."""
-    a = features.gather_grid(lattice, axes, moments, 1.0 / lattice.step**2)
+    a = features.gather_grid(lattice, axes, moments, 1.0 / lattice.step**2, cutoff=NOISE_CUTOFF)
     return _shrunk(a, mean, beta, prior)
 
 

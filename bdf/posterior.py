@@ -74,8 +74,12 @@ class Posterior:
         if self._variance is None:
             self._variance = self._variance_density()
         densities, columns = self._variance
-        mean = features.gather_grid(self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma)
-        var = features.gather_grid(self.grid.midpoints(), axes, densities, 2.0 * self.gamma)[..., columns]
+        mean = features.gather_grid(
+            self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma, cutoff=self.cutoff
+        )
+        var = features.gather_grid(
+            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
+        )[..., columns]
         if self._moments is None:
             scatter = 1.0 / self.beta
         else:

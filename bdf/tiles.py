@@ -96,6 +96,9 @@ class RegionSpec(BaseModel):
     beta: Hyper = "auto"
     noise_spacing_m: PositiveVec3 | None = None
     noise_prior: Positive = 0.1
+    #: Kernel cutoff (:mod:`bdf.features`): it sets the precision's stencil, so the cost of
+    #: a solve; looser values trade exactness for speed (bench/RESULTS.md, error vs cutoff).
+    cutoff: Annotated[float, Field(gt=0, lt=1)] = features.DEFAULT_CUTOFF
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -139,7 +142,7 @@ class RegionSpec(BaseModel):
 
     @property
     def stencil(self):
-        return stencil_of(self.grid, self.gamma)
+        return stencil_of(self.grid, self.gamma, self.cutoff)
 
     def frame(self) -> ENUFrame:
         return _frame(self.origin.lat, self.origin.lon, self.origin.alt_m)
@@ -162,7 +165,7 @@ class RegionSpec(BaseModel):
 
     def tile_grid(self, key: TileKey) -> HingeGrid:
         """The tile's support: the region's hinges its core's points reach (at the cutoff)."""
-        reach = np.sqrt(np.log(1.0 / features.DEFAULT_CUTOFF) / np.array(self.gamma))
+        reach = np.sqrt(np.log(1.0 / self.cutoff) / np.array(self.gamma))
         sub = self._support(key, self.grid, reach)
         return HingeGrid(sub.origin, sub.origin + sub.step * (np.array(sub.shape) - 1) + 1e-9, sub.step)
 
@@ -185,6 +188,7 @@ class RegionSpec(BaseModel):
             self.beta if beta is None else beta,
             noise_spacing=self.noise_spacing_m,
             noise_prior=self.noise_prior,
+            cutoff=self.cutoff,
         )
 
     def inside(self, X: np.ndarray) -> np.ndarray:
@@ -236,6 +240,7 @@ class RegionSpec(BaseModel):
                 None if input_noise is None else input_noise[idx],
                 None if weight is None else weight[idx],
                 noise_lattice=self.tile_noise_lattice(key),
+                cutoff=self.cutoff,
             )
             out[key] = Increment(evidence, len(idx))
             if progress is not None:
@@ -245,7 +250,9 @@ class RegionSpec(BaseModel):
     def decode(self, key: TileKey, blob: bytes) -> Evidence:
         """A tile's stored evidence (:meth:`Evidence.to_bytes` on its support)."""
         grid = self.tile_grid(key)
-        return Evidence.from_bytes(blob, grid, stencil_of(grid, self.gamma), self.tile_noise_lattice(key))
+        return Evidence.from_bytes(
+            blob, grid, stencil_of(grid, self.gamma, self.cutoff), self.tile_noise_lattice(key)
+        )
 
     def region_evidence(self, tiles: Mapping[TileKey, Evidence]) -> Evidence:
         """The region's evidence: the sum of its tiles', each placed on the region's lattice."""
@@ -270,7 +277,7 @@ class RegionSpec(BaseModel):
                 if total.gram_noisy is None:
                     total.gram_noisy = np.zeros((len(region_stencil.offsets), self.grid.size))
                 # the tile's stencil is the region's, cut where the support's edge is nearer
-                tile_stencil = stencil_of(grid, self.gamma)
+                tile_stencil = stencil_of(grid, self.gamma, self.cutoff)
                 rows = {tuple(o): k for k, o in enumerate(region_stencil.offsets.tolist())}
                 for k, o in enumerate(tile_stencil.offsets.tolist()):
                     band = total.gram_noisy[rows[tuple(o)]].reshape(self.grid.shape)

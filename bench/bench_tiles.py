@@ -1,6 +1,7 @@
 """Region maps on real ADS-B traffic around Paris: one field stored in tiles, served exactly.
 
-    .venv/bin/python bench/bench_tiles.py [--spacing 4000,4000,1000 ...] [--no-append]
+    .venv/bin/python bench/bench_tiles.py [--spacing 4000,4000,1000 ...] [--cutoff 1e-12]
+        [--cutoffs 1e-6,1e-8,1e-10] [--no-append]
 
 Region: the demo's (`bdf.ingest.paris_region`: the core benchmark's 80 km x 80 km box,
 10 km tiles over the whole altitude band, gamma = 1/spacing^2). Training data: the flight
@@ -18,6 +19,10 @@ lattice (largest difference of the means); plausibility on the 500 m grid at 500
 over the climatology std, the root mean square of the training velocities per component);
 seam ratios: the mean absolute step between neighbouring 500 m cells that straddle a tile
 border, over the same between cells that do not (1.0: borders invisible).
+
+With ``--cutoffs``: the error of a looser kernel cutoff (the precision's stencil) on the
+first lattice, against the default 1e-12 at the same hyperparameters, with the cost of
+its factorisation and selected inversion.
 """
 
 from __future__ import annotations
@@ -36,7 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import accuracy, publish  # bench/ is on the path when run as a script
 
-from bdf import ingest
+from bdf import features, ingest
+from bdf.tiles import RegionSpec
 from service.maps import RegionMaps
 from service.store import open_store
 
@@ -67,9 +73,48 @@ def seam_ratio(values: np.ndarray, axes, spec) -> float:
     return float(steps[border].mean() / steps[~border].mean())
 
 
-def run(spacing, obs, test, rate) -> dict:
+def paris(spacing, cutoff) -> RegionSpec:
     _, lower, upper = ingest.load_paris()
     spec = ingest.paris_region(lower, upper, spacing)
+    return RegionSpec.model_validate({**spec.model_dump(), "cutoff": cutoff})
+
+
+def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
+    """Largest error of the map at each cutoff against 1e-12 on 20,000 random points."""
+    train = obs.subset(~test)
+    exact = paris(spacing, features.DEFAULT_CUTOFF)
+    weight = ingest.track_weights(train, exact.spacing_m)
+    climate = np.sqrt(np.average(train.V**2, axis=0, weights=weight))
+    ref = exact.field().fit(train.X, train.V, sample_weight=weight)
+    Q = np.random.default_rng(1).uniform(exact.lower, exact.upper, (20_000, 3))
+    ref_mean, ref_std = ref.predict(Q, return_std=True)
+    lines = [
+        f"Error against cutoff 1e-12 ({exact.grid.size} hinges, alpha, beta fitted at 1e-12):",
+        "",
+        "| cutoff | stencil offsets (half) | factor Gmadd | factor [s] | selected inversion [s] "
+        "| max mean error / climatology std | max std relative error |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for cutoff in [*cutoffs, features.DEFAULT_CUTOFF]:
+        spec = paris(spacing, cutoff)
+        field = spec.field(ref.alpha_, ref.beta_).fit(train.X, train.V, sample_weight=weight)
+        mean, std = field.predict(Q, return_std=True)
+        band = field.evidence_.gram_band(spec.stencil)
+        t0 = time.perf_counter()
+        factor = spec.stencil.factor_of(band, float(np.mean(ref.alpha_) / np.mean(ref.beta_)))
+        t1 = time.perf_counter()
+        factor.inverse_band()
+        t2 = time.perf_counter()
+        lines.append(
+            f"| {cutoff:g} | {len(spec.stencil.offsets)} | {factor.madds / 1e9:.1f} | {t1 - t0:.2f} "
+            f"| {t2 - t1:.2f} | {(np.abs(mean - ref_mean) / climate).max():.2e} "
+            f"| {(np.abs(std - ref_std) / ref_std).max():.2e} |"
+        )
+    return lines
+
+
+def run(spacing, cutoff, obs, test, rate) -> dict:
+    spec = paris(spacing, cutoff)
     train = obs.subset(~test)
     weight = ingest.track_weights(train, spec.spacing_m)
     row = {"hinges": spec.grid.size, "stencil": len(spec.stencil.offsets)}
@@ -139,19 +184,31 @@ def run(spacing, obs, test, rate) -> dict:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spacing", nargs="+", default=["4000,4000,1000"], help="hinge spacings, x,y,z metres")
+    ap.add_argument(
+        "--cutoff", type=float, default=features.DEFAULT_CUTOFF, help="the regions' kernel cutoff"
+    )
+    ap.add_argument(
+        "--cutoffs", default="", help="looser cutoffs to compare on the first lattice, comma-separated"
+    )
     ap.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
     args = ap.parse_args(argv)
     obs, _, _ = ingest.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     rate = gemm_rate()
-    rows = {s: run(np.array([float(v) for v in s.split(",")]), obs, test, rate) for s in args.spacing}
+    spacings = [np.array([float(v) for v in s.split(",")]) for s in args.spacing]
+    rows = {
+        s: run(spacing, args.cutoff, obs, test, rate)
+        for s, spacing in zip(args.spacing, spacings, strict=True)
+    }
     keys = list(next(iter(rows.values())))
     report = [
         "",
         f"## bench_tiles: one region-wide field stored in tiles ({datetime.date.today()}, "
         f"{platform.machine()}, {platform.python_version()}, dense GEMM {rate / 1e9:.1f} Gmadd/s)",
         "",
-        f"`.venv/bin/python bench/bench_tiles.py --spacing {' '.join(args.spacing)}`",
+        f"`.venv/bin/python bench/bench_tiles.py {' '.join(sys.argv[1:] if argv is None else argv)}`",
+        "",
+        f"Kernel cutoff {args.cutoff:g}.",
         "",
         "| | " + " | ".join(f"spacing {s} m" for s in rows) + " |",
         "|---|" + "---|" * len(rows),
@@ -159,6 +216,9 @@ def main(argv=None) -> None:
     for k in keys:
         cells = [f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]) for r in rows.values()]
         report.append(f"| {k} | " + " | ".join(cells) + " |")
+    if args.cutoffs:
+        cutoffs = [float(c) for c in args.cutoffs.split(",")]
+        report += ["", *cutoff_errors(spacings[0], cutoffs, obs, test)]
     publish(report, not args.no_append)
 
 

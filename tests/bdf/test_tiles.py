@@ -54,6 +54,7 @@ def test_spec_json_is_the_service_body():
         "spacing_m": [4000.0, 4000.0, 1000.0],
         "noise_spacing_m": None,  # the global noise
         "noise_prior": 0.1,
+        "cutoff": 1e-12,
     }
     assert spec.tile_counts == (8, 8, 1)
     assert spec.grid.shape == (21, 21, 7)  # the Paris core lattice, 3,087 hinges
@@ -75,6 +76,7 @@ def test_spec_json_is_the_service_body():
         ({"tile_size_m": [100, 100, 100]}, "tiles"),
         ({"origin": {"lat": 91, "lon": 0}}, "lat"),
         ({"extra": 1}, "extra"),
+        ({"cutoff": 1}, "less than 1"),
         ({"overlap_m": [1000, 1000, 0]}, "extra"),  # tiles no longer overlap
         ({"noise_spacing_m": [100, 100, 100]}, "noise lattice would have"),
         ({"noise_spacing_m": [1000, 1000, 100], "noise_prior": 0}, "greater than 0"),
@@ -98,7 +100,7 @@ def test_each_observation_is_counted_once_and_the_tiles_sum_to_the_region(small)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
 
 
-@pytest.mark.parametrize("local", [{}, LOCAL])
+@pytest.mark.parametrize("local", [{}, LOCAL, {"cutoff": 1e-6}])  # a looser cutoff: smaller tiles
 @pytest.mark.parametrize("alpha", ["auto", 2.0])
 def test_the_region_is_one_field_everywhere_empty_places_included(small, local, alpha):
     spec = RegionSpec.model_validate({**SMALL, **local, "alpha": alpha})
