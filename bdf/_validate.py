@@ -73,12 +73,18 @@ def as_noise_std(value, n: int) -> np.ndarray | None:
     return arr if np.any(arr > 0) else None
 
 
-def as_hyper(value, name: str):
-    """'auto', a positive number, or 3 positive numbers (one per velocity component)."""
+def as_hyper(value, name: str, rows: int = 1):
+    """'auto', a positive number, 3 positive numbers (one per velocity component) or, with
+    ``rows > 1``, a (rows, 3) array of them."""
     if isinstance(value, str):
         if value != "auto":
             raise ValueError(f"{name} must be a positive number, 3 numbers or 'auto', got {value!r}")
         return value
+    arr = np.asarray(value, dtype=float)
+    if rows > 1 and arr.ndim == 2:
+        if arr.shape != (rows, 3) or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+            raise ValueError(f"{name} must be ({rows}, 3) positive finite numbers, got shape {arr.shape}")
+        return arr
     return as_vector3(value, name, positive=True)
 
 

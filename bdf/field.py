@@ -17,9 +17,10 @@ from bdf._validate import (
     as_sample_weight,
     as_vector3,
 )
+from bdf.directions import Sectors
 from bdf.grid import HingeGrid
-from bdf.posterior import Posterior
-from bdf.stats import FORMAT_VERSION, Evidence, stencil_of
+from bdf.posterior import Mixture, Modes, Posterior
+from bdf.stats import FORMAT_VERSION, SectorEvidence, stencil_of
 
 
 class BayesianDynamicField:
@@ -35,10 +36,11 @@ class BayesianDynamicField:
         Hinge spacing per axis.
     gamma : number or 3 numbers
         Inverse squared bandwidth per axis: kernel ``exp(-sum_d gamma_d (x_d - h_d)^2)``.
-    alpha : "auto", number or 3 numbers
+    alpha : "auto", number, 3 numbers or (1 + classes, 3)
         Prior precision of the weights (prior ``N(0, alpha^-1 I)``). "auto" fits it by
-        evidence maximisation.
-    beta : "auto", number or 3 numbers
+        evidence maximisation. A directional field takes a row per class after the row of
+        the map with one class (:class:`bdf.posterior.Mixture`).
+    beta : "auto", number, 3 numbers or (1 + classes, 3)
         Noise precision per velocity component. "auto" fits one per component.
     cutoff : float
         Kernel cutoff: per-axis Gaussian factors below it are dropped (see :mod:`bdf.features`).
@@ -53,6 +55,11 @@ class BayesianDynamicField:
     noise_prior : float
         With ``noise_spacing``: the weight of ``1/beta`` in the local estimate, in units of
         sample weight (the data near a point outweigh it once they weigh more).
+    directions : int
+        1 (the paper's model) or S in 2-16: a mixture over S horizontal heading sectors
+        and a slow class, with a share field (:mod:`bdf.directions`).
+    slow_mps : float
+        With ``directions > 1``: horizontal speeds below it form the slow class.
 
     Attributes
     ----------
@@ -92,6 +99,8 @@ class BayesianDynamicField:
         half_life=None,
         noise_spacing=None,
         noise_prior=0.1,
+        directions=1,
+        slow_mps=5.0,
     ):
         self.lower = lower
         self.upper = upper
@@ -103,6 +112,8 @@ class BayesianDynamicField:
         self.half_life = half_life
         self.noise_spacing = noise_spacing
         self.noise_prior = noise_prior
+        self.directions = directions
+        self.slow_mps = slow_mps
 
     def get_params(self, deep=True) -> dict:
         """Constructor arguments as given (scikit-learn convention)."""
@@ -113,7 +124,9 @@ class BayesianDynamicField:
         """Validate the constructor arguments (scikit-learn style: at fit, not in __init__)."""
         grid = HingeGrid(self.lower, self.upper, self.spacing)
         gamma = as_vector3(self.gamma, "gamma", positive=True)
-        alpha, beta = as_hyper(self.alpha, "alpha"), as_hyper(self.beta, "beta")
+        self._sectors = Sectors(self.directions, float(self.slow_mps))
+        rows = 1 if self._sectors.classes == 1 else 1 + self._sectors.classes
+        alpha, beta = as_hyper(self.alpha, "alpha", rows), as_hyper(self.beta, "beta", rows)
         if not 0 < float(self.cutoff) < 1:
             raise ValueError(f"cutoff must be in (0, 1), got {self.cutoff!r}")
         if self.half_life is not None and not float(self.half_life) > 0:
@@ -133,7 +146,7 @@ class BayesianDynamicField:
     def fit(self, X, V, *, input_noise_std=None, sample_weight=None, time=None):
         """Learn from ``(X, V)`` only, replacing what was learned. Returns self."""
         self._grid, self._gamma, self._alpha, self._beta, self._noise_lattice = self._setup()
-        self.evidence_ = Evidence.zeros(self._grid, self._noise_lattice)
+        self.evidence_ = SectorEvidence.zeros(self._grid, self._noise_lattice, self._sectors)
         self.time_ = None
         return self.partial_fit(X, V, input_noise_std=input_noise_std, sample_weight=sample_weight, time=time)
 
@@ -162,13 +175,14 @@ class BayesianDynamicField:
         input_noise = as_noise_std(input_noise_std, len(X))
         weight = as_sample_weight(sample_weight, len(X))
         time = self._advance(time)
-        self.evidence_ = self.evidence_ + Evidence.from_points(
+        self.evidence_ = self.evidence_ + SectorEvidence.from_points(
             self._grid,
             self._gamma,
             X,
             V,
             input_noise,
             weight,
+            sectors=self._sectors,
             cutoff=self.cutoff,
             noise_lattice=self._noise_lattice,
         )
@@ -193,20 +207,19 @@ class BayesianDynamicField:
 
     # -- the posterior -----------------------------------------------------------------------
     @property
-    def posterior_(self) -> Posterior:
+    def posterior_(self) -> Posterior | Mixture:
         if not hasattr(self, "evidence_"):
             raise ValueError("this field has not been fitted: call fit(X, V) first")
         if getattr(self, "_posterior", None) is None:
-            self._posterior = Posterior(
-                self._grid,
-                self._gamma,
-                self.evidence_,
-                self._alpha,
-                self._beta,
-                self.cutoff,
-                self._noise_lattice,
-                float(self.noise_prior),
-            )
+            model = (self._grid, self._gamma)
+            rest = (self.cutoff, self._noise_lattice, float(self.noise_prior))
+            if self._sectors.classes == 1:
+                (evidence,) = self.evidence_.classes
+                self._posterior = Posterior(*model, evidence, self._alpha, self._beta, *rest)
+            else:
+                self._posterior = Mixture(
+                    *model, self.evidence_, self._alpha, self._beta, *rest, self._sectors
+                )
         return self._posterior
 
     @property
@@ -225,7 +238,7 @@ class BayesianDynamicField:
     def weights_(self) -> np.ndarray:
         return self.posterior_.weights
 
-    def predict(self, X, return_std=False, *, include_noise=True):
+    def predict(self, X, return_std=False, *, include_noise=True, heading_deg=None):
         """Predictive mean, and std if asked, at positions ``X`` (n, 3).
 
         Parameters
@@ -236,8 +249,29 @@ class BayesianDynamicField:
             True: predictive std ``sqrt(1/beta + phi^T Sigma phi)`` (what a new
             observation would scatter by; local with ``noise_spacing``). False: epistemic
             std ``sqrt(phi^T Sigma phi)`` (the uncertainty of the mean field itself).
+        heading_deg : None, number or (n,)
+            None: a directional field answers its mixture's mean and std. A heading
+            (degrees from north, clockwise): the mode of traffic flying it (its sector's).
+            A field of one direction has one mode.
         """
-        return self.posterior_.predict(as_points(X, "X", allow_empty=True), return_std, include_noise)
+        X = as_points(X, "X", allow_empty=True)
+        post = self.posterior_
+        if heading_deg is None or self._sectors.classes == 1:
+            if heading_deg is not None:
+                _headings(heading_deg, len(X))
+            return post.predict(X, return_std, include_noise)
+        return post.predict_heading(X, _headings(heading_deg, len(X)), return_std, include_noise)
+
+    def predict_modes(self, X, *, include_noise=True) -> Modes:
+        """Per traffic class (the heading sectors, then the slow class; one class for a
+        field of one direction) at ``X`` (n, 3): ``share`` (n, C), ``share_std`` (n,),
+        ``mean`` and ``std`` (n, C, 3). See :class:`bdf.posterior.Modes`."""
+        return self.posterior_.predict_modes(as_points(X, "X", allow_empty=True), include_noise)
+
+    @property
+    def heading_deg_(self) -> np.ndarray:
+        """The centre heading of each sector (degrees from north, clockwise)."""
+        return Sectors(self.directions, float(self.slow_mps)).centres_deg
 
     # -- persistence -----------------------------------------------------------------------
     def save(self, path) -> None:
@@ -266,21 +300,29 @@ class BayesianDynamicField:
         time = params.pop("time_")
         field = cls(**params)
         grid, gamma, _, _, lattice = field._setup()
-        evidence = Evidence.from_arrays(arrays, grid, stencil_of(grid, gamma, field.cutoff), lattice)
+        stencil = stencil_of(grid, gamma, field.cutoff)
+        evidence = SectorEvidence.from_arrays(arrays, grid, stencil, lattice, field._sectors)
         return field.set_evidence(evidence, time)
 
-    def set_evidence(self, evidence: Evidence, time=None) -> BayesianDynamicField:
+    def set_evidence(self, evidence: SectorEvidence, time=None) -> BayesianDynamicField:
         """Take ``evidence`` (made on this field's grid, e.g. stored per tile) as everything
         learned. Returns self."""
         self._grid, self._gamma, self._alpha, self._beta, self._noise_lattice = self._setup()
-        if evidence.proj.shape != (self._grid.size, 3):
+        if len(evidence.classes) != self._sectors.classes:
             raise ValueError(
-                f"evidence for {len(evidence.proj)} hinges given to a field of {self._grid.size}"
+                f"evidence of {len(evidence.classes)} classes given to a field of {self._sectors.classes}"
             )
         lattice = self._noise_lattice
         expected = None if lattice is None else (*lattice.shape, noise.CHANNELS)
-        if (None if evidence.moments is None else evidence.moments.shape) != expected:
-            raise ValueError(f"evidence moments do not fit this field's noise_spacing (expected {expected})")
+        for part in evidence.classes:
+            if part.proj.shape != (self._grid.size, 3):
+                raise ValueError(
+                    f"evidence for {len(part.proj)} hinges given to a field of {self._grid.size}"
+                )
+            if (None if part.moments is None else part.moments.shape) != expected:
+                raise ValueError(
+                    f"evidence moments do not fit this field's noise_spacing (expected {expected})"
+                )
         self.evidence_ = evidence
         self.time_ = time
         self._posterior = None
@@ -298,8 +340,24 @@ _PARAMS = (
     "half_life",
     "noise_spacing",
     "noise_prior",
+    "directions",
+    "slow_mps",
 )
 
 
+def _headings(value, n: int) -> np.ndarray:
+    """``heading_deg`` as (n,): one finite number for all points, or one per point."""
+    h = np.asarray(value, float)
+    if h.ndim == 0:
+        h = np.full(n, float(h))
+    if h.shape != (n,):
+        raise ValueError(f"heading_deg must be one number or {n} (one per point), got shape {h.shape}")
+    if not np.all(np.isfinite(h)):
+        raise ValueError("heading_deg must be finite")
+    return h
+
+
 def _jsonable(value):
-    return value if isinstance(value, str | type(None)) else np.asarray(value, float).tolist()
+    if isinstance(value, str | type(None) | int):
+        return value
+    return np.asarray(value, float).tolist()

@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from bdf import features, linalg, noise, tuning
+from bdf.directions import mixture_moments
 from bdf.grid import HingeGrid
-from bdf.stats import MIDPOINT_BLOCK, Evidence, stencil_of
+from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence, stencil_of
+
+
+class Modes(NamedTuple):
+    """A directional map at n points: per class (the heading sectors, then the slow class)."""
+
+    share: np.ndarray  # (n, C) fraction of traffic, non-negative, summing to 1
+    share_std: np.ndarray  # (n,) epistemic std of each share (the same for every class)
+    mean: np.ndarray  # (n, C, 3) velocity of each mode
+    std: np.ndarray  # (n, C, 3) its std (predictive, or epistemic)
 
 
 class Posterior:
@@ -14,7 +26,8 @@ class Posterior:
 
     Derived data only (tiles cache these per version); the evidence is the source of truth.
     With ``noise_lattice`` (and the evidence's moments), the noise term of the predictive
-    variance is local (:mod:`bdf.noise`) with prior weight ``noise_prior``.
+    variance is local (:mod:`bdf.noise`) with prior weight ``noise_prior``. ``lam``: fixed
+    ratios alpha / beta for "auto" (:func:`tuning.fit_evidence`).
     """
 
     def __init__(
@@ -27,6 +40,7 @@ class Posterior:
         cutoff,
         noise_lattice=None,
         noise_prior=None,
+        lam=None,
     ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
@@ -41,6 +55,7 @@ class Posterior:
             evidence.count,
             alpha,
             beta,
+            lam,
         )
         self.log_evidence = np.array(
             [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
@@ -68,9 +83,10 @@ class Posterior:
         )
         return np.maximum(var[:, columns] / self.beta, 0.0)
 
-    def predict_grid(self, axes) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and predictive variance (noise included) on the grid ``axes`` (three 1-D
-        arrays), each (nx, ny, nz, 3); separable, see :func:`features.gather_grid`."""
+    def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and variance (predictive, or epistemic without the noise) on the grid
+        ``axes`` (three 1-D arrays), each (nx, ny, nz, 3); separable, see
+        :func:`features.gather_grid`."""
         if self._variance is None:
             self._variance = self._variance_density()
         densities, columns = self._variance
@@ -80,7 +96,9 @@ class Posterior:
         var = features.gather_grid(
             self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
         )[..., columns]
-        if self._moments is None:
+        if not include_noise:
+            scatter = 0.0
+        elif self._moments is None:
             scatter = 1.0 / self.beta
         else:
             scatter = noise.noise_variance_grid(
@@ -104,6 +122,11 @@ class Posterior:
         if include_noise:
             var = var + self.noise_variance(X, mean)
         return mean, np.sqrt(var)
+
+    def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
+        """The one mode of a map of one class."""
+        mean, std = self.predict(X, True, include_noise)
+        return Modes(np.ones((len(X), 1)), np.zeros(len(X)), mean[:, None], std[:, None])
 
     def compact(self) -> Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
@@ -133,3 +156,143 @@ class Posterior:
                 densities[id(sol)] = linalg.band_density(self.stencil, inverse, self.grid.midpoints())
             columns.append(list(densities).index(id(sol)))
         return np.stack(list(densities.values()), axis=-1), columns
+
+
+class Mixture:
+    """The posterior of a directional map (:mod:`bdf.directions`): one :class:`Posterior`
+    per class (its *mode*) and the share field.
+
+    The shares regress each class's indicator on the same features, with the map's overall
+    shares as prior mean: ``share_c(x) = p_c + phi(x)^T (G + lam I)^-1 Phi^T (y_c - p_c)``,
+    with ``G`` and ``lam`` of the map with one class (its factorisation, no other). They sum
+    to 1 exactly; negative values (the linear smoother undershoots next to sharp edges) are
+    cut to 0 and the rest renormalised. Their epistemic std is
+    ``sqrt(phi^T (G + lam I)^-1 phi / beta_share)``, ``beta_share`` at its evidence maximum.
+
+    Hyperparameters: ``alpha``, ``beta`` "auto" fit the map with one class (``total``); each
+    mode keeps its ratios alpha / beta and takes its own beta at its evidence maximum there.
+    Fixed values are (3,) for all, or (1 + C, 3): the map with one class, then each class.
+    """
+
+    def __init__(
+        self, grid, gamma, evidence: SectorEvidence, alpha, beta, cutoff, noise_lattice, noise_prior, sectors
+    ):
+        C = sectors.classes
+        self.sectors, self.grid, self.gamma, self.cutoff = sectors, grid, gamma, cutoff
+        auto = isinstance(alpha, str) or isinstance(beta, str)
+        rows = [np.broadcast_to(h, (1 + C, 3)) if not isinstance(h, str) else None for h in (alpha, beta)]
+
+        def row(h, r, k):
+            return h if r is None else r[k]
+
+        total = evidence.total()
+        self.total = Posterior(
+            grid,
+            gamma,
+            total,
+            row(alpha, rows[0], 0),
+            row(beta, rows[1], 0),
+            cutoff,
+            noise_lattice,
+            noise_prior,
+        )
+        lam = self.total.alpha / self.total.beta
+        self.modes = [
+            Posterior(
+                grid,
+                gamma,
+                e,
+                row(alpha, rows[0], 1 + c),
+                row(beta, rows[1], 1 + c),
+                cutoff,
+                noise_lattice,
+                noise_prior,
+                lam=lam if auto else None,
+            )
+            for c, e in enumerate(evidence.classes)
+        ]
+        self.fitted = self.total.fitted
+        # the share field, on the factorisation of the map with one class
+        counts = np.array([e.count for e in evidence.classes])
+        n = counts.sum()
+        self.prior_share = counts / n if n > 0 else np.full(C, 1.0 / C)
+        rhs = np.stack([e.mass for e in evidence.classes], axis=1) - total.mass[:, None] * self.prior_share
+        sol = self.total._solutions[0]
+        self.share_weights = sol.factor.solve(rhs)
+        residual = np.sum(counts * (1.0 - self.prior_share)) - np.sum(rhs * self.share_weights)
+        self.share_beta = (
+            min(C * n / max(residual, 1e-300), tuning.MAX_AUTO_BETA) if n > 0 else tuning.EMPTY_BETA
+        )
+
+    @property
+    def alpha(self) -> np.ndarray:
+        """(1 + C, 3): the map with one class, then each mode."""
+        return np.stack([self.total.alpha, *(m.alpha for m in self.modes)])
+
+    @property
+    def beta(self) -> np.ndarray:
+        return np.stack([self.total.beta, *(m.beta for m in self.modes)])
+
+    @property
+    def log_evidence(self) -> np.ndarray:
+        return np.stack([self.total.log_evidence, *(m.log_evidence for m in self.modes)])
+
+    def _share(self, weights_at, base_variance):
+        """Shares from the gathered share weights (n, C), and their std."""
+        raw = np.maximum(self.prior_share + weights_at, 0.0)
+        share = raw / raw.sum(axis=1, keepdims=True)
+        return share, np.sqrt(np.maximum(base_variance, 0.0) / self.share_beta)
+
+    def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
+        T = self.share_weights.reshape(*self.grid.shape, -1)
+        weights_at = features.gather(self.grid, X, T, self.gamma, cutoff=self.cutoff)
+        # phi^T (G + lam I)^-1 phi: the epistemic variance of the map with one class, times its beta
+        base = self.total.epistemic_variance(X)[:, 0] * self.total.beta[0]
+        share, share_std = self._share(weights_at, base)
+        mean, std = zip(*(m.predict(X, True, include_noise) for m in self.modes), strict=True)
+        return Modes(share, share_std, np.stack(mean, axis=1), np.stack(std, axis=1))
+
+    def predict(self, X: np.ndarray, return_std=False, include_noise=True):
+        """The mixture's mean (n, 3), and its std if asked (moments over the modes)."""
+        modes = self.predict_modes(X, include_noise)
+        mean, std = mixture_moments(modes.share, modes.mean, modes.std)
+        return (mean, std) if return_std else mean
+
+    def predict_heading(self, X: np.ndarray, heading_deg: np.ndarray, return_std=False, include_noise=True):
+        """The mode of the sector holding ``heading_deg`` (n,) at each point."""
+        sector = self.sectors.sector_of_heading(heading_deg)
+        mean, std = np.empty((len(X), 3)), np.empty((len(X), 3))
+        for s in np.unique(sector):
+            rows = sector == s
+            mean[rows], std[rows] = self.modes[s].predict(X[rows], True, include_noise)
+        return (mean, std) if return_std else mean
+
+    def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
+        """The mixture's mean and variance on the grid ``axes`` (see :meth:`Posterior.predict_grid`)."""
+        modes = self.predict_grid_modes(axes, include_noise)
+        shape = modes.mean.shape
+        flat = Modes(*(a.reshape(-1, *a.shape[3:]) for a in modes))
+        mean, std = mixture_moments(flat.share, flat.mean, flat.std)
+        return mean.reshape(*shape[:3], 3), (std**2).reshape(*shape[:3], 3)
+
+    def predict_grid_modes(self, axes, include_noise=True) -> Modes:
+        """:class:`Modes` on the grid ``axes``, each array with the grid's shape first."""
+        T = self.share_weights.reshape(*self.grid.shape, -1)
+        weights_at = features.gather_grid(self.grid, axes, T, self.gamma, cutoff=self.cutoff)
+        base = self.total.predict_grid(axes, include_noise=False)[1][..., 0] * self.total.beta[0]
+        share, share_std = self._share(weights_at.reshape(-1, weights_at.shape[-1]), base.ravel())
+        grids = [m.predict_grid(axes, include_noise) for m in self.modes]
+        mean = np.stack([g[0] for g in grids], axis=3)
+        std = np.sqrt(np.stack([g[1] for g in grids], axis=3))
+        n = mean.shape[:3]
+        return Modes(share.reshape(*n, -1), share_std.reshape(n), mean, std)
+
+    def compact(self) -> Mixture:
+        self.total.compact()
+        for m in self.modes:
+            m.compact()
+        return self
+
+    @property
+    def nbytes(self) -> int:
+        return self.share_weights.nbytes + self.total.nbytes + sum(m.nbytes for m in self.modes)

@@ -12,21 +12,27 @@ about 8 M numbers instead of M^2. Points with input noise (the expected kernel h
 per-point width) do not fit the identity; their Gram part is kept in ``gram_noisy`` as a
 band on the precision's stencil (:mod:`bdf.linalg`).
 
-Stored format (version 2), all float64:
+Stored format (version 3), all float64:
     density     (2nx-1, 2ny-1, 2nz-1)   D above, noise-free points
     gram_noisy  (K, M) or absent         sum of phi~ phi~^T over noisy-input points, as a
                                          band: [k, m] is the pair (m, m + o_k) of the stencil
     proj        (M, 3)                   Phi^T V
+    mass        (M,)                     Phi^T 1 (weighted): the share field's right-hand side
     count       ()                       sum of sample weights (decayed when forgetting)
     v_sum       (3,)                     sum of V per component
     v_sq        (3,)                     sum of V^2 per component
     moments     noise lattice + (7,)     only with local noise: see :mod:`bdf.noise`
 
 As one blob (:meth:`Evidence.to_bytes`, what the map stores keep per tile): little-endian
-float64 values in the order count, v_sum, v_sq, proj (C order), density (C order), then
-the moments (C order) if the tile has local noise (its spec says so), then, only if
+float64 values in the order count, v_sum, v_sq, proj (C order), mass, density (C order),
+then the moments (C order) if the tile has local noise (its spec says so), then, only if
 present, the band ``gram_noisy`` (C order, K M values). Shapes follow from the tile's hinge
-grid, noise lattice and stencil; the length tells whether ``gram_noisy`` is there.
+grid, noise lattice and stencil; the length tells whether ``gram_noisy`` is there. Version
+2 had no ``mass`` (read as zeros: a map of one class never uses it).
+
+A directional map (:mod:`bdf.directions`) keeps one :class:`Evidence` per traffic class
+(:class:`SectorEvidence`); its blob is the classes' blobs one after the other, each
+preceded by its length in values (little-endian int64).
 """
 
 from __future__ import annotations
@@ -36,9 +42,12 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from bdf import features, linalg, noise
+from bdf.directions import Sectors
 from bdf.grid import HingeGrid, Lattice
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: Blob formats this code reads.
+READABLE_FORMATS = (2, 3)
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
 MIDPOINT_BLOCK = 2
 
@@ -49,6 +58,7 @@ class Evidence:
 
     density: np.ndarray
     proj: np.ndarray
+    mass: np.ndarray
     count: float
     v_sum: np.ndarray
     v_sq: np.ndarray
@@ -60,6 +70,7 @@ class Evidence:
         return cls(
             density=np.zeros(grid.midpoints().shape),
             proj=np.zeros((grid.size, 3)),
+            mass=np.zeros(grid.size),
             count=0.0,
             v_sum=np.zeros(3),
             v_sq=np.zeros(3),
@@ -93,12 +104,13 @@ class Evidence:
             grid.midpoints(), X[plain], w[plain, None], 2.0 * gamma, cutoff=cutoff, block=MIDPOINT_BLOCK
         )[..., 0]
         wV = V * w[:, None]
-        proj = features.splat(grid, X[plain], wV[plain], gamma, cutoff=cutoff).reshape(-1, 3)
+        wV1 = np.concatenate([wV, w[:, None]], axis=1)  # Phi^T V and Phi^T 1 in one pass
+        proj = features.splat(grid, X[plain], wV1[plain], gamma, cutoff=cutoff).reshape(-1, 4)
         gram_noisy = None
         if noisy.any():
             k, amplitude = features.expected_kernel(gamma, input_noise_std[noisy])
-            weighted_v = wV[noisy] * amplitude[:, None]
-            proj += features.splat(grid, X[noisy], weighted_v, k, cutoff=cutoff).reshape(-1, 3)
+            weighted = wV1[noisy] * amplitude[:, None]
+            proj += features.splat(grid, X[noisy], weighted, k, cutoff=cutoff).reshape(-1, 4)
             gram_noisy = features.gram_band(
                 grid,
                 X[noisy],
@@ -109,7 +121,8 @@ class Evidence:
             )
         return cls(
             density=density,
-            proj=proj,
+            proj=np.ascontiguousarray(proj[:, :3]),
+            mass=np.ascontiguousarray(proj[:, 3]),
             count=float(w.sum()),
             v_sum=wV.sum(axis=0),
             v_sq=(wV * V).sum(axis=0),
@@ -130,6 +143,7 @@ class Evidence:
         return Evidence(
             density=self.density + other.density,
             proj=self.proj + other.proj,
+            mass=self.mass + other.mass,
             count=self.count + other.count,
             v_sum=self.v_sum + other.v_sum,
             v_sq=self.v_sq + other.v_sq,
@@ -145,6 +159,7 @@ class Evidence:
         return Evidence(
             density=self.density * factor,
             proj=self.proj * factor,
+            mass=self.mass * factor,
             count=self.count * factor,
             v_sum=self.v_sum * factor,
             v_sq=self.v_sq * factor,
@@ -174,7 +189,7 @@ class Evidence:
 
     def to_bytes(self) -> bytes:
         """The stored blob (layout in the module docstring)."""
-        parts = [[self.count], self.v_sum, self.v_sq, self.proj.ravel(), self.density.ravel()]
+        parts = [[self.count], self.v_sum, self.v_sq, self.proj.ravel(), self.mass, self.density.ravel()]
         if self.moments is not None:
             parts.append(self.moments.ravel())
         if self.gram_noisy is not None:
@@ -183,11 +198,19 @@ class Evidence:
 
     @classmethod
     def from_bytes(
-        cls, blob: bytes, grid: HingeGrid, stencil: linalg.Stencil, noise_lattice: Lattice | None = None
+        cls,
+        blob: bytes,
+        grid: HingeGrid,
+        stencil: linalg.Stencil,
+        noise_lattice: Lattice | None = None,
+        format_version: int = FORMAT_VERSION,
     ) -> Evidence:
         values = np.frombuffer(blob, dtype="<f8").astype(np.float64)
+        if format_version not in READABLE_FORMATS:
+            raise ValueError(f"statistics format {format_version}: this code reads {READABLE_FORMATS}")
         M, n_density = grid.size, grid.midpoints().size
-        dense = 7 + 3 * M + n_density
+        n_mass = M if format_version >= 3 else 0
+        dense = 7 + 3 * M + n_mass + n_density
         shape = None if noise_lattice is None else (*noise_lattice.shape, noise.CHANNELS)
         plain = dense + (0 if shape is None else int(np.prod(shape)))
         band = len(stencil.offsets) * M
@@ -203,7 +226,8 @@ class Evidence:
             v_sum=values[1:4],
             v_sq=values[4:7],
             proj=values[7 : 7 + 3 * M].reshape(M, 3),
-            density=values[7 + 3 * M : dense].reshape(grid.midpoints().shape),
+            mass=values[7 + 3 * M : 7 + 3 * M + n_mass] if n_mass else np.zeros(M),
+            density=values[7 + 3 * M + n_mass : dense].reshape(grid.midpoints().shape),
             moments=None if shape is None else values[dense:plain].reshape(shape),
             gram_noisy=gram_noisy,
         )
@@ -216,6 +240,7 @@ class Evidence:
         expected = {
             "density": grid.midpoints().shape,
             "proj": (M, 3),
+            "mass": (M,),
             "count": (),
             "v_sum": (3,),
             "v_sq": (3,),
@@ -241,3 +266,129 @@ class Evidence:
 def stencil_of(grid: HingeGrid, gamma, cutoff: float = features.DEFAULT_CUTOFF) -> linalg.Stencil:
     """The precision's stencil on ``grid`` for kernel ``gamma`` (cached)."""
     return linalg.stencil(grid.shape, tuple(grid.step), tuple(np.asarray(gamma, float)), float(cutoff))
+
+
+@dataclass
+class SectorEvidence:
+    """The evidence of a map: one :class:`Evidence` per traffic class (:mod:`bdf.directions`),
+    each made by :meth:`Evidence.from_points` from that class's observations. Additive like
+    its parts; a map of one class is its one part."""
+
+    classes: tuple[Evidence, ...]
+
+    @classmethod
+    def zeros(cls, grid: HingeGrid, noise_lattice: Lattice | None, sectors: Sectors) -> SectorEvidence:
+        return cls(tuple(Evidence.zeros(grid, noise_lattice) for _ in range(sectors.classes)))
+
+    @classmethod
+    def from_points(
+        cls,
+        grid: HingeGrid,
+        gamma: np.ndarray,
+        X: np.ndarray,
+        V: np.ndarray,
+        input_noise_std: np.ndarray | None = None,
+        sample_weight: np.ndarray | None = None,
+        *,
+        sectors: Sectors,
+        cutoff: float = features.DEFAULT_CUTOFF,
+        noise_lattice: Lattice | None = None,
+    ) -> SectorEvidence:
+        """The increment of ``(X, V)``: each observation in the class of its velocity."""
+        label = sectors.classify(V)
+        parts = []
+        for c in range(sectors.classes):
+            idx = slice(None) if sectors.classes == 1 else np.flatnonzero(label == c)
+            parts.append(
+                Evidence.from_points(
+                    grid,
+                    gamma,
+                    X[idx],
+                    V[idx],
+                    None if input_noise_std is None else input_noise_std[idx],
+                    None if sample_weight is None else sample_weight[idx],
+                    cutoff=cutoff,
+                    noise_lattice=noise_lattice,
+                )
+            )
+        return cls(tuple(parts))
+
+    @property
+    def count(self) -> float:
+        return float(sum(e.count for e in self.classes))
+
+    def total(self) -> Evidence:
+        """Every class together: the evidence of the map with one class."""
+        out = self.classes[0]
+        for e in self.classes[1:]:
+            out = out + e
+        return out
+
+    def _zip(self, other: SectorEvidence):
+        if len(self.classes) != len(other.classes):
+            raise ValueError(f"cannot add evidence of {len(self.classes)} and {len(other.classes)} classes")
+        return zip(self.classes, other.classes, strict=True)
+
+    def __add__(self, other: SectorEvidence) -> SectorEvidence:
+        return SectorEvidence(tuple(a + b for a, b in self._zip(other)))
+
+    def __sub__(self, other: SectorEvidence) -> SectorEvidence:
+        return SectorEvidence(tuple(a - b for a, b in self._zip(other)))
+
+    def scaled(self, factor: float) -> SectorEvidence:
+        return SectorEvidence(tuple(e.scaled(factor) for e in self.classes))
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Plain arrays, ``"{class}_{name}"``."""
+        return {f"{c}_{k}": v for c, e in enumerate(self.classes) for k, v in e.to_arrays().items()}
+
+    @classmethod
+    def from_arrays(cls, arrays, grid, stencil, noise_lattice, sectors: Sectors) -> SectorEvidence:
+        parts = []
+        for c in range(sectors.classes):
+            mine = {k.removeprefix(f"{c}_"): v for k, v in arrays.items() if k.startswith(f"{c}_")}
+            parts.append(Evidence.from_arrays(mine, grid, stencil, noise_lattice))
+        if any(
+            not k.split("_", 1)[0].isdigit() or int(k.split("_", 1)[0]) >= sectors.classes for k in arrays
+        ):
+            raise ValueError(f"evidence arrays of more than {sectors.classes} classes")
+        return cls(tuple(parts))
+
+    def to_bytes(self) -> bytes:
+        """One class: its blob; several: each blob after its length (int64, in values)."""
+        if len(self.classes) == 1:
+            return self.classes[0].to_bytes()
+        out = []
+        for e in self.classes:
+            blob = e.to_bytes()
+            out += [np.array([len(blob) // 8], "<i8").tobytes(), blob]
+        return b"".join(out)
+
+    @classmethod
+    def from_bytes(
+        cls,
+        blob: bytes,
+        grid: HingeGrid,
+        stencil: linalg.Stencil,
+        noise_lattice: Lattice | None,
+        sectors: Sectors,
+        format_version: int = FORMAT_VERSION,
+    ) -> SectorEvidence:
+        if sectors.classes == 1:
+            return cls((Evidence.from_bytes(blob, grid, stencil, noise_lattice, format_version),))
+        if format_version < 3:
+            raise ValueError(f"statistics format {format_version} holds one class, not {sectors.classes}")
+        parts, at = [], 0
+        for _ in range(sectors.classes):
+            if at + 8 > len(blob):
+                raise ValueError(f"an evidence blob of {len(blob)} bytes ends before class {len(parts)}")
+            n = int(np.frombuffer(blob[at : at + 8], "<i8")[0])
+            if n < 0 or at + 8 + 8 * n > len(blob):
+                raise ValueError(f"an evidence blob of {len(blob)} bytes is cut in class {len(parts)}")
+            parts.append(Evidence.from_bytes(blob[at + 8 : at + 8 + 8 * n], grid, stencil, noise_lattice))
+            at += 8 + 8 * n
+        if at != len(blob):
+            raise ValueError(
+                f"an evidence blob has {len(blob) - at} bytes after its {sectors.classes} classes"
+            )
+        return cls(tuple(parts))

@@ -34,11 +34,12 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bdf import features, noise
 from bdf._validate import _bad_rows, as_noise_std, as_observations, as_points, as_sample_weight
+from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice
 from bdf.posterior import Posterior
-from bdf.stats import Evidence, stencil_of
+from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence, stencil_of
 
 TileKey = tuple[int, int, int]
 #: Most tiles a region may have (keys, ledgers and listings stay small).
@@ -99,6 +100,9 @@ class RegionSpec(BaseModel):
     #: Kernel cutoff (:mod:`bdf.features`): it sets the precision's stencil, so the cost of
     #: a solve; looser values trade exactness for speed (bench/RESULTS.md, error vs cutoff).
     cutoff: Annotated[float, Field(gt=0, lt=1)] = features.DEFAULT_CUTOFF
+    #: Heading sectors (1: the paper's model; more: a mixture, :mod:`bdf.directions`).
+    directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] = 1
+    slow_mps: Positive = 5.0
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -139,6 +143,10 @@ class RegionSpec(BaseModel):
         if self.noise_spacing_m is None:
             return None
         return _noise_lattice(tuple(self.bounds_m.min), tuple(self.bounds_m.max), tuple(self.noise_spacing_m))
+
+    @property
+    def sectors(self) -> Sectors:
+        return Sectors(self.directions, self.slow_mps)
 
     @property
     def stencil(self):
@@ -189,6 +197,8 @@ class RegionSpec(BaseModel):
             noise_spacing=self.noise_spacing_m,
             noise_prior=self.noise_prior,
             cutoff=self.cutoff,
+            directions=self.directions,
+            slow_mps=self.slow_mps,
         )
 
     def inside(self, X: np.ndarray) -> np.ndarray:
@@ -232,13 +242,14 @@ class RegionSpec(BaseModel):
         out = {}
         groups = self.home_tiles(X)
         for done, (key, idx) in enumerate(groups.items(), start=1):
-            evidence = Evidence.from_points(
+            evidence = SectorEvidence.from_points(
                 self.tile_grid(key),
                 gamma,
                 X[idx],
                 V[idx],
                 None if input_noise is None else input_noise[idx],
                 None if weight is None else weight[idx],
+                sectors=self.sectors,
                 noise_lattice=self.tile_noise_lattice(key),
                 cutoff=self.cutoff,
             )
@@ -247,15 +258,25 @@ class RegionSpec(BaseModel):
                 progress(done / len(groups))
         return out
 
-    def decode(self, key: TileKey, blob: bytes) -> Evidence:
-        """A tile's stored evidence (:meth:`Evidence.to_bytes` on its support)."""
+    def decode(self, key: TileKey, blob: bytes, format_version: int = FORMAT_VERSION) -> SectorEvidence:
+        """A tile's stored evidence (:meth:`SectorEvidence.to_bytes` on its support)."""
         grid = self.tile_grid(key)
-        return Evidence.from_bytes(
-            blob, grid, stencil_of(grid, self.gamma, self.cutoff), self.tile_noise_lattice(key)
+        stencil = stencil_of(grid, self.gamma, self.cutoff)
+        return SectorEvidence.from_bytes(
+            blob, grid, stencil, self.tile_noise_lattice(key), self.sectors, format_version
         )
 
-    def region_evidence(self, tiles: Mapping[TileKey, Evidence]) -> Evidence:
+    def region_evidence(self, tiles: Mapping[TileKey, SectorEvidence]) -> SectorEvidence:
         """The region's evidence: the sum of its tiles', each placed on the region's lattice."""
+        return SectorEvidence(
+            tuple(
+                self._region_class({k: ev.classes[c] for k, ev in tiles.items()})
+                for c in range(self.sectors.classes)
+            )
+        )
+
+    def _region_class(self, tiles: Mapping[TileKey, Evidence]) -> Evidence:
+        """One class's :meth:`region_evidence`."""
         total = Evidence.zeros(self.grid, self.noise_lattice)
         region_stencil = self.stencil
         for key, ev in tiles.items():
@@ -265,6 +286,7 @@ class RegionSpec(BaseModel):
             mids = tuple(slice(2 * a, 2 * (a + n) - 1) for a, n in zip(i0, grid.shape, strict=True))
             total.density[mids] += ev.density
             total.proj.reshape(*self.grid.shape, 3)[hinges] += ev.proj.reshape(*grid.shape, 3)
+            total.mass.reshape(self.grid.shape)[hinges] += ev.mass.reshape(grid.shape)
             total.count += ev.count
             total.v_sum += ev.v_sum
             total.v_sq += ev.v_sq

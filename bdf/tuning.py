@@ -83,12 +83,26 @@ def _hyper_for(sol: Solution, alpha, beta, count: float):
     return sol.lam * beta, beta
 
 
-def fit_evidence(stencil, band, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.ndarray, list]:
+def _at_ratios(stencil, band, proj, v_sq, lams) -> list[Solution]:
+    """The solutions at ratios ``lams`` (3,); ratios equal to rounding (fitted values
+    stored and read back) share a factorisation."""
+    same = np.isclose(lams[:, None], lams[None, :], rtol=1e-12, atol=0)
+    first = [int(np.argmax(row)) for row in same]
+    cache = {c: solve(stencil, band, proj, v_sq, lams[c]) for c in sorted(set(first))}
+    return [cache[c] for c in first]
+
+
+def fit_evidence(
+    stencil, band, proj, v_sq, count, alpha, beta, lam=None
+) -> tuple[np.ndarray, np.ndarray, list]:
     """alpha (3,), beta (3,) and the factorisation(s) serving component 0, 1, 2.
 
     ``band``: ``G`` on ``stencil``. ``alpha``/``beta``: "auto" or 3-vectors. Fixed values
     need no search. "auto" for alpha shares ``lam`` over the components; a fixed alpha
     with "auto" beta searches each component on its own (up to three factorisations).
+    ``lam`` (3,) given with "auto": the ratios are fixed and beta is its closed-form
+    evidence maximum there (one factorisation; a directional map's modes, at the ratios
+    of the map with one class).
     """
     auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
     if (auto_a or auto_b) and count <= 0:
@@ -96,15 +110,16 @@ def fit_evidence(stencil, band, proj, v_sq, count, alpha, beta) -> tuple[np.ndar
         alpha = EMPTY_ALPHA if auto_a else alpha
         beta = EMPTY_BETA if auto_b else beta
         auto_a = auto_b = False
+    if (auto_a or auto_b) and lam is not None:
+        lams = np.broadcast_to(np.asarray(lam, float), (3,))
+        sols = _at_ratios(stencil, band, proj, v_sq, lams)
+        residual = np.array([s.residual[c] for c, s in enumerate(sols)])
+        beta_v = np.minimum(count / residual, MAX_AUTO_BETA)
+        return lams * beta_v, beta_v, sols
     if not (auto_a or auto_b):
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
-        lams = alpha_v / beta_v
-        # ratios equal to rounding (fitted values stored and read back) share a factorisation
-        same = np.isclose(lams[:, None], lams[None, :], rtol=1e-12, atol=0)
-        first = [int(np.argmax(row)) for row in same]
-        cache = {c: solve(stencil, band, proj, v_sq, lams[c]) for c in sorted(set(first))}
-        return alpha_v.copy(), beta_v.copy(), [cache[c] for c in first]
+        return alpha_v.copy(), beta_v.copy(), _at_ratios(stencil, band, proj, v_sq, alpha_v / beta_v)
 
     scale = max(float(np.mean(band[0])), 1e-300)
     groups = [[0], [1], [2]] if (auto_b and not auto_a) else [[0, 1, 2]]

@@ -8,7 +8,7 @@ What is stored (schema version 2; both backends, same tables):
     tiles    region_id, key "i_j_k", version, count, points, stats (blob), format_version, updated_at
     uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
 
-``tiles.stats`` is :meth:`bdf.stats.Evidence.to_bytes` (little-endian float64, layout in
+``tiles.stats`` is :meth:`bdf.stats.SectorEvidence.to_bytes` (little-endian float64, layout in
 :mod:`bdf.stats`, ``format_version`` there). A tile row exists only once data reached the
 tile. Versions: every applied upload or fit bumps the region's version by one and stamps
 every tile it touched with the new version, so ``(region_id, key, version)`` names one
@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bdf.stats import FORMAT_VERSION, Evidence
+from bdf.stats import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence
 from bdf.tiles import Increment, RegionSpec, TileKey, key_str, parse_key
 
 SCHEMA_VERSION = 2
@@ -106,7 +106,7 @@ class Snapshot:
 
     region: RegionInfo
     tiles: dict[TileKey, TileInfo]
-    evidence: dict[TileKey, Evidence] = field(default_factory=dict)
+    evidence: dict[TileKey, SectorEvidence] = field(default_factory=dict)
 
 
 def payload_digest(kind: str, *arrays: np.ndarray | None) -> str:
@@ -444,12 +444,12 @@ class MapStore(ABC):
         return self.region(name)
 
 
-def _decode(spec: RegionSpec, key: TileKey, blob, format_version) -> Evidence:
-    if int(format_version) != FORMAT_VERSION:
+def _decode(spec: RegionSpec, key: TileKey, blob, format_version) -> SectorEvidence:
+    if int(format_version) not in READABLE_FORMATS:
         raise StoreError(
-            f"tile {key_str(key)} has statistics format {format_version}, this code reads {FORMAT_VERSION}"
+            f"tile {key_str(key)} has statistics format {format_version}, this code reads {READABLE_FORMATS}"
         )
-    return spec.decode(key, bytes(blob))
+    return spec.decode(key, bytes(blob), int(format_version))
 
 
 @functools.lru_cache(maxsize=256)

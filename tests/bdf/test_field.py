@@ -122,7 +122,7 @@ def test_partial_fit_over_any_split_and_order_equals_fit(cuts, seed, auto):
     m2, s2 = sequential.predict(Xq, return_std=True)
     assert_close(m2, m1, 1e-9, "mean")
     assert_close(s2, s1, 1e-9, "std")
-    assert_close(sequential.evidence_.proj, batch.evidence_.proj, 1e-9, "Phi^T V")
+    assert_close(sequential.evidence_.classes[0].proj, batch.evidence_.classes[0].proj, 1e-9, "Phi^T V")
 
 
 def test_far_from_data_the_prior_is_returned(data):
@@ -181,8 +181,8 @@ def test_forgetting_removes_old_flow_after_many_half_lives():
     # one half-life weighs the old evidence by exactly one half
     half = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, **kwargs).fit(X, old, time=0.0)
     half.partial_fit(X, new, time=10.0)
-    expected = 0.5 * fresh.evidence_.proj * -1 + fresh.evidence_.proj
-    assert_close(half.evidence_.proj, expected, 1e-12, "Phi^T V after one half-life")
+    expected = 0.5 * fresh.evidence_.classes[0].proj * -1 + fresh.evidence_.classes[0].proj
+    assert_close(half.evidence_.classes[0].proj, expected, 1e-12, "Phi^T V after one half-life")
     with pytest.raises(ValueError, match="before the previous update"):
         half.partial_fit(X, new, time=5.0)
 
@@ -201,7 +201,7 @@ def test_save_load_round_trip(tmp_path, data):
     # one changed value is seen; an unknown format version fails loudly
     with np.load(path) as npz:
         arrays = dict(npz)
-    arrays["evidence_proj"] = arrays["evidence_proj"] * 1.001
+    arrays["evidence_0_proj"] = arrays["evidence_0_proj"] * 1.001
     np.savez(tmp_path / "changed.npz", **arrays)
     changed = BayesianDynamicField.load(tmp_path / "changed.npz")
     assert not np.allclose(changed.predict(Xq), field.predict(Xq), rtol=1e-6, atol=0)

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
+from bdf.directions import Sectors
 from bdf.noise import NOISE_CUTOFF
-from bdf.stats import Evidence
+from bdf.stats import SectorEvidence
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER
 from tests.bdf.test_field import assert_close
 
@@ -94,13 +95,13 @@ def test_local_noise_partial_fit_equals_fit_and_forgets(data):
     assert_close(
         sequential.predict(Xq, return_std=True)[1], batch.predict(Xq, return_std=True)[1], 1e-9, "std"
     )
-    assert_close(sequential.evidence_.moments, batch.evidence_.moments, 1e-9, "moments")
+    assert_close(sequential.evidence_.classes[0].moments, batch.evidence_.classes[0].moments, 1e-9, "moments")
     # forgetting decays the moments with the rest of the evidence
     forgetful = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, half_life=1.0, **kwargs).fit(X, V, time=0)
     forgetful.partial_fit(X[:1], V[:1], time=3.0)
     alone = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, **kwargs).fit(X[:1], V[:1])
-    expected = batch.evidence_.moments / 8 + alone.evidence_.moments
-    assert_close(forgetful.evidence_.moments, expected, 1e-12, "decayed moments")
+    expected = batch.evidence_.classes[0].moments / 8 + alone.evidence_.classes[0].moments
+    assert_close(forgetful.evidence_.classes[0].moments, expected, 1e-12, "decayed moments")
 
 
 def test_local_noise_grid_equals_points(data):
@@ -128,9 +129,9 @@ def test_local_noise_saves_loads_and_refuses_mismatches(tmp_path, data):
     with pytest.raises(ValueError, match="moments do not fit"):
         plain.set_evidence(field.evidence_)
     with pytest.raises(ValueError, match="moments do not fit"):
-        field.set_evidence(Evidence.from_points(plain._setup()[0], GAMMA, X, V))
+        field.set_evidence(SectorEvidence.from_points(plain._setup()[0], GAMMA, X, V, sectors=Sectors()))
     with pytest.raises(ValueError, match="with local-noise moments to evidence without"):
-        _ = field.evidence_ + Evidence.from_points(plain._setup()[0], GAMMA, X, V)
+        _ = field.evidence_ + SectorEvidence.from_points(plain._setup()[0], GAMMA, X, V, sectors=Sectors())
 
 
 @pytest.mark.parametrize(

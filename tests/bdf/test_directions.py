@@ -1,0 +1,175 @@
+"""Directional fields: a mixture of heading-sector modes and a share field, still additive."""
+
+import numpy as np
+import pytest
+
+from bdf import BayesianDynamicField
+from bdf.directions import Sectors, mixture_moments
+from bdf.tiles import RegionSpec
+from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER
+from tests.bdf.test_field import assert_close
+
+
+@pytest.fixture
+def crossing():
+    """Two flows through one box: eastbound at 20 m/s everywhere, northbound at 15 m/s in
+    its upper half, and a few hovering points (the slow class)."""
+    rng = np.random.default_rng(4)
+    X = rng.uniform(LOWER, UPPER, (1200, 3))
+    V = np.zeros_like(X)
+    north = (X[:, 1] > 4) & (rng.random(len(X)) < 0.5)
+    V[:, 0] = np.where(north, 0.0, 20.0 + np.sin(X[:, 2]))
+    V[:, 1] = np.where(north, 15.0 + np.cos(X[:, 0]), 0.0)
+    hover = rng.random(len(X)) < 0.05
+    V[hover] = 0.0
+    V += 0.3 * rng.standard_normal(V.shape)
+    return X, V
+
+
+def field(S, **kw):
+    return BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, "auto", "auto", directions=S, **kw)
+
+
+def test_sectors_are_centred_on_north_clockwise_and_slow_is_last():
+    s = Sectors(4, slow_mps=5.0)
+    V = np.array([[0, 10, 0], [10, 0, 0], [0, -10, 0], [-10, 0, 0], [7, 7.2, 0], [1, 1, 9]], float)
+    np.testing.assert_array_equal(s.classify(V), [0, 1, 2, 3, 0, 4])
+    np.testing.assert_array_equal(s.sector_of_heading([-44, 44, 46, 359, 721]), [0, 0, 1, 0, 0])
+    np.testing.assert_array_equal(Sectors(1).classify(V), np.zeros(6))
+    for bad in ({"directions": 17}, {"directions": 0}, {"directions": 2.5}, {"slow_mps": 0}):
+        with pytest.raises(ValueError):
+            Sectors(**{"directions": 4, **bad})
+
+
+def test_one_direction_is_the_paper_model_and_its_one_mode(crossing):
+    X, V = crossing
+    plain = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, "auto", "auto").fit(X, V)
+    one = field(1).fit(X, V)
+    Q = np.random.default_rng(1).uniform(LOWER, UPPER, (200, 3))
+    mean, std = one.predict(Q, return_std=True)
+    np.testing.assert_array_equal(mean, plain.predict(Q))
+    modes = one.predict_modes(Q)
+    np.testing.assert_array_equal(modes.share, 1.0)
+    np.testing.assert_array_equal(modes.mean[:, 0], mean)
+    np.testing.assert_array_equal(modes.std[:, 0], std)
+    np.testing.assert_array_equal(one.predict(Q, heading_deg=90.0), mean)
+
+
+def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(crossing):
+    X, V = crossing
+    w = np.random.default_rng(2).uniform(0.5, 2.0, len(X))
+    mix = field(4).fit(X, V, sample_weight=w)
+    post = mix.posterior_
+    label = Sectors(4).classify(V)
+    assert set(np.unique(label)) == {0, 1, 4}  # north, east, slow
+    Q = np.random.default_rng(1).uniform(LOWER, UPPER, (300, 3))
+    modes = mix.predict_modes(Q)
+    np.testing.assert_array_equal(modes.mean[:, [2, 3]], 0.0)  # no traffic south or west: the prior
+    for c in (0, 1, 4):
+        alone = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, post.alpha[1 + c], post.beta[1 + c])
+        alone.fit(X[label == c], V[label == c], sample_weight=w[label == c])
+        mean, std = alone.predict(Q, return_std=True)
+        assert_close(modes.mean[:, c], mean, 1e-9, f"mode {c} mean")
+        assert_close(modes.std[:, c], std, 1e-9, f"mode {c} std")
+    # the modes keep the ratio alpha / beta of the map with one class, each its own beta
+    ratio = post.alpha / post.beta
+    np.testing.assert_allclose(ratio[[1, 2, 5]], np.broadcast_to(ratio[0], (3, 3)), rtol=1e-12)
+    # shares: a probability vector everywhere, in the box and far outside it
+    far = np.random.default_rng(3).uniform(LOWER - 20, UPPER + 20, (300, 3))
+    for P in (Q, far):
+        share = mix.predict_modes(P).share
+        assert share.shape == (len(P), 5) and (share >= 0).all()
+        np.testing.assert_allclose(share.sum(axis=1), 1.0, rtol=0, atol=1e-12)
+    # far from the data the shares are the region's overall shares
+    overall = np.array([w[label == c].sum() for c in range(5)]) / w.sum()
+    np.testing.assert_allclose(mix.predict_modes(UPPER[None] + 100).share[0], overall, atol=1e-9)
+    # where only eastbound traffic flies, the east sector holds nearly all of it
+    low = Q[:, 1] < 3
+    assert modes.share[low, 1].mean() > 0.85 and modes.share[~low & (Q[:, 1] > 5), 0].mean() > 0.3
+    # the mixture's moments are those of its modes
+    mean, std = mix.predict(Q, return_std=True)
+    ref_mean, ref_std = mixture_moments(modes.share, modes.mean, modes.std)
+    assert_close(mean, ref_mean, 1e-12, "mixture mean")
+    assert_close(std, ref_std, 1e-12, "mixture std")
+    # the conditional for a heading is its sector's mode
+    heading = np.where(Q[:, 0] > 5, 80.0, 10.0)
+    cond_mean, cond_std = mix.predict(Q, return_std=True, heading_deg=heading)
+    sector = np.where(Q[:, 0] > 5, 1, 0)
+    np.testing.assert_array_equal(cond_mean, modes.mean[np.arange(len(Q)), sector])
+    np.testing.assert_array_equal(cond_std, modes.std[np.arange(len(Q)), sector])
+    with pytest.raises(ValueError, match="heading_deg must be one number or 300"):
+        mix.predict(Q, heading_deg=[0.0, 1.0])
+    with pytest.raises(ValueError, match="finite"):
+        mix.predict(Q, heading_deg=np.nan)
+
+
+def test_directional_grid_equals_points(crossing):
+    X, V = crossing
+    mix = field(4).fit(X, V)
+    axes = [np.linspace(0, 10, 6), np.linspace(1, 7, 4), np.linspace(0, 6, 5)]
+    points = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
+    grid, ref = mix.posterior_.predict_grid_modes(axes), mix.predict_modes(points)
+    for name in ("share", "share_std", "mean", "std"):
+        got = getattr(grid, name)
+        assert_close(got.reshape(len(points), *got.shape[3:]), getattr(ref, name), 1e-9, name)
+    mean, var = mix.posterior_.predict_grid(axes)
+    ref_mean, ref_std = mix.predict(points, return_std=True)
+    assert_close(mean.reshape(-1, 3), ref_mean, 1e-9, "grid mixture mean")
+    assert_close(var.reshape(-1, 3), ref_std**2, 1e-9, "grid mixture variance")
+
+
+def test_partial_fit_forgetting_and_save_load_per_sector(tmp_path, crossing):
+    X, V = crossing
+    batch = field(8, half_life=None).fit(X, V)
+    sequential = field(8)
+    for chunk in np.array_split(np.random.default_rng(0).permutation(len(X)), 3):
+        sequential.partial_fit(X[chunk], V[chunk])
+    Q = np.random.default_rng(1).uniform(LOWER, UPPER, (100, 3))
+    for a, b in zip(batch.predict_modes(Q), sequential.predict_modes(Q), strict=True):
+        assert_close(a, b, 1e-9, "sequential vs batch modes")
+    batch.save(tmp_path / "mix.npz")
+    loaded = BayesianDynamicField.load(tmp_path / "mix.npz")
+    assert loaded.directions == 8
+    for a, b in zip(batch.predict_modes(Q), loaded.predict_modes(Q), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # fitted hyperparameters given back as fixed values give the same map
+    post = batch.posterior_
+    fixed = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, post.alpha, post.beta, directions=8).fit(X, V)
+    assert_close(fixed.predict(Q), batch.predict(Q), 1e-9, "fixed hyperparameters")
+    with pytest.raises(ValueError, match=r"\(10, 3\)"):
+        BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, post.alpha[:5], 1.0, directions=8).fit(X, V)
+
+
+def test_a_directional_region_is_one_directional_field():
+    spec = RegionSpec.model_validate(
+        {
+            "name": "small",
+            "origin": {"lat": 48.0, "lon": 2.0},
+            "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
+            "tile_size_m": [100, 100, 60],
+            "spacing_m": [20, 20, 20],
+            "gamma": [1 / 400, 1 / 400, 1 / 400],
+            "directions": 4,
+        }
+    )
+    rng = np.random.default_rng(3)
+    X = rng.uniform(spec.lower, spec.upper, (3000, 3))
+    V = np.where((X[:, 0] > 150)[:, None], [[0.0, -12.0, 0.0]], [[12.0, 0.0, 0.0]])
+    V += 0.5 * rng.standard_normal(V.shape)
+    increments = spec.increments(X, V)
+    evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
+    post = spec.posterior(evidence)
+    ref = spec.field(post.alpha, post.beta).fit(X, V)
+    Q = rng.uniform(spec.lower, spec.upper, (500, 3))
+    mean, std, _ = spec.predict(Q, post, increments)
+    ref_mean, ref_std = ref.predict(Q, return_std=True)
+    assert_close(mean, ref_mean, 1e-6, "region mixture mean")
+    assert_close(std, ref_std, 1e-6, "region mixture std")
+    # stored blobs round-trip per class
+    key, inc = next(iter(increments.items()))
+    back = spec.decode(key, inc.evidence.to_bytes())
+    for a, b in zip(back.classes, inc.evidence.classes, strict=True):
+        np.testing.assert_array_equal(a.density, b.density)
+        np.testing.assert_array_equal(a.mass, b.mass)
+    with pytest.raises(ValueError, match="cut in class|ends before class"):
+        spec.decode(key, inc.evidence.to_bytes()[:-80])
