@@ -43,11 +43,13 @@ def data(seed, n=200, band=False):
 def assert_evidence_equal(got, expected, rtol=1e-9):
     assert set(got) == set(expected)
     for key in expected:
-        a, b = got[key], expected[key]
-        scale = max(np.abs(b.density).max(), 1e-300)
-        np.testing.assert_allclose(a.density, b.density, rtol=rtol, atol=rtol * scale)
-        np.testing.assert_allclose(a.proj, b.proj, rtol=rtol, atol=rtol * np.abs(b.proj).max())
-        np.testing.assert_allclose([a.count, *a.v_sum, *a.v_sq], [b.count, *b.v_sum, *b.v_sq], rtol=rtol)
+        assert len(got[key].classes) == len(expected[key].classes)
+        for a, b in zip(got[key].classes, expected[key].classes, strict=True):
+            scale = max(np.abs(b.density).max(), 1e-300)
+            np.testing.assert_allclose(a.density, b.density, rtol=rtol, atol=rtol * scale)
+            np.testing.assert_allclose(a.proj, b.proj, rtol=rtol, atol=rtol * np.abs(b.proj).max())
+            np.testing.assert_allclose(a.mass, b.mass, rtol=rtol, atol=rtol * np.abs(b.mass).max())
+            np.testing.assert_allclose([a.count, *a.v_sum, *a.v_sq], [b.count, *b.v_sum, *b.v_sq], rtol=rtol)
 
 
 def test_regions_are_created_listed_and_deleted_with_their_tiles(store, spec):
