@@ -6,10 +6,9 @@ clockwise) puts it in one of S sectors of width 360/S centred on 0, 360/S, ...; 
 and it goes to the slow class, the last. ``directions = 1`` is one class: every
 observation, the paper's model.
 
-Each observation goes to one class (hard assignment). Splitting it between the two
-nearest sectors by angle was compared by flight-grouped CV on Paris (bench/RESULTS.md,
-"directions"): hard was as good or better, and keeps a class's evidence that of the
-observations in it.
+Each observation goes to one class (hard assignment), so a class's evidence is exactly
+that of the observations in it. Splitting observations between the two nearest sectors
+(soft assignment) has not been compared yet.
 """
 
 from __future__ import annotations

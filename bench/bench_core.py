@@ -2,6 +2,12 @@
 
     .venv/bin/python bench/bench_core.py [--gp-points 2000] [--skip-reference] [--cv]
         [--splits point flight] [--no-append]
+    .venv/bin/python bench/bench_core.py --directions 1,4,8,12 [--splits ...]
+
+``--directions``: only the directional maps (``bdf.directions``), per number of sectors:
+the mixture's MSLL (its density), and the conditional given the test point's own class
+(its heading sector, or slow): RMSE, MSLL, 95% coverage; fit time and a 100,000-point
+query of the modes.
 
 The sparse GP row (flight split only: it trains for minutes) needs ``pip install -e '.[gp]'``
 (PyTorch 2.13.0 CPU and GPyTorch).
@@ -30,6 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bdf import BayesianDynamicField, crossval, ingest, metrics
+from bdf.directions import Sectors
 from bdf.ingest import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M
 
 PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
@@ -311,6 +318,47 @@ def table(rows):
     return "\n".join(lines)
 
 
+def directions_table(obs, lower, upper, split, counts, repeat) -> list[str]:
+    """Rows of ``--directions`` for one split."""
+    test = ingest.train_test_split(obs, by=split, test_fraction=0.2, seed=0)
+    Xtr, Vtr, Xte, Vte = obs.X[~test], obs.V[~test], obs.X[test], obs.V[test]
+    weight = ingest.track_weights(obs.subset(~test), PARIS_SPACING_M)
+    Q = np.random.default_rng(1).uniform(lower, upper, (100_000, 3))
+    M = len(BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA).hinges)
+    lines = [
+        f"Directional maps, {split} split ({len(Xtr)} train, {len(Xte)} test points, track weights, "
+        f"alpha = beta = auto, M = {M}):",
+        "",
+        "| sectors | mixture MSLL | conditional RMSE | conditional MSLL | conditional cov95 | fit [s] "
+        "| fit / fit of 1 | 100k-point modes query [s] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    base = None
+    for S in counts:
+
+        def train(S=S):
+            field = BayesianDynamicField(
+                lower, upper, PARIS_SPACING_M, PARIS_GAMMA, "auto", "auto", directions=S
+            )
+            field.fit(Xtr, Vtr, sample_weight=weight)
+            field.predict_modes(Xte[:1])  # factorisations and variance densities
+            return field
+
+        fit_s, field = best_of(repeat, train)
+        base = fit_s if base is None else base
+        query_s, _ = best_of(repeat, lambda field=field: field.predict_modes(Q))
+        modes = field.predict_modes(Xte)
+        mix = metrics.mixture_msll(Vte, modes.share, modes.mean, modes.std, Vtr.mean(0), Vtr.std(0))
+        own = Sectors(S).classify(Vte)
+        rows = np.arange(len(Xte))
+        cond = accuracy(Vte, Vtr, modes.mean[rows, own], modes.std[rows, own])
+        lines.append(
+            f"| {S} | {mix:.3f} | {cond['RMSE']:.2f} | {cond['MSLL']:.3f} | {cond['cov95']:.3f} "
+            f"| {fit_s:.2f} | {fit_s / base:.2f} | {query_s:.2f} |"
+        )
+    return lines
+
+
 def main():
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -332,10 +380,25 @@ def main():
     parser.add_argument(
         "--splits", nargs="+", choices=["point", "flight"], default=["point", "flight"], help="splits to run"
     )
+    parser.add_argument(
+        "--directions", default="", help="only the directional maps: sector counts, comma-separated"
+    )
     parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
     args = parser.parse_args()
 
     obs, lower, upper = ingest.load_paris()
+    if args.directions:
+        counts = [int(c) for c in args.directions.split(",")]
+        report = [
+            f"## Directional maps, {datetime.date.today()}",
+            "",
+            f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
+            f"{os.cpu_count()} cores, Python {platform.python_version()}; best of {args.repeat}.",
+        ]
+        for split in args.splits:
+            report += ["", *directions_table(obs, lower, upper, split, counts, args.repeat)]
+        publish(report, not args.no_append)
+        return
     M = len(BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA).hinges)
     report = [
         f"## Core benchmark, {datetime.date.today()}",

@@ -56,13 +56,15 @@ def scoped(scope: str, **extra) -> dict:
 
 class Hyperparameters(BaseModel):
     """alpha and beta in force: the spec's fixed values, or fitted at the evidence maximum
-    of the region at ``evidence_version`` ("auto" until the region's first data)."""
+    of the region at ``evidence_version`` ("auto" until the region's first data). A
+    directional region has a row per component triple: the map with one class, then each
+    class (:class:`bdf.posterior.Mixture`)."""
 
-    alpha: Literal["auto"] | float | list[float]
-    beta: Literal["auto"] | float | list[float]
+    alpha: Literal["auto"] | float | list[float] | list[list[float]]
+    beta: Literal["auto"] | float | list[float] | list[list[float]]
     fitted_at: float | None
     evidence_version: int | None
-    log_evidence: list[float] | None
+    log_evidence: list[float] | list[list[float]] | None
 
 
 class RegionView(BaseModel):

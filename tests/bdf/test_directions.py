@@ -171,5 +171,5 @@ def test_a_directional_region_is_one_directional_field():
     for a, b in zip(back.classes, inc.evidence.classes, strict=True):
         np.testing.assert_array_equal(a.density, b.density)
         np.testing.assert_array_equal(a.mass, b.mass)
-    with pytest.raises(ValueError, match="cut in class|ends before class"):
+    with pytest.raises(ValueError, match=r"cut in class|ends before class"):
         spec.decode(key, inc.evidence.to_bytes()[:-80])

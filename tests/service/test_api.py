@@ -190,6 +190,42 @@ def test_local_noise_regions_store_their_moments_and_serve_local_std(client):
         np.testing.assert_allclose(npz["std"].reshape(-1, 3), grid_std, rtol=1e-4)
 
 
+def test_directional_regions_serve_the_mixture_of_the_library(client):
+    """A region with heading sectors stores evidence per class in its tiles: chunked
+    uploads, a replay, queries and grids equal the library's directional field at the
+    hyperparameters in force (one row per class)."""
+    body = {**SPEC, "name": "lanes", "directions": 4}
+    spec = RegionSpec.model_validate(body)
+    assert client.post("/v1/regions", json=body).json()["spec"]["directions"] == 4
+    X, V = data(5, n=600)
+    V[: len(V) // 2, :2] *= -8.0  # opposing traffic on half the points
+    for i, part in enumerate(np.array_split(np.arange(len(X)), 2)):
+        for _ in range(2):  # the second is a replay
+            r = client.post(
+                "/v1/regions/lanes/observations",
+                json={"points": X[part].tolist(), "velocities": V[part].tolist()},
+                headers={"Idempotency-Key": f"lanes-{i}"},
+            )
+            assert r.json()["accepted"] == len(part), r.text
+    region = client.get("/v1/regions/lanes").json()
+    assert region["version"] == 2 and np.shape(region["hyperparameters"]["alpha"]) == (6, 3)
+    Xq = np.clip(X[:50] + 1.0, spec.lower, spec.upper)
+    got = client.post(
+        "/v1/regions/lanes/query", json={"points": Xq.tolist()}, params={"min_version": 2}
+    ).json()
+    mean, std, _ = library(spec, X, V, Xq, region)
+    np.testing.assert_allclose(got["mean"], mean, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got["std"], std, rtol=1e-6)
+    one = spec.model_copy(update={"directions": 1}).field().fit(X, V)
+    assert np.abs(np.asarray(got["std"]) / one.predict(Xq, return_std=True)[1] - 1).max() > 0.1
+    grid = client.get("/v1/regions/lanes/grid", params={"step": "50,50,20"}, headers={"Accept": NPZ})
+    with np.load(io.BytesIO(grid.content)) as npz:
+        mesh = np.stack([m.ravel() for m in np.meshgrid(npz["x"], npz["y"], npz["z"], indexing="ij")], 1)
+        grid_mean, grid_std, _ = library(spec, X, V, mesh, region)
+        np.testing.assert_allclose(npz["mean"].reshape(-1, 3), grid_mean, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(npz["std"].reshape(-1, 3), grid_std, rtol=1e-6)
+
+
 def test_wgs84_bodies_equal_enu_bodies(client):
     X, V = data(1, n=300)
     spec = RegionSpec.model_validate(SPEC)
