@@ -88,6 +88,18 @@ def as_hyper(value, name: str, rows: int = 1):
     return as_vector3(value, name, positive=True)
 
 
+def as_headings(value, n: int) -> np.ndarray:
+    """``heading_deg`` as (n,): one finite number for all points, or one per point."""
+    h = np.asarray(value, float)
+    if h.ndim == 0:
+        h = np.full(n, float(h))
+    if h.shape != (n,):
+        raise ValueError(f"heading_deg must be one number or {n} (one per point), got shape {h.shape}")
+    if not np.all(np.isfinite(h)):
+        raise ValueError("heading_deg must be finite")
+    return h
+
+
 def as_positive(value, name: str) -> float:
     """One finite positive number."""
     if isinstance(value, bool | str) or not (np.ndim(value) == 0 and np.isreal(value)):

@@ -9,6 +9,7 @@ import numpy as np
 
 from bdf import features, noise
 from bdf._validate import (
+    as_headings,
     as_hyper,
     as_noise_std,
     as_observations,
@@ -258,9 +259,9 @@ class BayesianDynamicField:
         post = self.posterior_
         if heading_deg is None or self._sectors.classes == 1:
             if heading_deg is not None:
-                _headings(heading_deg, len(X))
+                as_headings(heading_deg, len(X))
             return post.predict(X, return_std, include_noise)
-        return post.predict_heading(X, _headings(heading_deg, len(X)), return_std, include_noise)
+        return post.predict_heading(X, as_headings(heading_deg, len(X)), return_std, include_noise)
 
     def predict_modes(self, X, *, include_noise=True) -> Modes:
         """Per traffic class (the heading sectors, then the slow class; one class for a
@@ -343,18 +344,6 @@ _PARAMS = (
     "directions",
     "slow_mps",
 )
-
-
-def _headings(value, n: int) -> np.ndarray:
-    """``heading_deg`` as (n,): one finite number for all points, or one per point."""
-    h = np.asarray(value, float)
-    if h.ndim == 0:
-        h = np.full(n, float(h))
-    if h.shape != (n,):
-        raise ValueError(f"heading_deg must be one number or {n} (one per point), got shape {h.shape}")
-    if not np.all(np.isfinite(h)):
-        raise ValueError("heading_deg must be finite")
-    return h
 
 
 def _jsonable(value):

@@ -128,6 +128,12 @@ class Posterior:
         mean, std = self.predict(X, True, include_noise)
         return Modes(np.ones((len(X), 1)), np.zeros(len(X)), mean[:, None], std[:, None])
 
+    def predict_grid_modes(self, axes, include_noise=True) -> Modes:
+        """The one mode of a map of one class, on the grid ``axes``."""
+        mean, var = self.predict_grid(axes, include_noise)
+        n = mean.shape[:3]
+        return Modes(np.ones((*n, 1)), np.zeros(n), mean[..., None, :], np.sqrt(var)[..., None, :])
+
     def compact(self) -> Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
         what a cache keeps (a few times the midpoint lattice)."""

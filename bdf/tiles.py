@@ -33,12 +33,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bdf import features, noise
-from bdf._validate import _bad_rows, as_noise_std, as_observations, as_points, as_sample_weight
+from bdf._validate import _bad_rows, as_headings, as_noise_std, as_observations, as_points, as_sample_weight
 from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice
-from bdf.posterior import Posterior
+from bdf.posterior import Mixture, Modes, Posterior
 from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence, stencil_of
 
 TileKey = tuple[int, int, int]
@@ -334,19 +334,43 @@ class RegionSpec(BaseModel):
             total += (-1) ** (3 - sum(corner)) * table[idx]
         return total > 0
 
-    def predict(self, X, posterior: Posterior, data_tiles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def predict(
+        self, X, posterior: Posterior | Mixture, data_tiles, heading_deg=None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predictive mean (n, 3), std (n, 3) and ``known`` (n,) at ``X`` inside the region,
-        from the region's ``posterior``; ``data_tiles``: the keys of the tiles with data."""
+        from the region's ``posterior``; ``data_tiles``: the keys of the tiles with data.
+        ``heading_deg`` (one or (n,)): the mode of that heading (a region of one direction
+        has one)."""
         X = self._inside_points(X)
-        mean, std = posterior.predict(X, return_std=True)
+        if heading_deg is not None:
+            heading_deg = as_headings(heading_deg, len(X))
+        if heading_deg is None or self.directions == 1:
+            mean, std = posterior.predict(X, return_std=True)
+        else:
+            mean, std = posterior.predict_heading(X, heading_deg, return_std=True)
         return mean, std, self.known(X, data_tiles)
 
+    def predict_modes(self, X, posterior: Posterior | Mixture) -> Modes:
+        """:class:`~bdf.posterior.Modes` at ``X`` inside the region."""
+        return posterior.predict_modes(self._inside_points(X))
+
     def predict_grid(
-        self, axes, posterior: Posterior, data_tiles
+        self, axes, posterior: Posterior | Mixture, data_tiles
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]`` (inside the region):
         mean and std (nx, ny, nz, 3), known (nx, ny, nz); separable, so a few small
         contractions per axis."""
+        axes = self._grid_axes(axes)
+        mean, var = posterior.predict_grid(axes)
+        mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        known = self.known(mesh, data_tiles).reshape(mean.shape[:3])
+        return mean, np.sqrt(var), known
+
+    def predict_grid_modes(self, axes, posterior: Posterior | Mixture) -> Modes:
+        """:class:`~bdf.posterior.Modes` on the grid ``axes``, the grid's shape first."""
+        return posterior.predict_grid_modes(self._grid_axes(axes))
+
+    def _grid_axes(self, axes) -> list[np.ndarray]:
         axes = [np.asarray(a, float).ravel() for a in axes]
         for d, a in enumerate(axes):
             if (
@@ -356,10 +380,7 @@ class RegionSpec(BaseModel):
                 or a.max() > self.upper[d]
             ):
                 raise ValueError(f"grid axis {d} must be finite, non-empty and inside region {self.name!r}")
-        mean, var = posterior.predict_grid(axes)
-        mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        known = self.known(mesh, data_tiles).reshape(mean.shape[:3])
-        return mean, np.sqrt(var), known
+        return axes
 
 
 @functools.lru_cache(maxsize=64)

@@ -146,6 +146,9 @@ MinVersion = Annotated[
         "map; without it the newest ready map answers while a refresh runs (X-Region-Version says which)",
     ),
 ]
+WithModes = Annotated[
+    bool, Query(description="add every traffic class (heading sectors, then slow): share, mean, std")
+]
 
 
 def _floats(text: str, n: int, name: str) -> np.ndarray:
@@ -310,8 +313,11 @@ def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Re
     response_model=formats.QueryResult,
     **scoped("read", **_body_doc(formats.QueryBody, binary=(ARROW,))),
 )
-async def query(name: RegionName, request: Request, min_version: MinVersion = 0):
-    """Predictive mean and std at points; Arrow in and out on request."""
+async def query(name: RegionName, request: Request, min_version: MinVersion = 0, modes: WithModes = False):
+    """Predictive mean and std at points; Arrow in and out on request. A directional region
+    answers its mixture, the mode of a heading (``heading_deg``: JSON field or Arrow
+    column), and on request (``modes``) every traffic class: JSON ``modes``, or Arrow columns
+    ``share{c}``, ``mode{c}_v{e,n,u}``, ``mode{c}_std_{e,n,u}`` and ``share_std``."""
     body = await request.body()
     out = formats.negotiate(request.headers.get("accept"), [JSON, ARROW])
     app = request.app
@@ -320,20 +326,28 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0)
         info, not_modified = _region_or_304(request, name)
         if not_modified:
             return not_modified
-        X = formats.read_query(
+        q = formats.read_query(
             info.spec,
             body,
             formats.media_type(request.headers.get("content-type")),
             app.state.settings.max_query_points,
+            modes,
         )
-        pred = app.state.maps.predict(name, X, info, min_version)
+        pred = app.state.maps.predict(name, q.X, info, min_version, heading_deg=q.heading_deg, modes=q.modes)
         headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+        m = pred.modes
         if out == ARROW:
             columns = {
                 **formats.vector_columns("v", pred.mean),
                 **formats.vector_columns("std_", pred.std),
                 "known": pred.known,
             }
+            if m is not None:
+                for c in range(m.share.shape[1]):
+                    columns[f"share{c}"] = np.ascontiguousarray(m.share[:, c])
+                    columns |= formats.vector_columns(f"mode{c}_v", m.mean[:, c])
+                    columns |= formats.vector_columns(f"mode{c}_std_", m.std[:, c])
+                columns["share_std"] = m.share_std
             return Response(formats.arrow_bytes(columns), media_type=ARROW, headers=headers)
         content = {
             "mean": pred.mean.tolist(),
@@ -341,19 +355,29 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0)
             "known": pred.known.tolist(),
             "region_version": pred.version,
         }
+        if m is not None:
+            content["modes"] = {
+                "heading_deg": formats.class_headings(info.spec),
+                "share": m.share.tolist(),
+                "share_std": m.share_std.tolist(),
+                "mean": m.mean.tolist(),
+                "std": m.std.tolist(),
+            }
         return JSONResponse(content, headers=headers)
 
     return await run_in_threadpool(work)
 
 
-def _grid_prediction(request: Request, name: str, bbox: str | None, step: str, min_version: int):
+def _grid_prediction(
+    request: Request, name: str, bbox: str | None, step: str, min_version: int, modes: bool = False
+):
     """(spec, axes, prediction on the grid), or (None, None, a 304 response)."""
     app = request.app
     info, not_modified = _region_or_304(request, name)
     if not_modified:
         return None, None, not_modified
     axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
-    return info.spec, axes, app.state.maps.predict_grid(name, axes, info, min_version)
+    return info.spec, axes, app.state.maps.predict_grid(name, axes, info, min_version, modes=modes)
 
 
 BBox = Annotated[str | None, Query(description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")]
@@ -365,19 +389,41 @@ Step = Annotated[str, Query(description="dx,dy,dz metres (or one number for all 
     responses={200: {"content": {NPZ: {}, ARROW: {}}}},
     **scoped("read"),
 )
-def grid(name: RegionName, request: Request, step: Step, bbox: BBox = None, min_version: MinVersion = 0):
+def grid(
+    name: RegionName,
+    request: Request,
+    step: Step,
+    bbox: BBox = None,
+    min_version: MinVersion = 0,
+    modes: WithModes = False,
+):
     """Mean and std on the voxel grid ``bbox`` x ``step``: npz (arrays mean, std (nx, ny, nz,
-    3), known (nx, ny, nz), x, y, z), Arrow (one row per voxel, C order; ``shape`` in the
-    schema metadata), or JSON for small grids."""
+    3), known (nx, ny, nz), x, y, z; with ``modes``: share (nx, ny, nz, C), share_std,
+    mode_mean and mode_std (nx, ny, nz, C, 3), heading_deg (C,), NaN for the slow class),
+    Arrow (one row per voxel, C order; ``shape`` in the schema metadata), or JSON for small
+    grids."""
     out = formats.negotiate(request.headers.get("accept"), [JSON, NPZ, ARROW])
-    _, axes, pred = _grid_prediction(request, name, bbox, step, min_version)
+    if modes and out != NPZ:
+        raise Problem(422, f"modes on a grid come as npz: ask for Accept: {NPZ}")
+    spec, axes, pred = _grid_prediction(request, name, bbox, step, min_version, modes)
     if axes is None:
         return pred
     shape = pred.known.shape
     headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
     if out == NPZ:
+        extra = {}
+        if pred.modes is not None:
+            m = pred.modes
+            headings = [np.nan if h is None else h for h in formats.class_headings(spec)]
+            extra = dict(
+                share=m.share,
+                share_std=m.share_std,
+                mode_mean=m.mean,
+                mode_std=m.std,
+                heading_deg=np.array(headings),
+            )
         body = formats.npz_bytes(
-            mean=pred.mean, std=pred.std, known=pred.known, x=axes[0], y=axes[1], z=axes[2]
+            mean=pred.mean, std=pred.std, known=pred.known, x=axes[0], y=axes[1], z=axes[2], **extra
         )
         return Response(body, media_type=NPZ, headers=headers)
     if out == ARROW:

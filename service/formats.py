@@ -33,6 +33,7 @@ PARQUET_ALIASES = (PARQUET, "application/x-parquet")
 Value = float | None  # null -> NaN: the row is rejected and counted, not the request
 Row3 = Annotated[list[Value], Field(min_length=3, max_length=3)]
 Frame = Literal["enu", "wgs84"]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 ENU_COLUMNS = ("x", "y", "z")
 WGS84_COLUMNS = ("lat", "lon", "alt_m")
 VELOCITY_COLUMNS = ("ve", "vn", "vu")
@@ -59,6 +60,20 @@ class QueryBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
     frame: Frame = "enu"
     points: list[Row3]
+    modes: bool = Field(False, description="add every traffic class's share, mean and std")
+    heading_deg: FiniteFloat | list[FiniteFloat] | None = Field(
+        None,
+        description="degrees from north, clockwise (one, or one per point): mean and std become "
+        "the mode of traffic flying that heading (a region of one direction has one mode)",
+    )
+
+
+class ModesResult(BaseModel):
+    heading_deg: list[float | None] = Field(description="centre heading per class; null: the slow class")
+    share: list[list[float]] = Field(description="(n, classes): fraction of traffic, summing to 1")
+    share_std: list[float] = Field(description="(n,): epistemic std of each share")
+    mean: list[list[list[float]]] = Field(description="(n, classes, 3) m/s")
+    std: list[list[list[float]]] = Field(description="(n, classes, 3) predictive std, m/s")
 
 
 class QueryResult(BaseModel):
@@ -66,6 +81,21 @@ class QueryResult(BaseModel):
     std: list[list[float]] = Field(description="predictive std per component, m/s")
     known: list[bool] = Field(description="false where no tile has data (the answer is the prior)")
     region_version: int
+    modes: ModesResult | None = None
+
+
+@dataclass
+class PointQuery:
+    X: np.ndarray  # (n, 3) region ENU
+    heading_deg: np.ndarray | None  # (n,) or None
+    modes: bool
+
+
+def class_headings(spec: RegionSpec) -> list[float | None]:
+    """The centre heading of each traffic class of ``spec`` (None: the slow class)."""
+    if spec.directions == 1:
+        return [None]
+    return [*spec.sectors.centres_deg.tolist(), None]
 
 
 @dataclass
@@ -160,18 +190,23 @@ def read_observations(spec: RegionSpec, body: bytes, media: str, max_points: int
     )
 
 
-def read_query(spec: RegionSpec, body: bytes, media: str, max_points: int) -> np.ndarray:
-    """Decode query points (JSON or Arrow) into region ENU (n, 3)."""
+def read_query(spec: RegionSpec, body: bytes, media: str, max_points: int, modes: bool = False) -> PointQuery:
+    """Decode a query (JSON, or Arrow with an optional ``heading_deg`` column) into region
+    ENU points (n, 3), the headings asked and whether the modes are (``modes``: the
+    request's query parameter, or the JSON body's field)."""
     if media == JSON:
         query = QueryBody.model_validate_json(body or b"{}")
-        frame, P = query.frame, _array(query.points)
+        frame, P, heading, modes = query.frame, _array(query.points), query.heading_deg, modes or query.modes
     elif media == ARROW:
-        frame, P = _table_positions(_table(body, ARROW))
+        table = _table(body, ARROW)
+        frame, P = _table_positions(table)
+        heading = _columns(table, ("heading_deg",))[:, 0] if "heading_deg" in table.column_names else None
     else:
         raise Problem(415, f"send {JSON} or {ARROW}, not {media or 'no Content-Type'}")
     if len(P) > max_points:
         raise Problem(422, f"{len(P)} points in one query; the limit is {max_points}")
-    return _to_region(spec, frame, P, None)[0]  # the map rejects non-finite rows by number
+    X = _to_region(spec, frame, P, None)[0]  # the map rejects non-finite rows by number
+    return PointQuery(X, None if heading is None else np.asarray(heading, float), modes)
 
 
 def media_type(content_type: str | None) -> str:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bdf._validate import noise_std_rows
-from bdf.posterior import Posterior
+from bdf.posterior import Mixture, Modes, Posterior
 from bdf.tiles import Increment, RegionSpec, TileKey
 from service.store import MapStore, RegionInfo, Snapshot, payload_digest
 
@@ -35,7 +35,7 @@ class MapState:
     spec: RegionSpec
     region_id: str
     version: int
-    posterior: Posterior
+    posterior: Posterior | Mixture
     data_tiles: frozenset
 
     @property
@@ -88,6 +88,7 @@ class Prediction:
     known: np.ndarray  # (n,) data lies within the kernel's reach
     version: int  # region version the answer was computed from
     region_id: str  # with the version, names the map state (ETag)
+    modes: Modes | None = None  # per traffic class, when asked
 
 
 class RegionMaps:
@@ -180,24 +181,38 @@ class RegionMaps:
             self._publish(MapState(spec, info.region_id, info.version, post, frozenset(snap.tiles)))
         return info
 
-    def predict(self, region: str, X, info: RegionInfo | None = None, min_version: int = 0) -> Prediction:
+    def predict(
+        self,
+        region: str,
+        X,
+        info: RegionInfo | None = None,
+        min_version: int = 0,
+        *,
+        heading_deg=None,
+        modes: bool = False,
+    ) -> Prediction:
         """Mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region.
 
         ``info``: the region as the caller read it (its version names the map wanted).
         ``min_version``: answer from at least this version (waiting for its posterior).
+        ``heading_deg``: the mode of traffic flying it instead of the mixture; ``modes``:
+        every class's share, mean and std too.
         """
         state = self._state(region, info or self.store.region(region), min_version)
-        mean, std, known = state.spec.predict(np.asarray(X, float), state.posterior, state.data_tiles)
-        return Prediction(mean, std, known, state.version, state.region_id)
+        X = np.asarray(X, float)
+        mean, std, known = state.spec.predict(X, state.posterior, state.data_tiles, heading_deg)
+        per_class = state.spec.predict_modes(X, state.posterior) if modes else None
+        return Prediction(mean, std, known, state.version, state.region_id, per_class)
 
     def predict_grid(
-        self, region: str, axes, info: RegionInfo | None = None, min_version: int = 0
+        self, region: str, axes, info: RegionInfo | None = None, min_version: int = 0, *, modes: bool = False
     ) -> Prediction:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
-        (nx, ny, nz, 3) and (nx, ny, nz)."""
+        (nx, ny, nz, 3) and (nx, ny, nz), the modes' (nx, ny, nz, C, ...)."""
         state = self._state(region, info or self.store.region(region), min_version)
         mean, std, known = state.spec.predict_grid(axes, state.posterior, state.data_tiles)
-        return Prediction(mean, std, known, state.version, state.region_id)
+        per_class = state.spec.predict_grid_modes(axes, state.posterior) if modes else None
+        return Prediction(mean, std, known, state.version, state.region_id, per_class)
 
     def refresh(self, region: str) -> MapState:
         """The map state of the region's current version, computed now if need be."""

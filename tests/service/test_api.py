@@ -218,12 +218,55 @@ def test_directional_regions_serve_the_mixture_of_the_library(client):
     np.testing.assert_allclose(got["std"], std, rtol=1e-6)
     one = spec.model_copy(update={"directions": 1}).field().fit(X, V)
     assert np.abs(np.asarray(got["std"]) / one.predict(Xq, return_std=True)[1] - 1).max() > 0.1
+    # the modes and the mode of a heading, in JSON and Arrow
+    field = spec.field(region["hyperparameters"]["alpha"], region["hyperparameters"]["beta"]).fit(X, V)
+    ref = field.predict_modes(Xq)
+    heading = np.linspace(0, 350, len(Xq))
+    got = client.post(
+        "/v1/regions/lanes/query",
+        json={"points": Xq.tolist(), "modes": True, "heading_deg": heading.tolist()},
+    ).json()
+    assert got["modes"]["heading_deg"] == [0.0, 90.0, 180.0, 270.0, None]
+    np.testing.assert_allclose(got["modes"]["share"], ref.share, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.sum(got["modes"]["share"], axis=1), 1.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got["modes"]["share_std"], ref.share_std, rtol=1e-6)
+    np.testing.assert_allclose(got["modes"]["mean"], ref.mean, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got["modes"]["std"], ref.std, rtol=1e-6)
+    cond_mean, cond_std = field.predict(Xq, return_std=True, heading_deg=heading)
+    np.testing.assert_allclose(got["mean"], cond_mean, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got["std"], cond_std, rtol=1e-6)
+    r = client.post(
+        "/v1/regions/lanes/query",
+        content=arrow_table({**dict(zip("xyz", Xq.T, strict=True)), "heading_deg": heading}),
+        params={"modes": "true"},
+        headers={"Content-Type": ARROW, "Accept": ARROW},
+    )
+    table = pa.ipc.open_stream(r.content).read_all()
+    np.testing.assert_allclose(table.column("ve").to_numpy(), cond_mean[:, 0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(table.column("share2").to_numpy(), ref.share[:, 2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(table.column("mode4_std_u").to_numpy(), ref.std[:, 4, 2], rtol=1e-6)
+    # bad headings are the client's error, and nothing changes
+    for bad in ([1.0, 2.0], "north"):
+        r = client.post("/v1/regions/lanes/query", json={"points": Xq.tolist(), "heading_deg": bad})
+        assert r.status_code == 422 and r.headers["content-type"] == "application/problem+json", r.text
+    assert client.get("/v1/regions/lanes").json()["version"] == 2
     grid = client.get("/v1/regions/lanes/grid", params={"step": "50,50,20"}, headers={"Accept": NPZ})
     with np.load(io.BytesIO(grid.content)) as npz:
         mesh = np.stack([m.ravel() for m in np.meshgrid(npz["x"], npz["y"], npz["z"], indexing="ij")], 1)
         grid_mean, grid_std, _ = library(spec, X, V, mesh, region)
         np.testing.assert_allclose(npz["mean"].reshape(-1, 3), grid_mean, rtol=0, atol=1e-6)
         np.testing.assert_allclose(npz["std"].reshape(-1, 3), grid_std, rtol=1e-6)
+    grid = client.get(
+        "/v1/regions/lanes/grid", params={"step": "50,50,20", "modes": "true"}, headers={"Accept": NPZ}
+    )
+    with np.load(io.BytesIO(grid.content)) as npz:
+        ref = field.predict_modes(mesh)
+        np.testing.assert_allclose(npz["share"].reshape(-1, 5), ref.share, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(npz["mode_mean"].reshape(-1, 5, 3), ref.mean, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(npz["mode_std"].reshape(-1, 5, 3), ref.std, rtol=1e-6)
+        np.testing.assert_array_equal(npz["heading_deg"][:4], [0, 90, 180, 270])
+    r = client.get("/v1/regions/lanes/grid", params={"step": "50,50,20", "modes": "true"})
+    assert r.status_code == 422 and "npz" in r.json()["detail"]
 
 
 def test_wgs84_bodies_equal_enu_bodies(client):
