@@ -473,18 +473,33 @@ def tubes(
     bbox: BBox = None,
     component: Annotated[Literal["all", "e", "n", "u"], Query(description="whose std is bounded")] = "all",
     min_version: MinVersion = 0,
+    heading_deg: Annotated[
+        float | None,
+        Query(
+            allow_inf_nan=False,
+            description="the directional tube: the mode of traffic flying this heading (degrees from "
+            "north, clockwise) and where its share is at least min_share",
+        ),
+    ] = None,
+    min_share: Annotated[float, Query(ge=0, le=1, description="with heading_deg: the least share")] = 0.05,
 ):
     """The voxels whose predictive std is below ``max_std_mps`` (all components, or one),
     where data lies within the kernel's reach, with their mean velocity: GeoJSON points (lon, lat, alt),
-    npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow."""
+    npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow. With ``heading_deg``,
+    mean and std are the mode of that heading's sector, and its share bounds the tube too."""
     out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
-    spec, axes, pred = _grid_prediction(request, name, bbox, step, min_version)
+    spec, axes, pred = _grid_prediction(request, name, bbox, step, min_version, heading_deg is not None)
     if axes is None:
         return pred
-    bounded = pred.std if component == "all" else pred.std[..., ["e", "n", "u"].index(component), None]
-    inside = pred.known & (bounded < max_std_mps).all(axis=-1)
+    mean_grid, std_grid, wide = pred.mean, pred.std, pred.known
+    if heading_deg is not None:
+        sector = 0 if spec.directions == 1 else int(spec.sectors.sector_of_heading(heading_deg))
+        mean_grid, std_grid = pred.modes.mean[..., sector, :], pred.modes.std[..., sector, :]
+        wide = wide & (pred.modes.share[..., sector] >= min_share)
+    bounded = std_grid if component == "all" else std_grid[..., ["e", "n", "u"].index(component), None]
+    inside = wide & (bounded < max_std_mps).all(axis=-1)
     idx = np.flatnonzero(inside)
-    X, mean, std = _mesh(axes)[idx], pred.mean.reshape(-1, 3)[idx], pred.std.reshape(-1, 3)[idx]
+    X, mean, std = _mesh(axes)[idx], mean_grid.reshape(-1, 3)[idx], std_grid.reshape(-1, 3)[idx]
     headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
     if out == NPZ:
         body = formats.npz_bytes(

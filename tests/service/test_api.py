@@ -267,6 +267,17 @@ def test_directional_regions_serve_the_mixture_of_the_library(client):
         np.testing.assert_array_equal(npz["heading_deg"][:4], [0, 90, 180, 270])
     r = client.get("/v1/regions/lanes/grid", params={"step": "50,50,20", "modes": "true"})
     assert r.status_code == 422 and "npz" in r.json()["detail"]
+    # the directional tube: the mode flown, where its share is at least min_share
+    params = {"step": "50,50,20", "max_std_mps": 5.0, "heading_deg": 95.0, "min_share": 0.2}
+    tube = client.get("/v1/regions/lanes/tubes", params=params, headers={"Accept": NPZ})
+    with np.load(io.BytesIO(tube.content)) as npz:
+        mask = npz["mask"].ravel()
+        expected = (
+            (ref.share[:, 1] >= 0.2) & (ref.std[:, 1] < 5.0).all(-1) & spec.known(mesh, spec.increments(X, V))
+        )
+        np.testing.assert_array_equal(mask, expected)
+        assert 0 < mask.sum() < len(mask)
+        np.testing.assert_allclose(npz["mean"], ref.mean[mask, 1], rtol=0, atol=1e-6)
 
 
 def test_wgs84_bodies_equal_enu_bodies(client):
