@@ -58,6 +58,7 @@ class Stencil:
         self._lock = threading.Lock()
         self._pattern = None
         self._symbolic = None
+        self._positions = None
 
     @property
     def size(self) -> int:
@@ -156,20 +157,32 @@ class Factor:
 
     def inverse_band(self) -> np.ndarray:
         """The inverse on the stencil, as a band (len(offsets), M): selected inversion."""
-        st = self.stencil
         L = self.lower()
         starts = _supernodes(L.indptr, L.indices)
         values = _selected_inverse(L.indptr, L.indices, L.data, starts)
-        # entries of the stencil, in the factor's (permuted) order, lower triangle
-        inverse_perm = np.empty(st.size, np.int64)
-        inverse_perm[self._numeric.P()] = np.arange(st.size)
-        band = np.zeros((len(st.offsets), st.size))
-        for k in range(len(st.offsets)):
-            m, partner = st.pairs(k)
-            a, b = inverse_perm[m], inverse_perm[partner]
-            row, col = np.maximum(a, b), np.minimum(a, b)
-            band[k, m] = values[_positions(L.indptr, L.indices, row, col)]
-        return band
+        where, source = self._stencil_positions()
+        band = np.zeros(len(self.stencil.offsets) * self.stencil.size)
+        band[where] = values[source]
+        return band.reshape(len(self.stencil.offsets), self.stencil.size)
+
+    def _stencil_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where each stencil pair sits in L's values (lower triangle, permuted order), as
+        (flat band index, index into L.data). Every factor of one analysis has the same
+        ordering and pattern, so this is computed once per stencil."""
+        st = self.stencil
+        with st._lock:
+            if st._positions is None:
+                L = self.lower()
+                inverse_perm = np.empty(st.size, np.int64)
+                inverse_perm[self._numeric.P()] = np.arange(st.size)
+                where, source = [], []
+                for k in range(len(st.offsets)):
+                    m, partner = st.pairs(k)
+                    a, b = inverse_perm[m], inverse_perm[partner]
+                    where.append(k * st.size + m)
+                    source.append(_positions(L.indptr, L.indices, np.maximum(a, b), np.minimum(a, b)))
+                st._positions = np.concatenate(where), np.concatenate(source)
+            return st._positions
 
 
 def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.ndarray:
@@ -241,10 +254,10 @@ def _selected_inverse(indptr, indices, data, starts) -> np.ndarray:
         Lb = _dense_block(indptr, data, f, w, nr)
         blk = blocks[offs[s] : offs[s + 1]].reshape(nr, w)
         LJJ = Lb[:w]
-        SJJ, info = sla.lapack.dpotri(LJJ, lower=1)
+        SJJ, info = sla.lapack.dpotri(LJJ, lower=1, overwrite_c=1)
         if info != 0:
             raise NotPositiveDefinite(f"selected inversion failed (LAPACK info {info})")
-        SJJ = np.tril(SJJ) + np.tril(SJJ, -1).T
+        _mirror_lower(SJJ)
         if r > 0:
             Y = sla.solve_triangular(LJJ, Lb[w:].T, lower=True, trans="T", check_finite=False).T
             R = indices[indptr[f] + w : indptr[f + 1]]
@@ -254,6 +267,15 @@ def _selected_inverse(indptr, indices, data, starts) -> np.ndarray:
             blk[w:] = SRJ
         blk[:w] = SJJ
     return _scatter(indptr, starts, offs, blocks, len(data))
+
+
+@numba.njit(cache=True)
+def _mirror_lower(A):  # pragma: no cover - compiled
+    """Copy the lower triangle of the square ``A`` onto its upper one, in place."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            A[i, j] = A[j, i]
 
 
 @numba.njit(cache=True)

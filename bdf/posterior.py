@@ -68,11 +68,16 @@ class Posterior:
         T = self.weights.reshape(*self.grid.shape, 3)
         return features.gather(self.grid, X, T, self.gamma, cutoff=self.cutoff)
 
-    def epistemic_variance(self, X: np.ndarray) -> np.ndarray:
-        """``phi(x)^T Sigma_c phi(x)`` per component, (N, 3), via the variance density."""
+    def variance_table(self) -> tuple[np.ndarray, list[int]]:
+        """The variance densities on the midpoint lattice (one per distinct factorisation)
+        and the one each component uses; ``phi^T Sigma_c phi`` is their gather over beta_c."""
         if self._variance is None:
             self._variance = self._variance_density()
-        densities, columns = self._variance
+        return self._variance
+
+    def epistemic_variance(self, X: np.ndarray) -> np.ndarray:
+        """``phi(x)^T Sigma_c phi(x)`` per component, (N, 3), via the variance density."""
+        densities, columns = self.variance_table()
         var = features.gather(
             self.grid.midpoints(),
             X,
@@ -87,9 +92,7 @@ class Posterior:
         """Mean and variance (predictive, or epistemic without the noise) on the grid
         ``axes`` (three 1-D arrays), each (nx, ny, nz, 3); separable, see
         :func:`features.gather_grid`."""
-        if self._variance is None:
-            self._variance = self._variance_density()
-        densities, columns = self._variance
+        densities, columns = self.variance_table()
         mean = features.gather_grid(
             self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma, cutoff=self.cutoff
         )
@@ -137,8 +140,7 @@ class Posterior:
     def compact(self) -> Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
         what a cache keeps (a few times the midpoint lattice)."""
-        if self._variance is None:
-            self._variance = self._variance_density()
+        self.variance_table()
         self._solutions = None
         return self
 
@@ -229,6 +231,7 @@ class Mixture:
         self.share_beta = (
             min(C * n / max(residual, 1e-300), tuning.MAX_AUTO_BETA) if n > 0 else tuning.EMPTY_BETA
         )
+        self._tables = None
 
     @property
     def alpha(self) -> np.ndarray:
@@ -249,14 +252,42 @@ class Mixture:
         share = raw / raw.sum(axis=1, keepdims=True)
         return share, np.sqrt(np.maximum(base_variance, 0.0) / self.share_beta)
 
+    def _gather_tables(self):
+        """Every mode's weights and the share weights side by side on the hinge lattice,
+        and every variance density on the midpoint lattice (the modes', then the map's with
+        one class), with each one's columns: a query gathers each lattice once."""
+        if self._tables is None:
+            weights = np.concatenate([*(m.weights for m in self.modes), self.share_weights], axis=1)
+            densities, columns, offset = [], [], 0
+            for post in (*self.modes, self.total):
+                d, c = post.variance_table()
+                densities.append(d)
+                columns.append(offset + np.asarray(c))
+                offset += d.shape[-1]
+            self._tables = (
+                weights.reshape(*self.grid.shape, -1),
+                np.concatenate(densities, axis=-1),
+                columns,
+            )
+        return self._tables
+
     def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
-        T = self.share_weights.reshape(*self.grid.shape, -1)
-        weights_at = features.gather(self.grid, X, T, self.gamma, cutoff=self.cutoff)
-        # phi^T (G + lam I)^-1 phi: the epistemic variance of the map with one class, times its beta
-        base = self.total.epistemic_variance(X)[:, 0] * self.total.beta[0]
-        share, share_std = self._share(weights_at, base)
-        mean, std = zip(*(m.predict(X, True, include_noise) for m in self.modes), strict=True)
-        return Modes(share, share_std, np.stack(mean, axis=1), np.stack(std, axis=1))
+        weights, densities, columns = self._gather_tables()
+        C = len(self.modes)
+        at = features.gather(self.grid, X, weights, self.gamma, cutoff=self.cutoff)
+        var = features.gather(
+            self.grid.midpoints(), X, densities, 2.0 * self.gamma, cutoff=self.cutoff, block=MIDPOINT_BLOCK
+        )
+        mean = at[:, : 3 * C].reshape(len(X), C, 3)
+        std = np.empty_like(mean)
+        for c, mode in enumerate(self.modes):
+            v = np.maximum(var[:, columns[c]] / mode.beta, 0.0)
+            if include_noise:
+                v = v + mode.noise_variance(X, mean[:, c])
+            std[:, c] = np.sqrt(v)
+        # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
+        share, share_std = self._share(at[:, 3 * C :], var[:, columns[-1][0]])
+        return Modes(share, share_std, mean, std)
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """The mixture's mean (n, 3), and its std if asked (moments over the modes)."""
@@ -266,12 +297,9 @@ class Mixture:
 
     def predict_heading(self, X: np.ndarray, heading_deg: np.ndarray, return_std=False, include_noise=True):
         """The mode of the sector holding ``heading_deg`` (n,) at each point."""
-        sector = self.sectors.sector_of_heading(heading_deg)
-        mean, std = np.empty((len(X), 3)), np.empty((len(X), 3))
-        for s in np.unique(sector):
-            rows = sector == s
-            mean[rows], std[rows] = self.modes[s].predict(X[rows], True, include_noise)
-        return (mean, std) if return_std else mean
+        modes = self.predict_modes(X, include_noise)
+        pick = (np.arange(len(X)), self.sectors.sector_of_heading(heading_deg))
+        return (modes.mean[pick], modes.std[pick]) if return_std else modes.mean[pick]
 
     def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance on the grid ``axes`` (see :meth:`Posterior.predict_grid`)."""
@@ -297,8 +325,12 @@ class Mixture:
         self.total.compact()
         for m in self.modes:
             m.compact()
+        self._gather_tables()
         return self
 
     @property
     def nbytes(self) -> int:
-        return self.share_weights.nbytes + self.total.nbytes + sum(m.nbytes for m in self.modes)
+        held = self.share_weights.nbytes + self.total.nbytes + sum(m.nbytes for m in self.modes)
+        if self._tables is not None:
+            held += self._tables[0].nbytes + self._tables[1].nbytes
+        return held
