@@ -26,8 +26,7 @@ class Posterior:
 
     Derived data only (tiles cache these per version); the evidence is the source of truth.
     With ``noise_lattice`` (and the evidence's moments), the noise term of the predictive
-    variance is local (:mod:`bdf.noise`) with prior weight ``noise_prior``. ``lam``: fixed
-    ratios alpha / beta for "auto" (:func:`tuning.fit_evidence`).
+    variance is local (:mod:`bdf.noise`) with prior weight ``noise_prior``.
     """
 
     def __init__(
@@ -40,7 +39,6 @@ class Posterior:
         cutoff,
         noise_lattice=None,
         noise_prior=None,
-        lam=None,
     ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
@@ -55,7 +53,6 @@ class Posterior:
             evidence.count,
             alpha,
             beta,
-            lam,
         )
         self.log_evidence = np.array(
             [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
@@ -177,8 +174,10 @@ class Mixture:
     cut to 0 and the rest renormalised. Their epistemic std is
     ``sqrt(phi^T (G + lam I)^-1 phi / beta_share)``, ``beta_share`` at its evidence maximum.
 
-    Hyperparameters: ``alpha``, ``beta`` "auto" fit the map with one class (``total``); each
-    mode keeps its ratios alpha / beta and takes its own beta at its evidence maximum there.
+    Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
+    shares use) and each mode at its own evidence maximum: traffic classes differ in how
+    smooth and how noisy they are (bench/RESULTS.md, "directional maps": one ratio alpha /
+    beta shared by the modes fits 1.7x faster and loses 0.12 of mixture MSLL on Paris).
     Fixed values are (3,) for all, or (1 + C, 3): the map with one class, then each class.
     """
 
@@ -187,7 +186,6 @@ class Mixture:
     ):
         C = sectors.classes
         self.sectors, self.grid, self.gamma, self.cutoff = sectors, grid, gamma, cutoff
-        auto = isinstance(alpha, str) or isinstance(beta, str)
         rows = [np.broadcast_to(h, (1 + C, 3)) if not isinstance(h, str) else None for h in (alpha, beta)]
 
         def row(h, r, k):
@@ -204,7 +202,6 @@ class Mixture:
             noise_lattice,
             noise_prior,
         )
-        lam = self.total.alpha / self.total.beta
         self.modes = [
             Posterior(
                 grid,
@@ -215,7 +212,6 @@ class Mixture:
                 cutoff,
                 noise_lattice,
                 noise_prior,
-                lam=lam if auto else None,
             )
             for c, e in enumerate(evidence.classes)
         ]

@@ -92,17 +92,12 @@ def _at_ratios(stencil, band, proj, v_sq, lams) -> list[Solution]:
     return [cache[c] for c in first]
 
 
-def fit_evidence(
-    stencil, band, proj, v_sq, count, alpha, beta, lam=None
-) -> tuple[np.ndarray, np.ndarray, list]:
+def fit_evidence(stencil, band, proj, v_sq, count, alpha, beta) -> tuple[np.ndarray, np.ndarray, list]:
     """alpha (3,), beta (3,) and the factorisation(s) serving component 0, 1, 2.
 
     ``band``: ``G`` on ``stencil``. ``alpha``/``beta``: "auto" or 3-vectors. Fixed values
     need no search. "auto" for alpha shares ``lam`` over the components; a fixed alpha
     with "auto" beta searches each component on its own (up to three factorisations).
-    ``lam`` (3,) given with "auto": the ratios are fixed and beta is its closed-form
-    evidence maximum there (one factorisation; a directional map's modes, at the ratios
-    of the map with one class).
     """
     auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
     if (auto_a or auto_b) and count <= 0:
@@ -110,12 +105,6 @@ def fit_evidence(
         alpha = EMPTY_ALPHA if auto_a else alpha
         beta = EMPTY_BETA if auto_b else beta
         auto_a = auto_b = False
-    if (auto_a or auto_b) and lam is not None:
-        lams = np.broadcast_to(np.asarray(lam, float), (3,))
-        sols = _at_ratios(stencil, band, proj, v_sq, lams)
-        residual = np.array([s.residual[c] for c, s in enumerate(sols)])
-        beta_v = np.minimum(count / residual, MAX_AUTO_BETA)
-        return lams * beta_v, beta_v, sols
     if not (auto_a or auto_b):
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
