@@ -370,6 +370,14 @@ class RegionSpec(BaseModel):
         """:class:`~bdf.posterior.Modes` on the grid ``axes``, the grid's shape first."""
         return posterior.predict_grid_modes(self._grid_axes(axes))
 
+    @staticmethod
+    def box_axes(lo, hi, step) -> list[np.ndarray]:
+        """The voxel grid of a box: per axis ``lo + i * step`` up to ``hi`` inclusive."""
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        step = np.broadcast_to(np.asarray(step, float), (3,))
+        counts = np.floor((hi - lo) / step + 1e-9).astype(np.int64) + 1
+        return [lo[d] + step[d] * np.arange(counts[d]) for d in range(3)]
+
     def _grid_axes(self, axes) -> list[np.ndarray]:
         axes = [np.asarray(a, float).ravel() for a in axes]
         for d, a in enumerate(axes):

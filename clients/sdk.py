@@ -88,7 +88,9 @@ class Prediction:
 
 @dataclass(frozen=True)
 class Grid:
-    """A voxel grid: axes x (nx,), y (ny,), z (nz,); mean and std (nx, ny, nz, 3)."""
+    """A voxel grid: axes x (nx,), y (ny,), z (nz,); mean and std (nx, ny, nz, 3). With
+    ``modes``: each traffic class's ``share`` (nx, ny, nz, C), ``mode_mean`` and ``mode_std``
+    (nx, ny, nz, C, 3)."""
 
     x: np.ndarray
     y: np.ndarray
@@ -97,6 +99,9 @@ class Grid:
     std: np.ndarray
     known: np.ndarray
     region_version: int
+    share: np.ndarray | None = None
+    mode_mean: np.ndarray | None = None
+    mode_std: np.ndarray | None = None
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -394,14 +399,24 @@ class _Endpoints:
         )
 
     # -- maps ---------------------------------------------------------------------------------
-    def query(self, name: str, X, *, frame: Frame = "enu", transport: Literal["arrow", "json"] = "arrow"):
-        """Predictive mean and std at points ``X`` (n, 3); returns :class:`Prediction`."""
-        return self._run(self._query(name, _points(X), frame, transport))
+    def query(
+        self,
+        name: str,
+        X,
+        *,
+        frame: Frame = "enu",
+        transport: Literal["arrow", "json"] = "arrow",
+        heading_deg=None,
+    ):
+        """Predictive mean and std at points ``X`` (n, 3); returns :class:`Prediction`.
+        ``heading_deg`` (one, or one per point): the mode of traffic flying it."""
+        return self._run(self._query(name, _points(X), frame, transport, heading_deg))
 
-    def grid(self, name: str, step, bbox=None) -> Grid:
+    def grid(self, name: str, step, bbox=None, *, modes: bool = False) -> Grid:
         """Mean and std on the voxel grid ``bbox`` (xmin, ymin, zmin, xmax, ymax, zmax; default
-        the region) with ``step`` metres (one number or three), as npz."""
-        return self._run(self._grid(name, step, bbox))
+        the region) with ``step`` metres (one number or three), as npz; ``modes``: each
+        traffic class's too."""
+        return self._run(self._grid(name, step, bbox, modes))
 
     def tubes(
         self,
@@ -502,12 +517,15 @@ class _Endpoints:
         self._wrote(name, job["result"]["region_version"])
         return _summary([job["result"]])
 
-    def _query(self, name, X, frame, transport) -> Call:
+    def _query(self, name, X, frame, transport, heading_deg) -> Call:
         path, params = f"/v1/regions/{name}/query", self._read_params(name)
+        if heading_deg is not None:
+            heading_deg = np.broadcast_to(np.asarray(heading_deg, float), (len(X),))
         if transport == "json":
-            response = yield _Request(
-                "POST", path, params=params, **_json_body({"frame": frame, "points": X.tolist()})
-            )
+            body = {"frame": frame, "points": X.tolist()}
+            if heading_deg is not None:
+                body["heading_deg"] = heading_deg.tolist()
+            response = yield _Request("POST", path, params=params, **_json_body(body))
             js = response.json()
             return Prediction(
                 np.array(js["mean"], float).reshape(-1, 3),
@@ -522,7 +540,10 @@ class _Endpoints:
             path,
             accept=ARROW,
             params=params,
-            content=_arrow(_position_columns(X, frame)),
+            content=_arrow(
+                _position_columns(X, frame)
+                | ({} if heading_deg is None else {"heading_deg": np.ascontiguousarray(heading_deg)})
+            ),
             content_type=ARROW,
         )
         table = _read_arrow(response.content)
@@ -533,11 +554,12 @@ class _Endpoints:
             _version(response),
         )
 
-    def _grid(self, name, step, bbox) -> Call:
-        params = self._read_params(name, _grid_params(step, bbox))
+    def _grid(self, name, step, bbox, modes) -> Call:
+        params = self._read_params(name, _grid_params(step, bbox) | ({"modes": "true"} if modes else {}))
         response = yield _Request("GET", f"/v1/regions/{name}/grid", accept=NPZ, params=params)
         a = _npz(response.content)
-        return Grid(a["x"], a["y"], a["z"], a["mean"], a["std"], a["known"], _version(response))
+        per_class = (a["share"], a["mode_mean"], a["mode_std"]) if modes else (None, None, None)
+        return Grid(a["x"], a["y"], a["z"], a["mean"], a["std"], a["known"], _version(response), *per_class)
 
     def _tubes(self, name, max_std_mps, step, bbox, component, media) -> Call:
         params = {**_grid_params(step, bbox), "max_std_mps": repr(float(max_std_mps)), "component": component}

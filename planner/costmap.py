@@ -13,6 +13,16 @@ A route's cost is ``∫ (1 + risk(x) + flow(x, direction)) ds`` along it (metres
   ``c = b^2 / (b^2 + s^2)`` (``b = max_std_mps``): where the map knows nothing, the
   mean (the prior, 0) is not held against the route.
 
+On a directional map (``modes``: each traffic class's share, mean and std, the classes of
+:class:`bdf.directions.Sectors`) a segment flies in one class, the sector of its heading
+(the slow class when its horizontal speed at ``cruise_mps`` is below ``slow_mps``): risk,
+tube and flow are that mode's, and a *conflict* term is added,
+``w_conflict * sum over the other classes c of share_c * c_c * |cruise * direction -
+mean_c| / cruise``: the traffic met there, weighted by its closing speed and by how well the
+map knows it. (Swaminathan et al.'s "Down the CLiFF" cost weighs each mode's share by a
+Mahalanobis distance of the planned velocity; here every term carries the map's epistemic
+std.) A state (a point, no heading) is in the tube when some class's mode is.
+
 Every term is at least 0, so the cost is at least the length: the straight-line length is
 an admissible heuristic for OMPL's informed planners. Per-voxel fields are computed once
 and interpolated trilinearly, vectorised over all samples of all segments; a segment is
@@ -30,6 +40,8 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import erfc
 
+from bdf.directions import Sectors
+
 #: Where no tile has data, the std is at least this many tube bounds.
 UNKNOWN_STD_RATIO = 10.0
 #: Second differences at a cell's corners underestimate the curvature inside it (by ~10 %
@@ -37,6 +49,11 @@ UNKNOWN_STD_RATIO = 10.0
 CURVATURE_SAFETY = 1.25
 #: Columns of the per-voxel field table.
 S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
+#: Column of a class's share in the class table (after the 6 fields above).
+SHARE = 6
+#: A class at least this many degrees off the heading flown is crossing or opposing traffic
+#: (:func:`path_metrics`' conflict exposure).
+CROSSING_DEG = 67.5
 
 
 @dataclass(frozen=True)
@@ -51,18 +68,30 @@ class CostWeights:
     tube_penalty: float = 10.0
     risk_kind: Literal["std", "exceedance"] = "std"
     margin_mps: float = 5.0
+    conflict: float = 1.0
 
     def __post_init__(self):
         for name in ("max_std_mps", "cruise_mps", "margin_mps"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        for name in ("risk", "flow", "tube_penalty"):
+        for name in ("risk", "flow", "tube_penalty", "conflict"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"the weight {name} must not be negative, got {getattr(self, name)}")
         if self.tube not in ("hard", "soft", "off"):
             raise ValueError(f"tube must be 'hard', 'soft' or 'off', got {self.tube!r}")
         if self.risk_kind not in ("std", "exceedance"):
             raise ValueError(f"risk_kind must be 'std' or 'exceedance', got {self.risk_kind!r}")
+
+
+@dataclass(frozen=True)
+class Modes:
+    """A directional map on the grid: ``share`` (nx, ny, nz, C), ``mean`` and ``std`` (nx, ny,
+    nz, C, 3) of each traffic class of ``sectors`` (the service's grid with ``modes``)."""
+
+    share: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    sectors: Sectors
 
 
 @dataclass(frozen=True)
@@ -80,8 +109,11 @@ class CostMap:
     weights: CostWeights
     known: np.ndarray | None = None
     sample_m: float | None = None
+    modes: Modes | None = None
     table: np.ndarray = field(init=False, repr=False)  # (nx * ny * nz, 6) per-voxel fields
     curvature: np.ndarray = field(init=False, repr=False)  # (cells, 3) of s, see max_std_high
+    classes: np.ndarray | None = field(init=False, repr=False)  # (nx * ny * nz, C * 7) per class
+    class_curvature: np.ndarray | None = field(init=False, repr=False)  # (cells, C, 3)
 
     def __post_init__(self):
         axes = tuple(np.asarray(a, float) for a in self.axes)
@@ -97,21 +129,58 @@ class CostMap:
             raise ValueError(f"mean and std must have shape {(*shape, 3)}, got {mean.shape}, {std.shape}")
         if not (np.isfinite(mean).all() and np.isfinite(std).all() and (std >= 0).all()):
             raise ValueError("mean and std must be finite and std non-negative")
+        known = None
         if self.known is not None:
             known = np.asarray(self.known, bool)
             if known.shape != shape:
                 raise ValueError(f"known must have shape {shape}, got {known.shape}")
-            floor = UNKNOWN_STD_RATIO * self.weights.max_std_mps
-            std = np.where(known[..., None], std, np.maximum(std, floor))
-            mean = np.where(known[..., None], mean, 0.0)
+        mean, std = self._unknown_as_prior(mean, std, known)
         object.__setattr__(self, "axes", axes)
         if self.sample_m is None:
             object.__setattr__(self, "sample_m", 0.5 * min(a[1] - a[0] for a in axes))
         if not self.sample_m > 0:
             raise ValueError(f"sample_m must be positive, got {self.sample_m}")
         table = _voxel_fields(mean, std, self.weights)
+        classes = class_curvature = None
+        if self.modes is not None:
+            per_class = self._class_fields(shape, known)  # (nx, ny, nz, C, 7)
+            # a state is in the tube when some class's mode is: its fields are the least s's
+            best = np.argmin(per_class[..., S], axis=-1)[..., None, None]
+            table[..., : CONFIDENCE + 1] = np.take_along_axis(per_class, best, axis=-2)[
+                ..., 0, : CONFIDENCE + 1
+            ]
+            classes = per_class.reshape(-1, per_class.shape[-2] * per_class.shape[-1])
+            class_curvature = np.stack(
+                [_cell_curvature(per_class[..., c, S]) for c in range(per_class.shape[-2])], axis=-2
+            ).reshape(-1, per_class.shape[-2], 3)
         object.__setattr__(self, "table", table.reshape(-1, 6))
         object.__setattr__(self, "curvature", _cell_curvature(table[..., S]).reshape(-1, 3))
+        object.__setattr__(self, "classes", classes)
+        object.__setattr__(self, "class_curvature", class_curvature)
+
+    def _unknown_as_prior(self, mean, std, known):
+        """Where no tile has data: std at least ``UNKNOWN_STD_RATIO`` bounds, mean 0."""
+        if known is None:
+            return mean, std
+        floor = UNKNOWN_STD_RATIO * self.weights.max_std_mps
+        k = known.reshape(*known.shape, *(1,) * (mean.ndim - known.ndim))
+        return np.where(k, mean, 0.0), np.where(k, std, np.maximum(std, floor))
+
+    def _class_fields(self, shape, known) -> np.ndarray:
+        """(nx, ny, nz, C, 7): each class's fields (s, risk, confidence, mean) and share."""
+        m = self.modes
+        C = m.sectors.classes
+        share = np.asarray(m.share, float)
+        mean, std = np.asarray(m.mean, float), np.asarray(m.std, float)
+        if share.shape != (*shape, C) or mean.shape != (*shape, C, 3) or std.shape != (*shape, C, 3):
+            raise ValueError(
+                f"modes must have shapes {(*shape, C)} and {(*shape, C, 3)} for {C} classes, got "
+                f"{share.shape}, {mean.shape}, {std.shape}"
+            )
+        if not (np.isfinite(mean).all() and np.isfinite(std).all() and np.isfinite(share).all()):
+            raise ValueError("mode means, stds and shares must be finite")
+        mean, std = self._unknown_as_prior(mean, std, known)
+        return np.concatenate([_voxel_fields(mean, std, self.weights), share[..., None]], axis=-1)
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -137,8 +206,9 @@ class CostMap:
         """
         return self._interpolate(X)[0]
 
-    def _interpolate(self, X):
-        """Fields at ``X``, and each point's cell (flat index) and position in it (0..1)."""
+    def _interpolate(self, X, table=None):
+        """Fields at ``X`` (of ``table``, default the per-voxel fields), and each point's cell
+        (flat index) and position in it (0..1)."""
         X = np.asarray(X, float).reshape(-1, 3)
         lower, inv_step, top, offsets, cell_strides = self._lookup
         u = (X - lower) * inv_step
@@ -147,7 +217,7 @@ class CostMap:
         c = np.stack([1.0 - f, f], axis=2)  # (n, axis, 0/1 end)
         # corner order: x bit, y bit, z bit
         weights = (c[:, 0, :, None, None] * c[:, 1, None, :, None] * c[:, 2, None, None, :]).reshape(-1, 8)
-        corners = self.table[(base @ self._strides)[:, None] + offsets]
+        corners = (self.table if table is None else table)[(base @ self._strides)[:, None] + offsets]
         return np.einsum("nk,nkf->nf", weights, corners), base @ cell_strides, f
 
     @functools.cached_property
@@ -196,8 +266,36 @@ class CostMap:
     def segment_costs(self, P0, P1) -> np.ndarray:
         """Cost of each segment ``P0[k] -> P1[k]`` (trapezoid rule on the samples), metres."""
         X, seg, ds, length, direction = self.samples(P0, P1)
-        f = self.integrand(self.fields(X), direction[seg])
+        if self.modes is None:
+            f = self.integrand(self.fields(X), direction[seg])
+        else:
+            f = self.flown(X, direction[seg])[0]
         return np.bincount(seg, weights=f * ds, minlength=len(length))
+
+    def class_of(self, direction: np.ndarray) -> np.ndarray:
+        """(n,) the traffic class of flying along unit ``direction`` (n, 3) at cruise speed."""
+        sectors = self.modes.sectors
+        if sectors.classes == 1:
+            return np.zeros(len(direction), np.int64)
+        return sectors.classify(self.weights.cruise_mps * np.asarray(direction, float))
+
+    def flown(self, X, direction) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """On a directional map, per sample flying along ``direction``: the cost per metre,
+        the tube's s (upper bound, as :meth:`max_std_high`) of the mode flown, the class
+        fields (n, C, 7) and the class flown (n,)."""
+        w = self.weights
+        F, cell, t = self._interpolate(X, self.classes)
+        C = self.modes.sectors.classes
+        F = F.reshape(len(F), C, SHARE + 1)
+        k = self.class_of(direction)
+        n = np.arange(len(F))
+        own = F[n, k]
+        closing = np.linalg.norm(w.cruise_mps * direction[:, None, :] - F[:, :, MEAN], axis=2) / w.cruise_mps
+        met = F[:, :, SHARE] * F[:, :, CONFIDENCE] * closing
+        conflict = met.sum(axis=1) - met[n, k]
+        cost = 1.0 + own[:, RISK] + w.flow * own[:, CONFIDENCE] * closing[n, k] + w.conflict * conflict
+        margin = np.einsum("nd,nd->n", t * (1.0 - t), self.class_curvature[cell, k])
+        return cost, own[:, S] + 0.5 * CURVATURE_SAFETY * margin, F, k
 
     def integrand(self, F: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Cost per metre at samples with fields ``F`` flying along unit ``direction``."""
@@ -213,6 +311,12 @@ class CostMap:
         delta = np.asarray(b, float) - a
         length = math.sqrt(float(delta @ delta))
         n = math.ceil(length / self.sample_m) + 1
+        if self.modes is not None:
+            X = a + np.linspace(0.0, 1.0, n)[:, None] * delta
+            direction = np.broadcast_to(delta / max(length, 1e-300), X.shape)
+            f, s_high, *_ = self.flown(X, direction)
+            cost = length / max(n - 1, 1) * (float(f.sum()) - 0.5 * float(f[0] + f[-1]))
+            return cost, bool((s_high <= self.weights.max_std_mps).all())
         F, cell, t = self._interpolate(a + np.linspace(0.0, 1.0, n)[:, None] * delta)
         w = self.weights
         flow = w.cruise_mps * delta / max(length, 1e-300) - F[:, MEAN]
@@ -230,8 +334,12 @@ class CostMap:
         """True per segment when every sample has ``s_high <= max_std_mps``: the true std
         between grid nodes can exceed the interpolated one, never ``s_high`` (up to the
         curvature estimate)."""
-        X, seg, *_ = self.samples(P0, P1)
-        bad = self.max_std_high(X) > self.weights.max_std_mps
+        X, seg, _, _, direction = self.samples(P0, P1)
+        if self.modes is None:
+            s_high = self.max_std_high(X)
+        else:
+            s_high = self.flown(X, direction[seg])[1]
+        bad = s_high > self.weights.max_std_mps
         return np.bincount(seg, weights=bad, minlength=len(np.atleast_2d(P0))) == 0
 
 
@@ -269,14 +377,27 @@ def _cell_curvature(s: np.ndarray) -> np.ndarray:
 
 
 def path_metrics(costmap: CostMap, waypoints) -> dict[str, float]:
-    """Length, flight time, std along the path, tube fraction, integrated risk, flow mismatch."""
+    """Length, flight time, std along the path, tube fraction, integrated risk, flow mismatch;
+    on a directional map also the conflict exposure: the mean share, along the path, of
+    traffic in sectors at least ``CROSSING_DEG`` off the heading flown (crossing or opposing),
+    and the std, tube fraction and risk are those of the mode flown."""
     P = np.asarray(waypoints, float)
     if P.ndim != 2 or P.shape[1] != 3 or len(P) < 2:
         raise ValueError(f"a path needs at least 2 waypoints of 3 coordinates, got shape {P.shape}")
     w = costmap.weights
     X, seg, ds, length, direction = costmap.samples(P[:-1], P[1:])
-    F = costmap.fields(X)
     total = float(length.sum())
+    extra = {}
+    if costmap.modes is None:
+        F = costmap.fields(X)
+    else:
+        _, _, classes, k = costmap.flown(X, direction[seg])
+        F = classes[np.arange(len(X)), k]
+        sectors = costmap.modes.sectors
+        flown = np.degrees(np.arctan2(direction[seg, 0], direction[seg, 1]))
+        off = np.abs((sectors.centres_deg[None, :] - flown[:, None] + 180.0) % 360.0 - 180.0)
+        crossing = (classes[:, : sectors.directions, SHARE] * (off >= CROSSING_DEG)).sum(axis=1)
+        extra["conflict_exposure"] = float((crossing * ds).sum() / max(total, 1e-300))
     s = F[:, S]
     mismatch = np.linalg.norm(w.cruise_mps * direction[seg] - F[:, MEAN], axis=1)
     return {
@@ -288,4 +409,5 @@ def path_metrics(costmap: CostMap, waypoints) -> dict[str, float]:
         "integrated_risk_m": float((F[:, RISK] * ds).sum()),
         "flow_mismatch_mps": float((F[:, CONFIDENCE] * mismatch * ds).sum() / max(total, 1e-300)),
         "cost_m": float(costmap.segment_costs(P[:-1], P[1:]).sum()),
+        **extra,
     }

@@ -1,8 +1,11 @@
-"""Plan a risk-aware route and its shortest-path baseline on a region served by bdf-maps.
+"""Plan a risk-aware route and its shortest-path baseline on a region's map.
 
-One binary grid request fetches mean and std for the planning box; both routes are planned
-in fresh worker processes (OMPL holds the GIL and seeds once per process); the std along
-each route is then checked against the service's exact predictions, every ``check_m``.
+The map comes from any :class:`MapSource`: the SDK's client over HTTP, or a region in
+process (:class:`LocalMap`). One grid request fetches mean and std (and, for a directional
+region, every traffic class's modes) for the planning box; both routes are planned in
+fresh worker processes (OMPL holds the GIL and seeds once per process); the std along each
+route (of the mode flown, on a directional region) is then checked against the map's exact
+predictions, every ``check_m``.
 """
 
 from __future__ import annotations
@@ -13,12 +16,12 @@ import logging
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
 from bdf.tiles import RegionSpec
-from clients.sdk import BDFClient
-from planner.costmap import CostMap, CostWeights, path_metrics
+from planner.costmap import CostMap, CostWeights, Modes, path_metrics
 from planner.search import Box, Problem, Solution, solve
 
 log = logging.getLogger(__name__)
@@ -26,6 +29,80 @@ MAX_VOXELS = 400_000
 #: A hard-tube route the service finds above the bound is planned again on a grid of half
 #: the step, at most this many times (and while the grid stays within 4 x MAX_VOXELS).
 REFINES = 2
+
+
+class MapSource(Protocol):
+    """What the planner asks of a map: the SDK's ``BDFClient`` has these methods."""
+
+    def region(self, name: str) -> Any:
+        """An object with the region's ``spec``."""
+
+    def grid(self, name: str, step, bbox=None, *, modes: bool = False) -> Any:
+        """An object with ``axes``, ``mean``, ``std``, ``known`` and, with ``modes``,
+        ``share``, ``mode_mean``, ``mode_std`` (as :meth:`clients.sdk.BDFClient.grid`)."""
+
+    def query(self, name: str, X, *, heading_deg=None) -> Any:
+        """An object with ``std`` (n, 3) at ``X``, of the mode of ``heading_deg`` if given."""
+
+
+@dataclass(frozen=True)
+class LocalRegion:
+    spec: RegionSpec
+
+
+@dataclass(frozen=True)
+class LocalGrid:
+    axes: tuple[np.ndarray, np.ndarray, np.ndarray]
+    mean: np.ndarray
+    std: np.ndarray
+    known: np.ndarray
+    share: np.ndarray | None = None
+    mode_mean: np.ndarray | None = None
+    mode_std: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class LocalPrediction:
+    mean: np.ndarray
+    std: np.ndarray
+
+
+class LocalMap:
+    """A region's map in process, as a :class:`MapSource`: the spec, its posterior
+    (:meth:`RegionSpec.posterior`) and the keys of its tiles with data."""
+
+    def __init__(self, spec: RegionSpec, posterior, data_tiles):
+        self.spec, self.posterior, self.data_tiles = spec, posterior, frozenset(data_tiles)
+
+    @classmethod
+    def fit(cls, spec: RegionSpec, X, V, **kwargs) -> LocalMap:
+        """The map of observations ``(X, V)`` (keywords of :meth:`RegionSpec.increments`)."""
+        increments = spec.increments(X, V, **kwargs)
+        evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
+        return cls(spec, spec.posterior(evidence), increments)
+
+    def _check(self, name: str) -> None:
+        if name != self.spec.name:
+            raise ValueError(f"this map holds region {self.spec.name!r}, not {name!r}")
+
+    def region(self, name: str) -> LocalRegion:
+        self._check(name)
+        return LocalRegion(self.spec)
+
+    def grid(self, name: str, step, bbox=None, *, modes: bool = False) -> LocalGrid:
+        self._check(name)
+        lo, hi = (self.spec.lower, self.spec.upper) if bbox is None else (bbox[:3], bbox[3:])
+        axes = tuple(self.spec.box_axes(lo, hi, step))
+        mean, std, known = self.spec.predict_grid(axes, self.posterior, self.data_tiles)
+        if not modes:
+            return LocalGrid(axes, mean, std, known)
+        m = self.spec.predict_grid_modes(axes, self.posterior)
+        return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std)
+
+    def query(self, name: str, X, *, heading_deg=None) -> LocalPrediction:
+        self._check(name)
+        mean, std, _ = self.spec.predict(np.asarray(X, float), self.posterior, self.data_tiles, heading_deg)
+        return LocalPrediction(mean, std)
 
 
 @dataclass
@@ -123,7 +200,7 @@ def _to_enu(spec: RegionSpec, p, frame: str) -> np.ndarray:
 
 
 def plan_route(
-    client: BDFClient,
+    client: MapSource,
     region: str,
     start,
     goal,
@@ -177,8 +254,10 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, ch
     lo, hi = box[0].copy(), box[1]
     # on the region's lattice of this step: the same voxels as any other grid of the step
     lo[:2] = spec.lower[:2] + np.floor((lo[:2] - spec.lower[:2]) / step[:2] + 1e-9) * step[:2]
-    grid = client.grid(region, step, bbox=[*lo, *hi])
-    costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known)
+    directional = spec.directions > 1
+    grid = client.grid(region, step, bbox=[*lo, *hi], modes=directional)
+    modes = Modes(grid.share, grid.mode_mean, grid.mode_std, spec.sectors) if directional else None
+    costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known, modes=modes)
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))
     risk = Problem(costmap, tuple(start), tuple(goal), band, **run)
@@ -205,9 +284,14 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, ch
 
 def _route(name, client, region, spec, costmap, P, solution, check_m) -> Route:
     metrics = path_metrics(costmap, P)
-    # the service's own std along the path (not the grid's interpolation)
+    # the map's own std along the path (not the grid's interpolation), of the mode flown
     X = densify(P, check_m)
-    std = client.query(region, X).std.max(axis=1)
+    heading = None
+    if spec.directions > 1:
+        step = np.diff(X, axis=0)
+        heading = np.degrees(np.arctan2(step[:, 0], step[:, 1]))
+        heading = np.append(heading, heading[-1:])
+    std = client.query(region, X, heading_deg=heading).std.max(axis=1)
     bound = costmap.weights.max_std_mps
     metrics.update(
         service_max_std_mps=float(std.max()), service_in_tube_fraction=float(np.mean(std <= bound))

@@ -181,13 +181,12 @@ def grid_axes(spec: RegionSpec, bbox: str | None, step: str, max_voxels: int):
                 f"bbox {box.tolist()} leaves region {spec.name!r}, whose bounds are "
                 f"{spec.bounds_m.min} .. {spec.bounds_m.max} (ENU metres)",
             )
-    counts = np.floor((hi - lo) / step_v + 1e-9).astype(np.int64) + 1
+    axes = RegionSpec.box_axes(lo, hi, step_v)
+    counts = [len(a) for a in axes]
     voxels = int(np.prod(counts))
     if voxels > max_voxels:
-        raise Problem(
-            422, f"the grid would have {voxels} voxels ({counts.tolist()}); the limit is {max_voxels}"
-        )
-    return [lo[d] + step_v[d] * np.arange(counts[d]) for d in range(3)]
+        raise Problem(422, f"the grid would have {voxels} voxels ({counts}); the limit is {max_voxels}")
+    return axes
 
 
 def _mesh(axes) -> np.ndarray:

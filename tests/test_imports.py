@@ -61,3 +61,14 @@ def test_no_module_imports_itself_through_others():
 def test_the_cycle_finder_finds_a_cycle():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_packages_import_one_way():
+    """bdf at the bottom; service and planner above it, neither importing the other nor
+    clients; clients on top (DESIGN.md, Layout)."""
+    allowed = {"bdf": {"bdf"}, "service": {"bdf", "service"}, "planner": {"bdf", "planner"}}
+    for module, targets in imports().items():
+        package = module.split(".")[0]
+        if package in allowed:
+            wrong = {t for t in targets if t.split(".")[0] not in allowed[package]}
+            assert not wrong, f"{module} imports {sorted(wrong)}"

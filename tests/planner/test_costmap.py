@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from planner.costmap import CURVATURE_SAFETY, CostMap, CostWeights, path_metrics
+from bdf.directions import Sectors
+from planner.costmap import CURVATURE_SAFETY, CostMap, CostWeights, Modes, path_metrics
 from planner.search import Box, Problem
 
 AXES = (np.linspace(0, 1000, 21), np.linspace(-500, 500, 11), np.linspace(0, 300, 7))
@@ -180,3 +181,81 @@ def test_voxels_without_data_count_as_far_outside_the_tube():
     cm = CostMap(AXES, np.ones_like(std), std, CostWeights(max_std_mps=2.0), known=known)
     np.testing.assert_allclose(cm.max_std([[100.0, 0, 0], [900.0, 0, 0]]), [0.5, 20.0])
     np.testing.assert_allclose(cm.fields([[900.0, 0, 0]])[0, 3:], 0.0)
+
+
+def lanes(S=4):
+    """A directional map: eastbound traffic at 20 m/s south of y = 0, westbound north of it,
+    each well known in its lane (std 0.5); elsewhere every mode is the prior (std 8)."""
+    G = mesh()
+    sectors = Sectors(S)
+    C = sectors.classes
+    north = G[..., 1] > 0
+    share = np.zeros((*G.shape[:3], C))
+    east, west = S // 4, 3 * S // 4
+    share[..., east] = np.where(north, 0.0, 1.0)
+    share[..., west] = np.where(north, 1.0, 0.0)
+    mean = np.zeros((*G.shape[:3], C, 3))
+    mean[..., east, 0], mean[..., west, 0] = 20.0, -20.0
+    std = np.full((*G.shape[:3], C, 3), 8.0)
+    std[..., east, :] = np.where(north, 8.0, 0.5)[..., None]
+    std[..., west, :] = np.where(north, 0.5, 8.0)[..., None]
+    mix_mean = np.einsum("...c,...cd->...d", share, mean)
+    mix_std = np.sqrt(np.einsum("...c,...cd->...d", share, std**2 + mean**2) - mix_mean**2)
+    return mix_mean, mix_std, Modes(share, mean, std, sectors)
+
+
+def test_a_directional_map_costs_the_mode_flown_and_the_traffic_met():
+    mix_mean, mix_std, modes = lanes()
+    w = CostWeights(max_std_mps=2.0, cruise_mps=20.0, flow=0.5, conflict=1.0)
+    cm = CostMap(AXES, mix_mean, mix_std, w, modes=modes)
+    # flying east with the eastbound lane: its mode is known, no flow mismatch, nobody met
+    P0, P1 = np.array([[100.0, -300, 100]]), np.array([[900.0, -300, 100]])
+    risk_lane = 1.0 * 0.5 / 2.0
+    np.testing.assert_allclose(cm.segment_costs(P0, P1), 800 * (1 + risk_lane), rtol=1e-12)
+    # flying east in the westbound lane: the east mode is uncertain (its mean still 20 m/s:
+    # no flow mismatch), the west traffic is met head on (closing at 40 m/s, confidence
+    # 1 / (1 + 0.25^2))
+    P0, P1 = np.array([[100.0, 300, 100]]), np.array([[900.0, 300, 100]])
+    per_m = 1 + 8.0 / 2.0 + 1.0 / (1 + 0.25**2) * 2.0
+    np.testing.assert_allclose(cm.segment_costs(P0, P1), 800 * per_m, rtol=1e-12)
+    # the callbacks' one-segment path gives the same cost and tube answer
+    for a, b in [((100.0, -300, 100), (900.0, -300, 100)), ((100.0, 300, 100), (900.0, 300, 100))]:
+        cost, in_tube = cm.segment(np.array(a), np.array(b))
+        np.testing.assert_allclose(cost, cm.segment_costs(np.array([a]), np.array([b]))[0], rtol=1e-12)
+        assert in_tube == cm.segments_in_tube(np.array([a]), np.array([b]))[0]
+    # the hard tube holds the mode flown: with the lane yes, against it no; a state is in the
+    # tube when some mode is
+    assert cm.segments_in_tube(np.array([[100.0, -300, 100]]), np.array([[900.0, -300, 100]]))[0]
+    assert not cm.segments_in_tube(np.array([[900.0, -300, 100]]), np.array([[100.0, -300, 100]]))[0]
+    assert (cm.max_std_high(random_points(100)) <= 0.5 + 1e-12).all()
+    # exposure: the share of crossing or opposing traffic along the path
+    m = path_metrics(cm, [[100.0, 300, 100], [900.0, 300, 100]])
+    assert m["conflict_exposure"] == pytest.approx(1.0) and m["max_std_mps"] == pytest.approx(8.0)
+    assert path_metrics(cm, [[900.0, 300, 100], [100.0, 300, 100]])["conflict_exposure"] == pytest.approx(0.0)
+
+
+def test_a_directional_map_of_one_class_is_the_plain_map():
+    mean = np.broadcast_to([3.0, -1.0, 0.5], (*mesh().shape[:3], 3))
+    std = 1.0 + 0.001 * mesh()
+    w = CostWeights(max_std_mps=2.0, conflict=1.0)
+    plain = CostMap(AXES, mean, std, w)
+    one = CostMap(
+        AXES,
+        mean,
+        std,
+        w,
+        modes=Modes(np.ones((*std.shape[:3], 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
+    )
+    P = random_points(40, seed=3)
+    np.testing.assert_allclose(
+        one.segment_costs(P[:-1], P[1:]), plain.segment_costs(P[:-1], P[1:]), rtol=1e-12
+    )
+    np.testing.assert_array_equal(one.segments_in_tube(P[:-1], P[1:]), plain.segments_in_tube(P[:-1], P[1:]))
+    with pytest.raises(ValueError, match="modes must have shapes"):
+        CostMap(
+            AXES,
+            mean,
+            std,
+            w,
+            modes=Modes(np.ones((2, 2, 2, 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
+        )
