@@ -334,11 +334,11 @@ class CostMap:
         """True per segment when every sample has ``s_high <= max_std_mps``: the true std
         between grid nodes can exceed the interpolated one, never ``s_high`` (up to the
         curvature estimate)."""
-        X, seg, _, _, direction = self.samples(P0, P1)
-        if self.modes is None:
-            s_high = self.max_std_high(X)
-        else:
-            s_high = self.flown(X, direction[seg])[1]
+        X, seg, _, length, direction = self.samples(P0, P1)
+        s_high = self.max_std_high(X)
+        if self.modes is not None:  # a segment holds the mode flown; a state (no length) any mode
+            moving = length[seg] > 0
+            s_high[moving] = self.flown(X[moving], direction[seg][moving])[1]
         bad = s_high > self.weights.max_std_mps
         return np.bincount(seg, weights=bad, minlength=len(np.atleast_2d(P0))) == 0
 

@@ -126,3 +126,38 @@ def test_a_route_above_the_bound_at_the_service_is_planned_again_on_finer_grids(
         )
     assert [s.tolist() for s in steps] == [[20.0] * 3, [10.0] * 3, [5.0] * 3]
     assert plan.costmap.step.tolist() == [5.0] * 3 and plan.route is not None
+
+
+def test_a_directional_map_routes_with_the_traffic_not_against_it():
+    """Two lanes in process (LocalMap, no service): eastbound in the south, westbound in
+    the north, and a fifth of the traffic at random headings. Flying east from just north of
+    the boundary, the directional planner joins the eastbound lane; the map of one class
+    (today's) stays nearer the oncoming lane."""
+    from planner.costmap import path_metrics
+    from planner.routes import LocalMap
+
+    rng = np.random.default_rng(5)
+    X = rng.uniform([5, 5, 0], [295, 195, 60], (8000, 3))
+    V = np.zeros_like(X)
+    V[:, 0] = np.where(X[:, 1] < 100, 8.0, -8.0)
+    other, heading = rng.random(len(X)) < 0.2, rng.uniform(0, 2 * np.pi, len(X))
+    V[other, 0], V[other, 1] = 8.0 * np.sin(heading[other]), 8.0 * np.cos(heading[other])
+    V += 0.1 * rng.standard_normal(X.shape)
+    start, goal = (20.0, 120.0, 30.0), (280.0, 120.0, 30.0)
+    weights = CostWeights(max_std_mps=6.0, cruise_mps=8.0)
+    run = dict(weights=weights, step=10.0, planner="bitstar", time_s=60.0, max_iterations=3000, seed=3)
+    plans = {}
+    for directions in (1, 4):
+        spec = RegionSpec.model_validate({**SPEC, "name": "lanes", "directions": directions})
+        plans[directions] = plan_route(LocalMap.fit(spec, X, V), "lanes", start, goal, **run)
+    lanes = plans[4].costmap
+    directional = path_metrics(lanes, plans[4].route.enu)
+    today = path_metrics(lanes, plans[1].route.enu)
+    # today's planner already shuns the averaged westbound mean; the modes see the lane
+    assert directional["conflict_exposure"] < 0.7 * today["conflict_exposure"]
+    assert directional["cost_m"] < today["cost_m"]  # both scored on the directional map
+    assert directional["length_m"] < 1.15 * today["length_m"]
+    # its std is the eastbound mode's, inside the tube, checked against the map's own
+    assert plans[4].route.metrics["service_max_std_mps"] <= 6.0
+    with pytest.raises(ValueError, match="holds region 'lanes'"):
+        LocalMap.fit(spec, X[:100], V[:100]).grid("other", 10.0)
