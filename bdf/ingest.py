@@ -202,9 +202,10 @@ PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
 PARIS_NOISE_SPACING_M = np.array([1000.0, 1000.0, 125.0])
 
 
-def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris"):
+def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris", directions: int = 1):
     """The region of :func:`load_paris`'s box: one field, stored in 10 km tiles over the
-    whole altitude band, gamma = 1 / spacing^2, on the sample's origin."""
+    whole altitude band, gamma = 1 / spacing^2, on the sample's origin, with ``directions``
+    heading sectors."""
     from bdf.tiles import RegionSpec
 
     frame = sample_origin("paris")
@@ -219,6 +220,7 @@ def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris"):
             "tile_size_m": [10_000.0, 10_000.0, float(upper[2] - lower[2] + 1000)],
             "spacing_m": spacing.tolist(),
             "gamma": (1.0 / spacing**2).tolist(),
+            "directions": directions,
         }
     )
 

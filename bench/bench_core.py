@@ -23,12 +23,14 @@ this machine, best of ``--repeat`` runs for the fast methods. Appends to bench/R
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import importlib.util
 import os
 import platform
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -71,6 +73,45 @@ def score(name, V_test, V_train, mean, std, train_s, query_s, note=""):
         **accuracy(V_test, V_train, mean, std),
         "note": note,
     }
+
+
+#: The Paris lattices the service benchmarks run on.
+GRIDS = {"core grid": PARIS_SPACING_M.tolist(), "fine grid": [2000.0, 2000.0, 500.0]}
+
+
+def rows_table(rows: list[dict]) -> str:
+    """A markdown table of dict rows, the union of their keys as columns."""
+    cols = list(dict.fromkeys(k for r in rows for k in r))
+    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = []
+        for c in cols:
+            v = r.get(c, "")
+            v = "(not run)" if isinstance(v, float) and np.isnan(v) else v
+            cells.append(v if isinstance(v, str) else f"{v:d}" if isinstance(v, int) else f"{v:.3f}")
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def arguments(doc: str) -> argparse.ArgumentParser:
+    """The options the store benchmarks share: --postgres URL, --no-append."""
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--postgres", default=os.environ.get("BDF_TEST_POSTGRES_URL"), help="PostgreSQL URL")
+    parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
+    return parser
+
+
+@contextlib.contextmanager
+def postgres_schema(url: str):
+    """A store URL on a fresh schema of the server at ``url``; the schema is dropped after."""
+    schema = f"bench_{uuid.uuid4().hex[:8]}"
+    try:
+        yield f"{url}?schema={schema}"
+    finally:
+        import psycopg
+
+        with psycopg.connect(url, autocommit=True) as conn:
+            conn.execute(f"DROP SCHEMA IF EXISTS {schema} CASCADE")
 
 
 def publish(report: list[str], append: bool) -> None:

@@ -8,7 +8,12 @@
   start/goal pairs inside the tube, at least 20 km apart: median length increase, median
   integrated-risk decrease.
 
-    python bench/bench_planner.py [--pairs 20] [--pair-time 3] [--no-append]
+With ``--directions S``, only this: the Paris map in process (``LocalMap``) with S heading
+sectors against the map of one class (today's), both planned (BIT*, hard tube) over the
+same random pairs and both routes scored on the directional map: median change of the
+conflict exposure (the share of crossing or opposing traffic along the route) and of length.
+
+    python bench/bench_planner.py [--pairs 20] [--pair-time 3] [--directions 8] [--no-append]
 """
 
 from __future__ import annotations
@@ -26,15 +31,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_tiles import table
+from bench_core import rows_table
 
 from bdf import ingest
+from bdf.tiles import RegionSpec
 from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE, across_flow, busiest_flow, tube_voxels
 from clients.local import LocalService
 from clients.sdk import BDFClient
-from planner.costmap import CostMap, CostWeights
+from planner.costmap import CostMap, CostWeights, path_metrics
 from planner.lattice import lattice_optimum
-from planner.routes import plan_route
+from planner.routes import LocalMap, plan_route
 from planner.search import PLANNERS, Problem, solve_in_worker
 
 CHECKPOINTS = (1.0, 5.0, 10.0)
@@ -49,11 +55,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=20)
     parser.add_argument("--pair-time", type=float, default=3.0)
+    parser.add_argument("--directions", type=int, default=0, help="only directional vs one class, S sectors")
     parser.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
     args = parser.parse_args()
 
     obs, lower, upper = ingest.load_paris()
     spec = ingest.paris_region(lower, upper)
+    if args.directions:
+        text = directional_pairs(obs, spec, args)
+        print(text)
+        if not args.no_append:
+            with open(Path(__file__).with_name("RESULTS.md"), "a") as fh:
+                fh.write("\n" + text + "\n")
+        return
     with tempfile.TemporaryDirectory() as tmp, LocalService(Path(tmp)) as svc, BDFClient(svc.url) as bdf:
         bdf.create_region(spec)
         bdf.fit(spec.name, obs.X, obs.V, sample_weight=ingest.track_weights(obs, spec.spacing_m))
@@ -79,7 +93,7 @@ def main() -> None:
         f"cross its 2 km cell at {np.round(centre / 1e3, 1).tolist()} km). Each run is a fresh worker "
         "process.",
         "",
-        table(rows),
+        rows_table(rows),
         "",
         NOTE + f" Callbacks take {min(r['callback share'] for r in rows[1:]):.0%}-"
         f"{max(r['callback share'] for r in rows[1:]):.0%} of the time.",
@@ -132,6 +146,61 @@ def planner_rows(costmap: CostMap, a, b) -> list[dict]:
         row["iterations"] = "-" if sol.iterations is None else sol.iterations
         rows.append(row)
     return rows
+
+
+def directional_pairs(obs, spec, args) -> str:
+    """Directional planning against one class's over random pairs (see the module doc)."""
+    weight = ingest.track_weights(obs, spec.spacing_m)
+    maps, fit_s = {}, {}
+    for S in (1, args.directions):
+        t0 = time.perf_counter()
+        region = RegionSpec.model_validate({**spec.model_dump(), "directions": S})
+        maps[S] = LocalMap.fit(region, obs.X, obs.V, sample_weight=weight)
+        fit_s[S] = time.perf_counter() - t0
+    grid, bound, P = tube_voxels(maps[1], spec)
+    step = [float(a[1] - a[0]) for a in grid.axes]
+    weights = CostWeights(max_std_mps=bound, cruise_mps=60.0)
+    rng = np.random.default_rng(0)
+    exposure, length, rows, tried = [], [], [], 0
+    while len(rows) < args.pairs and tried < 5 * args.pairs:
+        tried += 1
+        a, b = P[rng.choice(len(P), 2, replace=False)]
+        if np.linalg.norm(a - b) < 20_000:
+            continue
+        plans = {}
+        for S, source in maps.items():
+            run = dict(
+                weights=weights, altitude_m=ROUTE_BAND_M, step=step, time_s=args.pair_time, seed=1 + len(rows)
+            )
+            plans[S] = plan_route(source, spec.name, a, b, **run)
+        if any(p.route is None for p in plans.values()):
+            continue
+        lanes = plans[args.directions].costmap
+        ours, today = (path_metrics(lanes, plans[S].route.enu) for S in (args.directions, 1))
+        exposure.append(1 - ours["conflict_exposure"] / max(today["conflict_exposure"], 1e-12))
+        length.append(ours["length_m"] / today["length_m"] - 1)
+        rows.append((today["conflict_exposure"], ours["conflict_exposure"]))
+    today_e, ours_e = np.array(rows).T
+    return "\n".join(
+        [
+            f"## Directional planning, {datetime.date.today()}",
+            "",
+            f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, {os.cpu_count()} "
+            f"cores. Paris (core lattice, all flights, track weights) in process: one class (fit "
+            f"{fit_s[1]:.1f} s) and {args.directions} sectors (fit {fit_s[args.directions]:.1f} s). BIT* "
+            f"{args.pair_time:g} s per route, hard tube at {bound:.1f} m/s, cruise 60 m/s, "
+            f"band {ROUTE_BAND_M} m, "
+            f"{len(rows)} random pairs in the tube >= 20 km apart ({tried} drawn, pairs where either "
+            "planner found no route skipped). Both routes scored on the directional map.",
+            "",
+            "| | one class (today) | directional |",
+            "|---|---|---|",
+            f"| median conflict exposure | {np.median(today_e):.3f} | {np.median(ours_e):.3f} |",
+            f"| median exposure change, per pair | | {-100 * np.median(exposure):+.1f} % |",
+            f"| median length change, per pair | | {100 * np.median(length):+.1f} % "
+            f"(max {100 * np.max(length):+.1f} %) |",
+        ]
+    )
 
 
 def _round(value, digits=2):

@@ -33,8 +33,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_core import publish  # bench/ is on the path when run as a script
-from bench_tiles import GRIDS, arguments, postgres_schema, table
+from bench_core import (  # bench/ is on the path as a script
+    GRIDS,
+    arguments,
+    postgres_schema,
+    publish,
+    rows_table,
+)
 
 from bdf import ingest
 from clients.local import LocalService
@@ -243,8 +248,8 @@ def main():
             if name == "PostgreSQL":
                 env["BDF_STORE_URL"] = stack.enter_context(postgres_schema(args.postgres))
             rows, fit_s = run(env, tmp, spec, obs, test, args.seconds)
-        report += ["", f"{name}: fit over HTTP {fit_s:.2f} s", "", table(rows)]
-        print(table(rows), flush=True)
+        report += ["", f"{name}: fit over HTTP {fit_s:.2f} s", "", rows_table(rows)]
+        print(rows_table(rows), flush=True)
     publish([*report, ""], not args.no_append)
 
 

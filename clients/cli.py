@@ -172,9 +172,11 @@ def _plot(args) -> int:
             step = step or (np.array(spec.spacing_m) / 8).tolist()
             alt = min(max(args.alt_m, spec.lower[2]), spec.upper[2])
             bbox = [*spec.lower[:2], alt, *spec.upper[:2], alt]
-            grid = bdf.grid(args.name, step, bbox)
+            grid = bdf.grid(args.name, step, bbox, modes=args.kind == "modes")
             if args.kind == "slice":
                 path = plots.plot_slice(grid, alt, args.component, args.out, title=args.name)
+            elif args.kind == "modes":
+                path = plots.plot_modes(grid, alt, args.out, title=args.name)
             else:
                 path = plots.plot_arrows(grid, alt, args.out, title=args.name)
     print(f"wrote {path}")
@@ -482,9 +484,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("name", help="region name")
     p.add_argument(
         "--kind",
-        choices=["slice", "arrows", "tube"],
+        choices=["slice", "arrows", "modes", "tube"],
         default="slice",
         help="slice: mean and std of a component (paper fig. 4); arrows: flow over std; "
+        "modes: each traffic class's flow (directional regions); "
         "tube: the tube in 3D coloured by vertical velocity (paper fig. 7)",
     )
     p.add_argument("--alt-m", type=float, default=1000.0, help="slice altitude, region ENU up (default 1000)")

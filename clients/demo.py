@@ -34,6 +34,8 @@ TUBE_QUANTILE = 0.2
 FLOW_CELL_M = 2000.0
 #: Start and goal: the tube points nearest this far (metres) from the flow, on each side.
 SIDE_OFFSET_M = 15_000.0
+#: Heading sectors of the demo's map: arrivals, departures and cruise traffic cross here.
+DIRECTIONS = 8
 
 
 def run(out: Path, plan_time_s: float = 5.0, url: str | None = None, token: str | None = None) -> dict:
@@ -41,7 +43,7 @@ def run(out: Path, plan_time_s: float = 5.0, url: str | None = None, token: str 
     out.mkdir(parents=True, exist_ok=True)
     obs, lower, upper = ingest.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
-    spec = ingest.paris_region(lower, upper)
+    spec = ingest.paris_region(lower, upper, directions=DIRECTIONS)
     report: dict[str, object] = {}
     svc = None
     with contextlib.ExitStack() as stack:
@@ -117,13 +119,17 @@ def _pictures(bdf: BDFClient, spec, out: Path) -> list[Path]:
             paths.append(plots.plot_slice(grid, alt, "e", out / f"slice_e_{alt:.0f}m.png", title=spec.name))
         else:
             paths.append(plots.plot_arrows(grid, alt, out / f"flow_{alt:.0f}m.png", title=spec.name))
+    for alt in (1000.0, 3000.0):
+        grid = bdf.grid(spec.name, step, [*spec.lower[:2], alt, *spec.upper[:2], alt], modes=True)
+        paths.append(plots.plot_modes(grid, alt, out / f"modes_{alt:.0f}m.png", title=spec.name))
     tubes = bdf.tubes(spec.name, 25.0, (np.array(spec.spacing_m) / 4).tolist())
     paths.append(plots.plot_tube(tubes, 25.0, out / "tube_3d.png", title=spec.name))
     return paths
 
 
-def tube_voxels(bdf: BDFClient, spec):
-    """The planning grid over the demo band, the tube bound (a quantile of the largest std
+def tube_voxels(bdf, spec):
+    """On any map source (the SDK, or a ``LocalMap``): the planning grid over the demo band,
+    the tube bound (a quantile of the largest std
     where there is data), and the voxels deep inside the largest connected piece of the
     tube (all their neighbours are in it): start and goal points with a route between them."""
     step = (np.array(spec.spacing_m) / 4).tolist()

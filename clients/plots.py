@@ -2,6 +2,8 @@
 
 * :func:`plot_slice`: mean and std of one component on a horizontal slice (paper fig. 4);
 * :func:`plot_arrows`: horizontal flow arrows over the std map;
+* :func:`plot_modes`: each traffic class's arrows (a directional map), as the viewer's
+  ``modes`` layer draws them;
 * :func:`plot_tube`: the tube's voxels in 3D, coloured by vertical velocity (paper fig. 7).
 """
 
@@ -75,6 +77,36 @@ def plot_arrows(grid: Grid, alt_m: float, path, title: str = "") -> Path:
     ax.quiver(gx, gy, grid.mean[sl][..., 0], grid.mean[sl][..., 1], color="cyan", width=0.003)
     ax.set(xlabel="east [km]", ylabel="north [km]", title=f"{title} mean flow at {grid.z[k]:.0f} m")
     return _save(fig, path)
+
+
+def plot_modes(grid: Grid, alt_m: float, path, title: str = "", min_share: float = 0.05) -> Path:
+    """Each traffic class with at least ``min_share`` of the traffic as an arrow along its
+    mode's horizontal mean, coloured by heading, wider with its share, over the mixture's
+    speed (a grid fetched with ``modes=True``)."""
+    from service.slices import render_slice
+
+    if grid.share is None:
+        raise ValueError("plot_modes needs a grid fetched with modes=True")
+    k = _level(grid, alt_m)
+    png = render_slice(
+        grid.x,
+        grid.y,
+        grid.mean[:, :, k],
+        grid.std[:, :, k],
+        grid.known[:, :, k],
+        alt_m=float(grid.z[k]),
+        layer="modes",
+        component="e",
+        max_std_mps=1.0,
+        title=title,
+        share=grid.share[:, :, k],
+        mode_mean=grid.mode_mean[:, :, k],
+        min_share=min_share,
+    )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(png)
+    return path
 
 
 def plot_tube(tubes: Tubes, max_std_mps: float, path, title: str = "", max_points: int = 20_000) -> Path:

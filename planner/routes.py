@@ -60,6 +60,18 @@ class LocalGrid:
     mode_mean: np.ndarray | None = None
     mode_std: np.ndarray | None = None
 
+    @property
+    def x(self) -> np.ndarray:
+        return self.axes[0]
+
+    @property
+    def y(self) -> np.ndarray:
+        return self.axes[1]
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.axes[2]
+
 
 @dataclass(frozen=True)
 class LocalPrediction:

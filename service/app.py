@@ -554,8 +554,10 @@ def slice_png(
     bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax in region ENU metres")] = None,
     step: Annotated[float | None, Query(gt=0, description="horizontal cell size, metres")] = None,
     min_version: MinVersion = 0,
+    min_share: Annotated[float, Query(ge=0, le=1, description="layer=modes: the least share drawn")] = 0.05,
 ):
-    """A PNG of one horizontal slice with its colour scale and units (the viewer's image)."""
+    """A PNG of one horizontal slice with its colour scale and units (the viewer's image).
+    ``modes`` draws each traffic class's arrows, ``share`` the largest class's share."""
     info, not_modified = _region_or_304(request, name)
     if not_modified:
         return not_modified
@@ -564,7 +566,15 @@ def slice_png(
         raise Problem(422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m")
     box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
     x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
-    pred = request.app.state.maps.predict_grid(name, [x, y, np.array([alt_m])], info, min_version)
+    with_modes = layer in ("modes", "share")
+    pred = request.app.state.maps.predict_grid(
+        name, [x, y, np.array([alt_m])], info, min_version, modes=with_modes
+    )
+    per_class = {}
+    if with_modes:
+        per_class = dict(
+            share=pred.modes.share[:, :, 0], mode_mean=pred.modes.mean[:, :, 0], min_share=min_share
+        )
     png = slices.render_slice(
         x,
         y,
@@ -576,6 +586,7 @@ def slice_png(
         component=component,
         max_std_mps=max_std_mps,
         title=f"{name} v{pred.version}",
+        **per_class,
     )
     headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
     return Response(png, media_type=PNG, headers=headers)

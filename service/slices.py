@@ -13,7 +13,9 @@ import numpy as np
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
-Layer = Literal["mean", "std", "tube"]
+Layer = Literal["mean", "std", "tube", "modes", "share"]
+#: Arrows per horizontal axis on the modes layer.
+ARROWS_PER_SIDE = 24
 Component = Literal["e", "n", "u"]
 COMPONENTS = ("e", "n", "u")
 MAX_SIDE = 256  # cells per horizontal axis of a slice: enough for a screen, cheap to predict
@@ -58,15 +60,32 @@ def render_slice(
     component: Component,
     max_std_mps: float,
     title: str,
+    share: np.ndarray | None = None,
+    mode_mean: np.ndarray | None = None,
+    min_share: float = 0.05,
 ) -> bytes:
-    """PNG of one slice. ``mean``, ``std``: (nx, ny, 3) m/s; ``known``: (nx, ny).
+    """PNG of one slice. ``mean``, ``std``: (nx, ny, 3) m/s; ``known``: (nx, ny);
+    ``share`` (nx, ny, C) and ``mode_mean`` (nx, ny, C, 3): each traffic class's.
 
     ``mean``: the mean of ``component``, grey where no tile has data (the prior);
     ``std``: its predictive std; ``tube``: the mean where every component's std is below
-    ``max_std_mps`` and there is data, grey elsewhere.
+    ``max_std_mps`` and there is data, grey elsewhere; ``share``: the largest class's share
+    (1: one direction; low: mixed traffic); ``modes``: an arrow per class with at least
+    ``min_share`` of the traffic, along its horizontal mean, as wide as its share, on the
+    horizontal speed of the mixture.
     """
     c = COMPONENTS.index(component)
-    if layer == "std":
+    if layer in ("modes", "share") and share is None:
+        raise ValueError(f"the {layer} layer needs the modes")
+    if layer == "share":
+        values = np.ma.array(share.max(axis=-1), mask=~known)
+        cmap, norm = "viridis", Normalize(1.0 / share.shape[-1], 1.0)
+        label = "share of the largest traffic class"
+    elif layer == "modes":
+        values = np.ma.array(np.hypot(mean[..., 0], mean[..., 1]), mask=~known)
+        cmap, norm = "Greys", Normalize(0.0, 2.0 * _robust_max(values))
+        label = "horizontal speed of the mixture [m/s]"
+    elif layer == "std":
         values = np.ma.masked_invalid(std[..., c])
         cmap, norm = "magma_r", Normalize(float(values.min()), _robust_max(values))
         label = f"predictive std of v{component} [m/s]"
@@ -82,11 +101,50 @@ def render_slice(
     extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
     im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
     fig.colorbar(im, ax=ax, label=label, shrink=0.9, extend="max" if layer == "std" else "both")
-    what = {"mean": "mean", "std": "uncertainty", "tube": f"tube (std < {max_std_mps:g} m/s)"}[layer]
+    if layer == "modes":
+        _mode_arrows(ax, x, y, share, mode_mean, known, min_share)
+    what = {
+        "mean": "mean",
+        "std": "uncertainty",
+        "tube": f"tube (std < {max_std_mps:g} m/s)",
+        "modes": f"traffic modes (share >= {min_share:g})",
+        "share": "directional purity",
+    }[layer]
     ax.set(xlabel="east [km]", ylabel="north [km]", title=f"{title}: {what} at {alt_m:.0f} m")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     return buf.getvalue()
+
+
+def _mode_arrows(ax, x, y, share, mode_mean, known, min_share) -> None:
+    """An arrow per class and cell (every k-th cell) with at least ``min_share`` of the
+    traffic: along the mode's horizontal mean, coloured by heading, wider as its share
+    grows (three widths: below 0.2, to 0.5, above)."""
+    k = max(1, int(np.ceil(max(len(x), len(y)) / ARROWS_PER_SIDE)))
+    xs, ys = np.meshgrid(x[::k] / 1e3, y[::k] / 1e3, indexing="ij")
+    s, m, seen = share[::k, ::k], mode_mean[::k, ::k], known[::k, ::k]
+    speed = np.hypot(m[..., 0], m[..., 1])
+    cell_km = k * float(x[1] - x[0]) / 1e3 if len(x) > 1 else 1.0
+    scale = max(float(np.max(speed[seen[..., None] & (s >= min_share)], initial=0.0)), 1e-9) / (0.9 * cell_km)
+    show = seen[..., None] & (s >= min_share) & (speed > 0)
+    heading = np.degrees(np.arctan2(m[..., 0], m[..., 1])) % 360.0
+    for low, high, width in ((min_share, 0.2, 0.002), (0.2, 0.5, 0.004), (0.5, 1.01, 0.007)):
+        pick = show & (s >= low) & (s < high)
+        if pick.any():
+            cells = np.nonzero(pick)
+            ax.quiver(
+                xs[cells[:2]],
+                ys[cells[:2]],
+                m[..., 0][pick],
+                m[..., 1][pick],
+                heading[pick],
+                cmap="hsv",
+                clim=(0, 360),
+                angles="xy",
+                scale_units="xy",
+                scale=scale,
+                width=width,
+            )
 
 
 def _robust_max(values: np.ma.MaskedArray) -> float:

@@ -69,6 +69,40 @@ def test_render_slice_colours_only_what_the_layer_shows():
     assert draw("mean", known=np.zeros_like(known)) == none  # no data: grey map, same bar
 
 
+def test_render_slice_draws_the_modes_of_the_classes_with_enough_share():
+    x, y = np.linspace(0, 1000, 48), np.linspace(0, 800, 40)
+    mean, std = np.zeros((48, 40, 3)), np.full((48, 40, 3), 0.5)
+    known = np.ones((48, 40), bool)
+    share = np.zeros((48, 40, 3))
+    share[..., 0], share[..., 1] = 0.7, 0.3
+    mode_mean = np.zeros((48, 40, 3, 3))
+    mode_mean[..., 0, 0], mode_mean[..., 1, 1] = 20.0, -10.0  # east, and south
+
+    def draw(layer, share=share, min_share=0.05):
+        png = render_slice(
+            x,
+            y,
+            mean,
+            std,
+            known,
+            alt_m=100,
+            layer=layer,
+            component="e",
+            max_std_mps=1.0,
+            title="t",
+            share=share,
+            mode_mean=mode_mean,
+            min_share=min_share,
+        )
+        return coloured_pixels(png)
+
+    both, one = draw("modes"), draw("modes", min_share=0.5)  # the 0.3 class's arrows go
+    assert both > one + 1_000 > 2_000
+    assert draw("share") > 50_000
+    with pytest.raises(ValueError, match="needs the modes"):
+        render_slice(x, y, mean, std, known, alt_m=1, layer="modes", component="e", max_std_mps=1, title="t")
+
+
 def test_slice_png_endpoint(live_server):
     server = live_server()
     with httpx.Client(base_url=server.url, timeout=60) as c:
