@@ -56,6 +56,9 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=20)
     parser.add_argument("--pair-time", type=float, default=3.0)
     parser.add_argument("--directions", type=int, default=0, help="only directional vs one class, S sectors")
+    parser.add_argument(
+        "--conflict", type=float, default=CostWeights.conflict, help="weight of the conflict term"
+    )
     parser.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
     args = parser.parse_args()
 
@@ -159,7 +162,7 @@ def directional_pairs(obs, spec, args) -> str:
         fit_s[S] = time.perf_counter() - t0
     grid, bound, P = tube_voxels(maps[1], spec)
     step = [float(a[1] - a[0]) for a in grid.axes]
-    weights = CostWeights(max_std_mps=bound, cruise_mps=60.0)
+    weights = CostWeights(max_std_mps=bound, cruise_mps=60.0, conflict=args.conflict)
     rng = np.random.default_rng(0)
     exposure, length, rows, tried = [], [], [], 0
     while len(rows) < args.pairs and tried < 5 * args.pairs:
@@ -188,7 +191,8 @@ def directional_pairs(obs, spec, args) -> str:
             f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, {os.cpu_count()} "
             f"cores. Paris (core lattice, all flights, track weights) in process: one class (fit "
             f"{fit_s[1]:.1f} s) and {args.directions} sectors (fit {fit_s[args.directions]:.1f} s). BIT* "
-            f"{args.pair_time:g} s per route, hard tube at {bound:.1f} m/s, cruise 60 m/s, "
+            f"{args.pair_time:g} s per route, hard tube at {bound:.1f} m/s, cruise 60 m/s, conflict weight "
+            f"{args.conflict:g}, "
             f"band {ROUTE_BAND_M} m, "
             f"{len(rows)} random pairs in the tube >= 20 km apart ({tried} drawn, pairs where either "
             "planner found no route skipped). Both routes scored on the directional map.",
