@@ -101,8 +101,10 @@ def render_slice(
     extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
     im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
     fig.colorbar(im, ax=ax, label=label, shrink=0.9, extend="max" if layer == "std" else "both")
-    if layer == "modes":
-        _mode_arrows(ax, x, y, share, mode_mean, known, min_share)
+    if layer == "modes" and (arrows := _mode_arrows(ax, x, y, share, mode_mean, known, min_share)):
+        bar = fig.colorbar(arrows, ax=ax, location="bottom", shrink=0.6, aspect=40)
+        bar.set_label("heading of the mode [degrees from north]")
+        bar.set_ticks([0, 90, 180, 270, 360])
     what = {
         "mean": "mean",
         "std": "uncertainty",
@@ -116,10 +118,12 @@ def render_slice(
     return buf.getvalue()
 
 
-def _mode_arrows(ax, x, y, share, mode_mean, known, min_share) -> None:
+def _mode_arrows(ax, x, y, share, mode_mean, known, min_share):
     """An arrow per class and cell (every k-th cell) with at least ``min_share`` of the
     traffic: along the mode's horizontal mean, coloured by heading, wider as its share
-    grows (three widths: below 0.2, to 0.5, above)."""
+    grows (three widths: below 0.2, to 0.5, above). Returns the last arrows drawn (for the
+    heading colour bar), or None."""
+    drawn = None
     k = max(1, int(np.ceil(max(len(x), len(y)) / ARROWS_PER_SIDE)))
     xs, ys = np.meshgrid(x[::k] / 1e3, y[::k] / 1e3, indexing="ij")
     s, m, seen = share[::k, ::k], mode_mean[::k, ::k], known[::k, ::k]
@@ -132,7 +136,7 @@ def _mode_arrows(ax, x, y, share, mode_mean, known, min_share) -> None:
         pick = show & (s >= low) & (s < high)
         if pick.any():
             cells = np.nonzero(pick)
-            ax.quiver(
+            drawn = ax.quiver(
                 xs[cells[:2]],
                 ys[cells[:2]],
                 m[..., 0][pick],
@@ -145,6 +149,7 @@ def _mode_arrows(ax, x, y, share, mode_mean, known, min_share) -> None:
                 scale=scale,
                 width=width,
             )
+    return drawn
 
 
 def _robust_max(values: np.ma.MaskedArray) -> float:
