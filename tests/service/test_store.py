@@ -283,8 +283,9 @@ def _reader(url, stop, out):
     store.close()
 
 
-def test_concurrent_writers_equal_one_batch_and_readers_never_see_half_an_upload(store_url):
-    spec = RegionSpec.model_validate(SPEC)
+@pytest.mark.parametrize("directions", [1, 4])  # a directional region: evidence per class
+def test_concurrent_writers_equal_one_batch_and_readers_never_see_half_an_upload(store_url, directions):
+    spec = RegionSpec.model_validate({**SPEC, "directions": directions, "slow_mps": 0.1})
     open_store(store_url).create_region(spec)
     ctx = multiprocessing.get_context("spawn")
     stop, out = ctx.Event(), ctx.Queue()
