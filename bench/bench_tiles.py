@@ -101,7 +101,7 @@ def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
         spec = paris(spacing, cutoff)
         field = spec.field(ref.alpha_, ref.beta_).fit(train.X, train.V, sample_weight=weight)
         mean, std = field.predict(Q, return_std=True)
-        band = field.evidence_.gram_band(spec.stencil)
+        band = field.evidence_.total().gram_band(spec.stencil)
         t0 = time.perf_counter()
         factor = spec.stencil.factor_of(band, float(np.mean(ref.alpha_) / np.mean(ref.beta_)))
         t1 = time.perf_counter()
@@ -173,7 +173,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         # the factorisation against the hardware
         ev = spec.region_evidence(store.snapshot(spec.name).evidence)
         st = spec.stencil
-        band_ = ev.gram_band(st)
+        band_ = ev.total().gram_band(st)  # the map with one class (a directional map has one per class)
         t0 = time.perf_counter()
         factor = st.factor_of(band_, float(np.mean(alpha) / np.mean(beta)))
         row["factor [s]"] = time.perf_counter() - t0
