@@ -7,8 +7,10 @@ and it goes to the slow class, the last. ``directions = 1`` is one class: every
 observation, the paper's model.
 
 Each observation goes to one class (hard assignment), so a class's evidence is exactly
-that of the observations in it. Splitting observations between the two nearest sectors
-(soft assignment) has not been compared yet.
+that of the observations in it. Splitting each between the two nearest sector centres
+(soft assignment, linear in angle) was measured on the Paris flight split with 8 sectors
+(``bench/bench_core.py --directions 8 --soft 8``): mixture MSLL -1.38 against -1.51 for
+hard, the same conditional RMSE (17.7 against 17.6 m/s): hard it is.
 """
 
 from __future__ import annotations
