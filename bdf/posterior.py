@@ -177,7 +177,7 @@ class Mixture:
     Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
     shares use) and each mode at its own evidence maximum: traffic classes differ in how
     smooth and how noisy they are (bench/RESULTS.md, "directional maps": one ratio alpha /
-    beta shared by the modes fits 1.7x faster and loses 0.12 of mixture MSLL on Paris).
+    beta shared by the modes fits 2.5x faster and loses 0.12 of mixture MSLL on Paris).
     Fixed values are (3,) for all, or (1 + C, 3): the map with one class, then each class.
     """
 
