@@ -17,6 +17,11 @@ under "auto" is set by the region's evidence (on the scale of its velocities). `
 marks the points within the kernel's reach (where it is above
 :data:`KNOWN_KERNEL`) of a tile core with data.
 
+A directional region (``directions`` > 1, :mod:`bdf.directions`) keeps in each tile one
+evidence per traffic class (:class:`bdf.stats.SectorEvidence`); every sum above is per
+class, and the map is one directional field. ``cutoff`` sets the kernel's reach, so the
+tiles' supports and the precision's stencil.
+
 Input noise widens a point's expected kernel (``1 + 2 gamma nu^2`` in its exponent); its
 features are kept over the tile's support, so terms beyond the plain kernel's reach at
 the cutoff are dropped (below ``cutoff^(1 / (1 + 2 gamma nu^2))``).
@@ -306,7 +311,7 @@ class RegionSpec(BaseModel):
                     band[hinges] += ev.gram_noisy[k].reshape(grid.shape)
         return total
 
-    def posterior(self, evidence: Evidence, alpha=None, beta=None) -> Posterior:
+    def posterior(self, evidence: SectorEvidence, alpha=None, beta=None) -> Posterior | Mixture:
         """The region's posterior of ``evidence`` (:meth:`region_evidence`) at ``alpha``,
         ``beta`` (the values in force; None: the spec's), variance density ready, factors
         dropped. With "auto" it fits them: ``posterior.alpha``, ``posterior.beta``."""
