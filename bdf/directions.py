@@ -64,8 +64,8 @@ class Sectors:
 
 
 def mixture_moments(share: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and std per component (n, 3) of the mixture with weights ``share`` (n, C) of
-    modes ``mean``, ``std`` (n, C, 3)."""
-    m = np.einsum("nc,ncd->nd", share, mean)
-    second = np.einsum("nc,ncd->nd", share, std**2 + mean**2)
+    """Mean and std per component (..., 3) of the mixture with weights ``share`` (..., C) of
+    modes ``mean``, ``std`` (..., C, 3)."""
+    m = np.einsum("...c,...cd->...d", share, mean)
+    second = np.einsum("...c,...cd->...d", share, std**2 + mean**2)
     return m, np.sqrt(np.maximum(second - m * m, 0.0))

@@ -256,12 +256,11 @@ class BayesianDynamicField:
             A field of one direction has one mode.
         """
         X = as_points(X, "X", allow_empty=True)
-        post = self.posterior_
-        if heading_deg is None or self._sectors.classes == 1:
-            if heading_deg is not None:
-                as_headings(heading_deg, len(X))
-            return post.predict(X, return_std, include_noise)
-        return post.predict_heading(X, as_headings(heading_deg, len(X)), return_std, include_noise)
+        if heading_deg is None:
+            return self.posterior_.predict(X, return_std, include_noise)
+        modes = self.posterior_.predict_modes(X, include_noise)
+        mean, std = modes.answer(self._sectors, as_headings(heading_deg, len(X)))
+        return (mean, std) if return_std else mean
 
     def predict_modes(self, X, *, include_noise=True) -> Modes:
         """Per traffic class (the heading sectors, then the slow class; one class for a

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import numpy as np
 
 from bdf import features, linalg, noise, tuning
-from bdf.directions import mixture_moments
+from bdf.directions import Sectors, mixture_moments
 from bdf.grid import HingeGrid
 from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence, stencil_of
 
@@ -19,6 +19,17 @@ class Modes(NamedTuple):
     share_std: np.ndarray  # (n,) epistemic std of each share (the same for every class)
     mean: np.ndarray  # (n, C, 3) velocity of each mode
     std: np.ndarray  # (n, C, 3) its std (predictive, or epistemic)
+
+    def answer(self, sectors: Sectors, heading_deg=None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std (..., 3): the mixture's moments (at points or on a grid), or with
+        ``heading_deg`` (n,) the mode of each point's heading (the one mode of a map of one
+        class)."""
+        if self.share.shape[-1] == 1:
+            return self.mean[..., 0, :], self.std[..., 0, :]
+        if heading_deg is None:
+            return mixture_moments(self.share, self.mean, self.std)
+        pick = (np.arange(len(self.share)), sectors.sector_of_heading(heading_deg))
+        return self.mean[pick], self.std[pick]
 
 
 class Posterior:
@@ -163,6 +174,12 @@ class Posterior:
         return np.stack(list(densities.values()), axis=-1), columns
 
 
+def _per_row(hyper, rows: int) -> list:
+    """A hyperparameter for each of ``rows`` posteriors: "auto" for all, or the row of a
+    (3,) value broadcast, or of a (rows, 3) one."""
+    return [hyper] * rows if isinstance(hyper, str) else list(np.broadcast_to(hyper, (rows, 3)))
+
+
 class Mixture:
     """The posterior of a directional map (:mod:`bdf.directions`): one :class:`Posterior`
     per class (its *mode*) and the share field.
@@ -176,8 +193,9 @@ class Mixture:
 
     Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
     shares use) and each mode at its own evidence maximum: traffic classes differ in how
-    smooth and how noisy they are (bench/RESULTS.md, "directional maps": one ratio alpha /
-    beta shared by the modes fits 2.5x faster and loses 0.12 of mixture MSLL on Paris).
+    smooth and how noisy they are (bench/RESULTS.md: an earlier version that shared the ratio
+    alpha / beta of the map with one class, the first "Directional maps" table, fitted 2.5x
+    faster and lost 0.12 of mixture MSLL on Paris).
     Fixed values are (3,) for all, or (1 + C, 3): the map with one class, then each class.
     """
 
@@ -186,33 +204,12 @@ class Mixture:
     ):
         C = sectors.classes
         self.sectors, self.grid, self.gamma, self.cutoff = sectors, grid, gamma, cutoff
-        rows = [np.broadcast_to(h, (1 + C, 3)) if not isinstance(h, str) else None for h in (alpha, beta)]
-
-        def row(h, r, k):
-            return h if r is None else r[k]
-
+        alphas, betas = _per_row(alpha, 1 + C), _per_row(beta, 1 + C)
+        rest = (cutoff, noise_lattice, noise_prior)
         total = evidence.total()
-        self.total = Posterior(
-            grid,
-            gamma,
-            total,
-            row(alpha, rows[0], 0),
-            row(beta, rows[1], 0),
-            cutoff,
-            noise_lattice,
-            noise_prior,
-        )
+        self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest)
         self.modes = [
-            Posterior(
-                grid,
-                gamma,
-                e,
-                row(alpha, rows[0], 1 + c),
-                row(beta, rows[1], 1 + c),
-                cutoff,
-                noise_lattice,
-                noise_prior,
-            )
+            Posterior(grid, gamma, e, alphas[1 + c], betas[1 + c], *rest)
             for c, e in enumerate(evidence.classes)
         ]
         self.fitted = self.total.fitted
@@ -287,29 +284,23 @@ class Mixture:
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """The mixture's mean (n, 3), and its std if asked (moments over the modes)."""
-        modes = self.predict_modes(X, include_noise)
-        mean, std = mixture_moments(modes.share, modes.mean, modes.std)
+        mean, std = self.predict_modes(X, include_noise).answer(self.sectors)
         return (mean, std) if return_std else mean
-
-    def predict_heading(self, X: np.ndarray, heading_deg: np.ndarray, return_std=False, include_noise=True):
-        """The mode of the sector holding ``heading_deg`` (n,) at each point."""
-        modes = self.predict_modes(X, include_noise)
-        pick = (np.arange(len(X)), self.sectors.sector_of_heading(heading_deg))
-        return (modes.mean[pick], modes.std[pick]) if return_std else modes.mean[pick]
 
     def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance on the grid ``axes`` (see :meth:`Posterior.predict_grid`)."""
-        modes = self.predict_grid_modes(axes, include_noise)
-        shape = modes.mean.shape
-        flat = Modes(*(a.reshape(-1, *a.shape[3:]) for a in modes))
-        mean, std = mixture_moments(flat.share, flat.mean, flat.std)
-        return mean.reshape(*shape[:3], 3), (std**2).reshape(*shape[:3], 3)
+        mean, std = self.predict_grid_modes(axes, include_noise).answer(self.sectors)
+        return mean, std**2
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """:class:`Modes` on the grid ``axes``, each array with the grid's shape first."""
         T = self.share_weights.reshape(*self.grid.shape, -1)
         weights_at = features.gather_grid(self.grid, axes, T, self.gamma, cutoff=self.cutoff)
-        base = self.total.predict_grid(axes, include_noise=False)[1][..., 0] * self.total.beta[0]
+        # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
+        densities, columns = self.total.variance_table()
+        base = features.gather_grid(
+            self.grid.midpoints(), axes, densities[..., columns[:1]], 2.0 * self.gamma, cutoff=self.cutoff
+        )[..., 0]
         share, share_std = self._share(weights_at.reshape(-1, weights_at.shape[-1]), base.ravel())
         grids = [m.predict_grid(axes, include_noise) for m in self.modes]
         mean = np.stack([g[0] for g in grids], axis=3)

@@ -340,19 +340,21 @@ class RegionSpec(BaseModel):
         return total > 0
 
     def predict(
-        self, X, posterior: Posterior | Mixture, data_tiles, heading_deg=None
+        self, X, posterior: Posterior | Mixture, data_tiles, heading_deg=None, modes: Modes | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predictive mean (n, 3), std (n, 3) and ``known`` (n,) at ``X`` inside the region,
         from the region's ``posterior``; ``data_tiles``: the keys of the tiles with data.
         ``heading_deg`` (one or (n,)): the mode of that heading (a region of one direction
-        has one)."""
+        has one). ``modes``: :meth:`predict_modes` of the same points when the caller has
+        them (the answer derives from them)."""
         X = self._inside_points(X)
         if heading_deg is not None:
             heading_deg = as_headings(heading_deg, len(X))
-        if heading_deg is None or self.directions == 1:
+        if modes is None and self.directions == 1:
             mean, std = posterior.predict(X, return_std=True)
         else:
-            mean, std = posterior.predict_heading(X, heading_deg, return_std=True)
+            modes = posterior.predict_modes(X) if modes is None else modes
+            mean, std = modes.answer(self.sectors, heading_deg)
         return mean, std, self.known(X, data_tiles)
 
     def predict_modes(self, X, posterior: Posterior | Mixture) -> Modes:
@@ -360,16 +362,21 @@ class RegionSpec(BaseModel):
         return posterior.predict_modes(self._inside_points(X))
 
     def predict_grid(
-        self, axes, posterior: Posterior | Mixture, data_tiles
+        self, axes, posterior: Posterior | Mixture, data_tiles, modes: Modes | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]`` (inside the region):
         mean and std (nx, ny, nz, 3), known (nx, ny, nz); separable, so a few small
-        contractions per axis."""
+        contractions per axis. ``modes``: :meth:`predict_grid_modes` of the same grid when
+        the caller has them (the answer derives from them)."""
         axes = self._grid_axes(axes)
-        mean, var = posterior.predict_grid(axes)
+        if modes is None:
+            mean, var = posterior.predict_grid(axes)
+            std = np.sqrt(var)
+        else:
+            mean, std = modes.answer(self.sectors)
         mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
         known = self.known(mesh, data_tiles).reshape(mean.shape[:3])
-        return mean, np.sqrt(var), known
+        return mean, std, known
 
     def predict_grid_modes(self, axes, posterior: Posterior | Mixture) -> Modes:
         """:class:`~bdf.posterior.Modes` on the grid ``axes``, the grid's shape first."""

@@ -274,10 +274,7 @@ class CostMap:
 
     def class_of(self, direction: np.ndarray) -> np.ndarray:
         """(n,) the traffic class of flying along unit ``direction`` (n, 3) at cruise speed."""
-        sectors = self.modes.sectors
-        if sectors.classes == 1:
-            return np.zeros(len(direction), np.int64)
-        return sectors.classify(self.weights.cruise_mps * np.asarray(direction, float))
+        return self.modes.sectors.classify(self.weights.cruise_mps * np.asarray(direction, float))
 
     def flown(self, X, direction) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """On a directional map, per sample flying along ``direction``: the cost per metre,

@@ -105,10 +105,10 @@ class LocalMap:
         self._check(name)
         lo, hi = (self.spec.lower, self.spec.upper) if bbox is None else (bbox[:3], bbox[3:])
         axes = tuple(self.spec.box_axes(lo, hi, step))
-        mean, std, known = self.spec.predict_grid(axes, self.posterior, self.data_tiles)
-        if not modes:
+        m = self.spec.predict_grid_modes(axes, self.posterior) if modes else None
+        mean, std, known = self.spec.predict_grid(axes, self.posterior, self.data_tiles, m)
+        if m is None:
             return LocalGrid(axes, mean, std, known)
-        m = self.spec.predict_grid_modes(axes, self.posterior)
         return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std)
 
     def query(self, name: str, X, *, heading_deg=None) -> LocalPrediction:

@@ -492,7 +492,7 @@ def tubes(
         return pred
     mean_grid, std_grid, wide = pred.mean, pred.std, pred.known
     if heading_deg is not None:
-        sector = 0 if spec.directions == 1 else int(spec.sectors.sector_of_heading(heading_deg))
+        sector = int(spec.sectors.sector_of_heading(heading_deg))  # 0 in a region of one direction
         mean_grid, std_grid = pred.modes.mean[..., sector, :], pred.modes.std[..., sector, :]
         wide = wide & (pred.modes.share[..., sector] >= min_share)
     bounded = std_grid if component == "all" else std_grid[..., ["e", "n", "u"].index(component), None]

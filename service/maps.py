@@ -200,8 +200,8 @@ class RegionMaps:
         """
         state = self._state(region, info or self.store.region(region), min_version)
         X = np.asarray(X, float)
-        mean, std, known = state.spec.predict(X, state.posterior, state.data_tiles, heading_deg)
         per_class = state.spec.predict_modes(X, state.posterior) if modes else None
+        mean, std, known = state.spec.predict(X, state.posterior, state.data_tiles, heading_deg, per_class)
         return Prediction(mean, std, known, state.version, state.region_id, per_class)
 
     def predict_grid(
@@ -210,8 +210,8 @@ class RegionMaps:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
         (nx, ny, nz, 3) and (nx, ny, nz), the modes' (nx, ny, nz, C, ...)."""
         state = self._state(region, info or self.store.region(region), min_version)
-        mean, std, known = state.spec.predict_grid(axes, state.posterior, state.data_tiles)
         per_class = state.spec.predict_grid_modes(axes, state.posterior) if modes else None
+        mean, std, known = state.spec.predict_grid(axes, state.posterior, state.data_tiles, per_class)
         return Prediction(mean, std, known, state.version, state.region_id, per_class)
 
     def refresh(self, region: str) -> MapState:

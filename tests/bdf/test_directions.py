@@ -8,6 +8,7 @@ from bdf.directions import Sectors, mixture_moments
 from bdf.tiles import RegionSpec
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER
 from tests.bdf.test_field import assert_close
+from tests.bdf.test_tiles import SMALL
 
 
 @pytest.fixture
@@ -141,17 +142,7 @@ def test_partial_fit_forgetting_and_save_load_per_sector(tmp_path, crossing):
 
 
 def test_a_directional_region_is_one_directional_field():
-    spec = RegionSpec.model_validate(
-        {
-            "name": "small",
-            "origin": {"lat": 48.0, "lon": 2.0},
-            "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
-            "tile_size_m": [100, 100, 60],
-            "spacing_m": [20, 20, 20],
-            "gamma": [1 / 400, 1 / 400, 1 / 400],
-            "directions": 4,
-        }
-    )
+    spec = RegionSpec.model_validate({**SMALL, "directions": 4})
     rng = np.random.default_rng(3)
     X = rng.uniform(spec.lower, spec.upper, (3000, 3))
     V = np.where((X[:, 0] > 150)[:, None], [[0.0, -12.0, 0.0]], [[12.0, 0.0, 0.0]])
