@@ -35,8 +35,8 @@ def as_points(value, name: str, *, allow_empty: bool = False) -> np.ndarray:
         raise ValueError(f"{name} must have shape (N, 3), got {arr.shape}")
     if arr.shape[0] == 0 and not allow_empty:
         raise ValueError(f"{name} is empty: at least one row is needed")
-    bad = ~np.all(np.isfinite(arr), axis=1)
-    if bad.any():
+    if not np.isfinite(arr).all():
+        bad = ~np.all(np.isfinite(arr), axis=1)
         raise ValueError(f"{name} has NaN or infinite values in {_bad_rows(bad)}")
     return arr
 

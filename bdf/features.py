@@ -20,6 +20,7 @@ dense formulas; tests/bdf/test_field.py compares with them to 1e-8 relative.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from bdf._blas import single_threaded
@@ -28,6 +29,8 @@ from bdf.grid import Lattice
 DEFAULT_CUTOFF = 1e-12
 #: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
 MIN_POINTS_PER_BLOCK = 32
+#: Points per BLAS call at most: its temporaries stay in cache (bench/RESULTS.md, builds).
+CHUNK_POINTS = 2048
 
 
 def expected_kernel(gamma: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,25 +52,77 @@ def _cut(factor: np.ndarray, cutoff: float) -> np.ndarray:
     return factor
 
 
-class _Blocks:
-    """Points grouped by lattice-cell blocks, with their per-axis window factors.
+@numba.njit(cache=True)
+def _axis_factors(t, scale, width, cutoff):  # pragma: no cover (compiled)
+    """``exp(-scale_n (t_n - j)^2)`` for j = 0 .. width-1 (n, width), zero below ``cutoff``.
 
-    ``order`` sorts the points by block (``slice(None)`` when there is one block);
-    ``factors[d]`` is (n, width[d]): ``exp(-k (x - g)^2)`` at the lattice points g of each
-    point's window along axis d, points in sorted order.
+    Three exponentials per point instead of ``width``: from the lattice point nearest
+    ``t_n`` outwards, each value is the previous times a ratio <= 1, and each ratio the
+    previous one times ``exp(-2 scale_n)`` (no overflow; relative error ~ width x eps).
+    """
+    n = t.shape[0]
+    out = np.zeros((n, width))
+    for i in range(n):
+        s, ti = scale[i], t[i]
+        c = np.exp(-2.0 * s)
+        j0 = min(max(int(np.floor(ti + 0.5)), 0), width - 1)
+        f0 = np.exp(-s * (ti - j0) ** 2)
+        f, r = f0, np.exp(-s * (2.0 * (j0 - ti) + 1.0))  # f(j+1) = f(j) r, j >= j0
+        for j in range(j0, width):
+            if f < cutoff:
+                break
+            out[i, j] = f
+            f *= r
+            r *= c
+        f, r = f0, np.exp(-s * (2.0 * (ti - j0) + 1.0))  # f(j-1) = f(j) r, j <= j0
+        for j in range(j0 - 1, -1, -1):
+            f *= r
+            r *= c
+            if f < cutoff:
+                break
+            out[i, j] = f
+    return out
+
+
+@numba.njit(cache=True)
+def _row_outer(a, b):  # pragma: no cover (compiled)
+    """``out[n, i * q + j] = a[n, i] b[n, j]`` for ``a`` (n, p), ``b`` (n, q)."""
+    n, p = a.shape
+    q = b.shape[1]
+    out = np.empty((n, p * q))
+    for m in range(n):
+        for i in range(p):
+            ai = a[m, i]
+            for j in range(q):
+                out[m, i * q + j] = ai * b[m, j]
+    return out
+
+
+class _Blocks:
+    """Points grouped by lattice-cell blocks, iterated in chunks with their window factors.
+
+    ``order`` sorts the points by block (``slice(None)`` when there is one block).
+    Iterating yields, per chunk of at most ``CHUNK_POINTS`` points of one block, the rows
+    (into the sorted points), the block's window slices into the lattice array and the
+    per-axis factors ``exp(-k (x - g)^2)`` (chunk, width[d]) at the window's lattice
+    points g, zero below the cutoff. Chunks keep every temporary in cache: computed for
+    all points at once they cost more in page faults than the products themselves.
     """
 
     def __init__(self, lattice: Lattice, X: np.ndarray, k: np.ndarray, cutoff: float, block: int):
         """``block``: the smallest block edge in lattice cells; it doubles while blocks are sparse."""
+        k = np.asarray(k, float)
+        narrowest = k.reshape(-1, 3).min(axis=0)
         k = np.broadcast_to(k, X.shape)
         shape = np.array(lattice.shape)
-        reach = np.ceil(np.sqrt(np.log(1.0 / cutoff) / k.min(axis=0)) / lattice.step).astype(int)
+        self.cutoff = cutoff
+        reach = np.ceil(np.sqrt(np.log(1.0 / cutoff) / narrowest) / lattice.step).astype(int)
         if len(X) < 2 * MIN_POINTS_PER_BLOCK or np.all(2 * reach + 1 >= shape):
             # too few points to split, or every window would span the lattice (small tiles,
             # radar scans): one window over the whole lattice
             self.order, self.bounds, self.width = slice(None), [0, len(X)], shape
             self.start = np.zeros((1, 3), np.int64)
-            self._factors(lattice, X, k, cutoff)
+            self._positions(lattice, X, k)
             return
         cells = np.floor((X - lattice.origin) / lattice.step).astype(np.int64)
         cells = np.clip(cells, -1, shape - 1)
@@ -89,23 +144,26 @@ class _Blocks:
         # exist, so no padding is needed and no window is wider than the lattice.
         self.width = np.minimum(edge + 2 * reach + 1, shape)
         self.start = np.clip(blocks[self.order] * edge - reach, 0, shape - self.width)
-        self._factors(lattice, X[self.order], k[self.order], cutoff)
+        self._positions(lattice, X[self.order], k[self.order])
 
-    def _factors(self, lattice: Lattice, X: np.ndarray, k: np.ndarray, cutoff: float) -> None:
-        """Per axis, ``exp(-k (x - g)^2)`` for the lattice points g of each point's window,
-        zero below the cutoff."""
-        t = (X - lattice.origin) / lattice.step - self.start  # in lattice steps
-        scale = k * lattice.step**2
-        self.factors = []
-        for d in range(3):
-            q = t[:, d, None] - np.arange(self.width[d])
-            self.factors.append(_cut(np.exp(-scale[:, d, None] * (q * q)), cutoff))
+    def _positions(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
+        """Positions in lattice steps from each point's window start, and ``k`` in steps."""
+        self.t = (X - lattice.origin) / lattice.step - self.start
+        self.scale = k * lattice.step**2
+
+    def _factors(self, rows: slice) -> list[np.ndarray]:
+        t, scale = self.t[rows], self.scale[rows]
+        return [_axis_factors(t[:, d], scale[:, d], int(self.width[d]), self.cutoff) for d in range(3)]
 
     def __iter__(self):
-        """Yield (slice into the sorted points, window slices into the lattice array)."""
+        """Yield (rows into the sorted points, window slices into the lattice array, and the
+        chunk's factors fx, fy, fz)."""
         for a, b in zip(self.bounds[:-1], self.bounds[1:], strict=True):
             s = self.start[a]
-            yield slice(a, b), tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
+            window = tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
+            for c in range(a, b, CHUNK_POINTS):
+                rows = slice(c, min(c + CHUNK_POINTS, b))
+                yield rows, window, *self._factors(rows)
 
 
 @single_threaded
@@ -118,12 +176,11 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     out = np.zeros((nx, n_out, ny, nz))
     if len(X):
         blocks = _Blocks(lattice, X, k, cutoff, block)
-        fx, fy, fz = blocks.factors
         W = W[blocks.order]
         Lx, Ly, Lz = blocks.width
-        for rows, (wx, wy, wz) in blocks:
-            yz = (fy[rows, :, None] * fz[rows, None, :]).reshape(-1, Ly * Lz)
-            xc = (fx[rows, :, None] * W[rows, None, :]).reshape(-1, Lx * n_out)
+        for rows, (wx, wy, wz), fx, fy, fz in blocks:
+            yz = _row_outer(fy, fz)
+            xc = _row_outer(fx, W[rows])
             out[wx, :, wy, wz] += (xc.T @ yz).reshape(Lx, n_out, Ly, Lz)
     return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
 
@@ -136,11 +193,10 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
     if len(X) == 0:
         return out
     blocks = _Blocks(lattice, X, k, cutoff, block)
-    fx, fy, fz = blocks.factors
     T = gather_table(T)
     sorted_out = np.empty_like(out)
-    for rows, (wx, wy, wz) in blocks:
-        sorted_out[rows] = contract(fx[rows], fy[rows, :, None] * fz[rows, None, :], T[wy, wz, wx])
+    for rows, (wx, wy, wz), fx, fy, fz in blocks:
+        sorted_out[rows] = contract(fx, _row_outer(fy, fz), T[wy, wz, wx])
     out[blocks.order] = sorted_out
     return out
 
@@ -185,13 +241,12 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
     if len(X) == 0:
         return out
     blocks = _Blocks(lattice, X, k, cutoff, block=1)
-    fx, fy, fz = blocks.factors
     amplitude = amplitude[blocks.order]
     flat = np.arange(M).reshape(lattice.shape)
     width = tuple(int(w) for w in blocks.width)
     local = np.arange(int(np.prod(width))).reshape(width)
-    for rows, window in blocks:
-        phi = fx[rows, :, None, None] * fy[rows, None, :, None] * fz[rows, None, None, :]
+    for rows, window, fx, fy, fz in blocks:
+        phi = fx[:, :, None, None] * fy[:, None, :, None] * fz[:, None, None, :]
         phi = phi.reshape(len(phi), -1) * amplitude[rows, None]
         pairs = phi.T @ phi
         hinges = flat[window]

@@ -215,7 +215,7 @@ class RegionSpec(BaseModel):
         X = self._inside_points(X)
         n = np.array(self.tile_counts)
         home = np.clip(np.floor((X - self.lower) / np.array(self.tile_size_m)).astype(np.int64), 0, n - 1)
-        order = np.lexsort((home[:, 2], home[:, 1], home[:, 0]))
+        order = np.argsort(np.ravel_multi_index(home.T, tuple(n)), kind="stable")  # radix sort
         return {key: order[a:b] for a, b, key in _runs(home[order])}
 
     def _inside_points(self, X) -> np.ndarray:
