@@ -27,17 +27,6 @@ FT = 0.3048
 KT = 1852.0 / 3600.0
 FT_PER_MIN = FT / 60.0
 
-ADSB_COLUMNS = (
-    "timestamp",
-    "icao24",
-    "latitude",
-    "longitude",
-    "altitude",
-    "groundspeed",
-    "track",
-    "vertical_rate",
-    "onground",
-)
 RADAR_COLUMNS = ("x", "y", "z", "vx", "vy", "vz")
 
 
@@ -100,29 +89,73 @@ def float_column(table, name, path) -> np.ndarray:
     )
 
 
-def adsb_observations(table: dict, frame: ENUFrame, *, source="table") -> Observations:
-    """ADS-B state vectors -> ENU observations; on-ground and incomplete rows are dropped."""
-    cols = {c: float_column(table, c, source) for c in ADSB_COLUMNS if c not in ("icao24", "onground")}
-    if "icao24" not in table:
-        raise ValueError(f"{source}: missing column 'icao24'")
-    n = len(cols["latitude"])
-    onground = np.zeros(n, bool)
+#: ADS-B state-vector schemas, by the columns that name them: latitude, longitude, altitude,
+#: horizontal speed, track and vertical rate, with the factor of each to degrees, metres
+#: and m/s. ``traffic``: OpenSky's Impala and the traffic library (ft, kt, ft/min);
+#: ``opensky``: OpenSky's state-vector files (m, m/s; geometric height, else barometric).
+ADSB_SCHEMAS = {
+    "traffic": (
+        ("latitude", "longitude", "altitude", "groundspeed", "track", "vertical_rate"),
+        FT,
+        KT,
+        FT_PER_MIN,
+    ),
+    "opensky": (("lat", "lon", "geoaltitude", "velocity", "heading", "vertrate"), 1.0, 1.0, 1.0),
+}
+
+
+def adsb_schema(names) -> str | None:
+    """The ADS-B schema of a table with these column names, or None."""
+    names = set(names)
+    for schema, (columns, *_) in ADSB_SCHEMAS.items():
+        if {"icao24", *columns[:2], *columns[3:]} <= names:
+            return schema
+    return None
+
+
+def adsb_state(
+    table: dict, frame: ENUFrame, *, source="table"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """ADS-B state vectors -> ENU positions and velocities of every row, the rows kept, and
+    the rows dropped per reason (on the ground, or missing a value)."""
+    schema = adsb_schema(table)
+    if schema is None:
+        raise ValueError(
+            f"{source}: ADS-B state vectors need the columns icao24 and "
+            f"{' or '.join(', '.join(cols) for cols, *_ in ADSB_SCHEMAS.values())}; found {sorted(table)}"
+        )
+    (lat, lon, alt, speed, track, vrate), to_m, to_mps, to_vmps = ADSB_SCHEMAS[schema]
+    if alt not in table:  # OpenSky files without the geometric height
+        alt = "baroaltitude"
+    cols = [float_column(table, c, source) for c in (lat, lon, alt, speed, track, vrate)]
+    onground = np.zeros(len(cols[0]), bool)
     if "onground" in table:
-        onground = np.array([str(v).lower() in ("true", "1") for v in table["onground"]])
-    complete = np.all([np.isfinite(c) for c in cols.values()], axis=0)
+        flag = np.asarray(table["onground"])
+        onground = (
+            flag.astype(bool)
+            if flag.dtype == bool
+            else np.isin(np.char.lower(flag.astype(str)), ["true", "1"])
+        )
+    complete = np.isfinite(np.stack(cols)).all(axis=0)
     keep = complete & ~onground
     dropped = {"on_ground": int(onground.sum()), "incomplete": int((~complete & ~onground).sum())}
-    log.info("%s: %d state vectors, dropped %s", source, n, dropped)
+    lat, lon, alt, speed, track, vrate = (c[keep] for c in cols)
+    X = frame.to_enu(lat, lon, alt * to_m)
+    speed, track = speed * to_mps, np.radians(track)
+    v_local = np.stack([speed * np.sin(track), speed * np.cos(track), vrate * to_vmps], 1)
+    return X, frame.rotate_velocity(lat, lon, v_local), keep, dropped
 
-    c = {k: v[keep] for k, v in cols.items()}
-    X = frame.to_enu(c["latitude"], c["longitude"], c["altitude"] * FT)
-    speed, track = c["groundspeed"] * KT, np.radians(c["track"])
-    v_local = np.stack([speed * np.sin(track), speed * np.cos(track), c["vertical_rate"] * FT_PER_MIN], 1)
-    V = frame.rotate_velocity(c["latitude"], c["longitude"], v_local)
+
+def adsb_observations(table: dict, frame: ENUFrame, *, source="table") -> Observations:
+    """ADS-B state vectors -> ENU observations, one flight per icao24 and callsign; on-ground
+    and incomplete rows are dropped."""
+    X, V, keep, dropped = adsb_state(table, frame, source=source)
+    log.info("%s: %d state vectors, dropped %s", source, len(keep), dropped)
+    n = len(keep)
     callsign = table.get("callsign", np.full(n, ""))
     keys = np.array([f"{a}/{b}" for a, b in zip(table["icao24"], callsign, strict=True)])[keep]
     _, flight = np.unique(keys, return_inverse=True)
-    time = c["timestamp"]
+    time = float_column(table, "timestamp" if "timestamp" in table else "time", source)[keep]
     if np.nanmax(np.abs(time), initial=0) > 1e11:  # milliseconds, as in the traffic samples
         time = time / 1000.0
     return Observations(X, V, time, flight.astype(np.int64), dropped)

@@ -301,10 +301,21 @@ def _build(args) -> int:
             if args.scheduler:
                 client = stack.enter_context(Client(args.scheduler))
             else:
-                cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, dashboard_address=None)
+                cluster = LocalCluster(
+                    n_workers=args.workers,
+                    threads_per_worker=1,
+                    memory_limit=args.worker_memory,
+                    dashboard_address=None,
+                )
                 client = stack.enter_context(Client(stack.enter_context(cluster)))
             result = build(
-                store, args.region, args.files, client, replace=not args.add, upload_id=args.upload_id
+                store,
+                args.region,
+                args.files,
+                client,
+                replace=not args.add,
+                upload_id=args.upload_id,
+                **{k: v for k in ("rows_per_task", "batch_rows") if (v := getattr(args, k)) is not None},
             )
     except (RegionNotFound, UploadConflict) as exc:
         raise ValueError(str(exc)) from None
@@ -365,16 +376,18 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--config", type=Path, help="TOML settings file")
     serve.set_defaults(run=_serve)
 
-    text = "learn a region from many Parquet/Arrow files on a Dask cluster, straight into the store"
+    text = "learn a region from observation files of any size on a Dask cluster, straight into the store"
     p = sub.add_parser(
         "build",
         help=text,
-        description=f"{text[0].upper()}{text[1:]}. Files hold the columns an upload takes "
-        "(x,y,z or lat,lon,alt_m; ve,vn,vu; optional input_noise_std, sample_weight); each is read "
-        "by a worker, so on a cluster every worker must see the paths. The build is one "
-        "exactly-once upload: re-running it is a replay.",
+        description=f"{text[0].upper()}{text[1:]}. Files (Parquet, Arrow IPC, CSV, gzipped CSV) hold "
+        "the columns an upload takes (x,y,z or lat,lon,alt_m; ve,vn,vu; optional input_noise_std, "
+        "sample_weight) or ADS-B state vectors (traffic/OpenSky Impala or OpenSky file columns). "
+        "Workers read slices of them (Parquet row groups, row ranges, CSV byte ranges) in bounded "
+        "batches, so on a cluster every worker must see the paths. The build is one exactly-once "
+        "upload: re-running it is a replay.",
     )
-    p.add_argument("files", nargs="+", type=Path, help=".parquet or .arrow observation files")
+    p.add_argument("files", nargs="+", type=Path, help=".parquet, .arrow, .csv or .csv.gz files")
     p.add_argument("--region", required=True, help="an existing region")
     p.add_argument(
         "--store-url", help="sqlite:///dir or postgresql://... (default: $BDF_STORE_URL or --data-dir)"
@@ -383,6 +396,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://scheduler:8786 (default: local)")
     p.add_argument(
         "--workers", type=int, default=os.cpu_count(), help="local worker processes (default: cores)"
+    )
+    p.add_argument(
+        "--worker-memory",
+        default="auto",
+        help="memory limit per local worker, e.g. 1GB (default: RAM / workers)",
+    )
+    p.add_argument("--rows-per-task", type=int, help="rows per task (default 2,000,000)")
+    p.add_argument(
+        "--batch-rows", type=int, help="rows a worker holds at once (default 200,000; about 1 kB each)"
     )
     p.add_argument("--add", action="store_true", help="add to the map instead of replacing it")
     p.add_argument("--upload-id", help="ledger id (default: derived from the files' content)")

@@ -35,7 +35,7 @@ def _columns(table: dict, names, path) -> np.ndarray:
 def read_observations(path, spec: RegionSpec) -> FileObservations:
     table = ingest.read_table(path)
     noise = ingest.float_column(table, "input_noise_std", path) if "input_noise_std" in table else None
-    if {"icao24", "latitude"} <= set(table):
+    if ingest.adsb_schema(table):
         obs = ingest.adsb_observations(table, spec.frame(), source=str(path))
         return FileObservations(obs.X, obs.V, None, "enu", obs.dropped)
     frame, P = read_points_table(table, path)

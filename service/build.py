@@ -1,71 +1,245 @@
-"""City-scale builds with Dask: many observation files, one exactly-once upload.
+"""City-scale builds with Dask: observation files of any size, one exactly-once upload.
 
-One task per file turns its rows into tile increments (:func:`observations_evidence`,
-the same function uploads use), the increments are summed pairwise in a tree on the
-workers (statistics are additive, so the sum is the batch's), and one ``store.apply``
-commits the sum: the build is one ledger entry, replayable like any upload, and a
-failure anywhere stores nothing. Service replicas see the new region version at once.
+The client plans **slices** from the files' metadata: runs of Parquet row groups, row
+ranges of an Arrow IPC file or stream, byte ranges of a CSV file (cut at line ends), a
+gzipped CSV whole. One task per slice reads it in batches of at most ``batch_rows``
+rows, turns each batch into tile increments (:func:`observations_evidence`, the same
+function uploads use) and sums them, so a worker's memory is set by the batch and the
+region, never by the file. The slices' sums are added pairwise in a tree on the workers
+(statistics are additive, so the sum is the batch's) and one ``store.apply`` commits the
+total: the build is one ledger entry, replayable like any upload, and a failure anywhere
+stores nothing. Every task is a pure function of its slice, so Dask recomputes the work
+of a lost worker and the sum is the same. Service replicas see the new version at once.
 
-Files are Parquet (``.parquet``) or Arrow IPC streams (``.arrow``) with the columns an
-upload takes: ``x, y, z`` (or ``lat, lon, alt_m``), ``ve, vn, vu``, and optionally
-``input_noise_std`` and ``sample_weight``. Workers read them by path, so on a cluster
-the paths must be visible to every worker (a shared volume in ``docker/compose.yaml``).
+Columns: those an upload takes (``x, y, z`` or ``lat, lon, alt_m``; ``ve, vn, vu``;
+optionally ``input_noise_std`` and ``sample_weight``), or ADS-B state vectors in either
+schema of :data:`bdf.ingest.ADSB_SCHEMAS` (converted with the region's frame on the
+worker; rows on the ground are rejected and counted). Workers read files by path, so on
+a cluster every worker must see the paths (a shared volume, see the README).
+
+The upload id defaults to a digest of the files' bytes (read by the workers), so
+re-running a build of the same files is a replay whatever the slicing.
 """
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import sys
+from collections.abc import Iterator
+from concurrent.futures import CancelledError
 from dataclasses import dataclass
 from pathlib import Path
 
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import pyarrow.ipc
+import pyarrow.parquet as pq
+from distributed.comm import CommClosedError
 from tqdm import tqdm
 
+from bdf import ingest
 from bdf.tiles import Increment, RegionSpec, TileKey
 from service import formats
 from service.maps import fitted, observations_evidence, write_posterior
 from service.problems import Problem
-from service.store import MapStore, payload_digest
+from service.store import MapStore
 
-SUFFIXES = {".parquet": formats.PARQUET, ".arrow": formats.ARROW}
+SUFFIXES = (".parquet", ".arrow", ".csv", ".csv.gz")
+#: Rows a task reads at most (whole Parquet row groups may exceed it: they are the unit).
+ROWS_PER_TASK = 2_000_000
+#: Rows turned into evidence at once: with the window factors, about 1 kB of memory each.
+BATCH_ROWS = 200_000
+#: CSV bytes per task per row of ``rows_per_task`` (a line of the upload columns, about).
+CSV_BYTES_PER_ROW = 64
+#: Numeric columns read as float64 from CSV (type inference per block could differ).
+_CSV_FLOATS = (
+    *formats.ENU_COLUMNS,
+    *formats.WGS84_COLUMNS,
+    *formats.VELOCITY_COLUMNS,
+    "input_noise_std",
+    "sample_weight",
+    *{c for cols, *_ in ingest.ADSB_SCHEMAS.values() for c in cols},
+    "baroaltitude",
+)
+
+
+class ClusterLost(RuntimeError):
+    """The scheduler went away before the build finished (a lost worker is recomputed)."""
+
+
+@dataclass(frozen=True)
+class Slice:
+    """Part of one file: rows ``[start, stop)`` (Parquet: row groups; CSV: bytes)."""
+
+    path: str
+    start: int
+    stop: int
 
 
 @dataclass
 class Part:
-    """The evidence of some files: tile increments, ledger summary, per-file digests."""
+    """The evidence of some slices: tile increments and the ledger summary."""
 
     increments: dict[TileKey, Increment]
     summary: dict
-    digests: list[str]
 
 
-def file_evidence(spec_json: str, path: str) -> Part:
-    """The evidence of one file (runs on a worker)."""
-    spec = RegionSpec.model_validate_json(spec_json)
+def suffix(path: Path) -> str:
+    name = path.name.lower()
+    return next((s for s in sorted(SUFFIXES, key=len, reverse=True) if name.endswith(s)), path.suffix)
+
+
+def plan(paths, rows_per_task: int = ROWS_PER_TASK) -> list[Slice]:
+    """The slices of ``paths``, from their metadata (nothing but Arrow stream headers is read)."""
+    out = []
+    for path in paths:
+        kind = suffix(path)
+        if kind == ".parquet":
+            meta = pq.ParquetFile(path).metadata
+            sizes = [meta.row_group(i).num_rows for i in range(meta.num_row_groups)]
+            out += [Slice(str(path), a, b) for a, b in _runs(sizes, rows_per_task)]
+        elif kind == ".arrow":
+            rows = sum(batch.num_rows for batch in _arrow_batches(path))
+            out += [Slice(str(path), a, min(a + rows_per_task, rows)) for a in range(0, rows, rows_per_task)]
+        elif kind == ".csv":
+            size = path.stat().st_size
+            step = rows_per_task * CSV_BYTES_PER_ROW
+            out += [Slice(str(path), a, min(a + step, size)) for a in range(0, size, step)]
+        else:  # .csv.gz: one stream
+            out.append(Slice(str(path), 0, -1))
+    return out
+
+
+def _runs(sizes: list[int], target: int) -> list[tuple[int, int]]:
+    """Consecutive groups of items whose sizes add up to about ``target`` (at least one each)."""
+    runs, start, rows = [], 0, 0
+    for i, n in enumerate(sizes):
+        if rows and rows + n > target:
+            runs.append((start, i))
+            start, rows = i, 0
+        rows += n
+    return [*runs, (start, len(sizes))] if sizes else []
+
+
+def _arrow_batches(path) -> Iterator[pa.RecordBatch]:
+    """The record batches of an Arrow IPC file or stream, memory-mapped (zero copy)."""
+    source = pa.memory_map(str(path))
     try:
-        obs = formats.read_observations(
-            spec, Path(path).read_bytes(), SUFFIXES[Path(path).suffix], sys.maxsize
-        )
+        reader = pa.ipc.open_file(source)
+        yield from (reader.get_batch(i) for i in range(reader.num_record_batches))
+    except pa.ArrowInvalid:
+        source.seek(0)
+        yield from pa.ipc.open_stream(source)
+
+
+def read_slice(piece: Slice, batch_rows: int = BATCH_ROWS) -> Iterator[pa.RecordBatch | pa.Table]:
+    """The rows of ``piece`` in batches of at most ``batch_rows`` rows."""
+    path = Path(piece.path)
+    kind = suffix(path)
+    if kind == ".parquet":
+        with pq.ParquetFile(path) as pf:
+            yield from pf.iter_batches(batch_rows, row_groups=range(piece.start, piece.stop))
+    elif kind == ".arrow":
+        at = 0
+        for batch in _arrow_batches(path):
+            a, b = max(piece.start - at, 0), min(piece.stop - at, batch.num_rows)
+            at += batch.num_rows
+            for c in range(a, b, batch_rows):
+                yield batch.slice(c, min(batch_rows, b - c))
+            if at >= piece.stop:
+                return
+    else:
+        yield from _csv_batches(path, piece, batch_rows)
+
+
+def _csv_batches(path: Path, piece: Slice, batch_rows: int) -> Iterator[pa.RecordBatch]:
+    """A CSV slice owns the lines that start in its byte range (the header is line one);
+    a gzipped file is one slice, decompressed as it is read."""
+    with (gzip.open if piece.stop < 0 else open)(path, "rb") as fh:
+        header = fh.readline()
+        if piece.stop < 0:
+            source = pa.input_stream(str(path), compression="gzip")
+        else:
+            begin = max(_line_start(fh, piece.start), len(header))
+            end = max(_line_start(fh, piece.stop), begin)
+            fh.seek(begin)
+            source = pa.BufferReader(header + fh.read(end - begin))
+    names = header.decode().strip().split(",")
+    reader = pacsv.open_csv(
+        source,
+        read_options=pacsv.ReadOptions(block_size=max(batch_rows * 64, 1 << 20)),
+        convert_options=pacsv.ConvertOptions(
+            column_types={n: pa.float64() for n in names if n in _CSV_FLOATS}
+        ),
+    )
+    for batch in reader:
+        for c in range(0, batch.num_rows, batch_rows):
+            yield batch.slice(c, batch_rows)
+
+
+def _line_start(fh, offset: int) -> int:
+    """The offset of the first line that starts at or after ``offset``."""
+    if offset == 0:
+        return 0
+    fh.seek(offset - 1)
+    fh.readline()
+    return fh.tell()
+
+
+def batch_evidence(spec: RegionSpec, batch: pa.RecordBatch | pa.Table) -> Part:
+    """The evidence of one batch of rows (upload columns or ADS-B state vectors)."""
+    if ingest.adsb_schema(batch.column_names):
+        table = {n: batch.column(n).to_numpy(zero_copy_only=False) for n in batch.column_names}
+        X, V, _, dropped = ingest.adsb_state(table, spec.frame())
+        increments, summary = observations_evidence(spec, X, V)
+        summary["rejected"]["non_finite"] += dropped["incomplete"]
+        summary["rejected"]["on_ground"] = dropped["on_ground"]
+        return Part(increments, summary)
+    obs = formats.table_observations(spec, batch)
+    return Part(*observations_evidence(spec, obs.X, obs.V, obs.input_noise_std, obs.sample_weight))
+
+
+def slice_evidence(spec_json: str, piece: Slice, batch_rows: int = BATCH_ROWS) -> Part:
+    """The evidence of one slice (runs on a worker)."""
+    spec = RegionSpec.model_validate_json(spec_json)
+    total = Part({}, {"accepted": 0, "rejected": {"non_finite": 0, "outside_region": 0}})
+    try:
+        for batch in read_slice(piece, batch_rows):
+            if batch.num_rows:
+                total = merge(total, batch_evidence(spec, batch))
     except Problem as exc:
-        raise ValueError(f"{path}: {exc.detail}") from None
-    increments, summary = observations_evidence(spec, obs.X, obs.V, obs.input_noise_std, obs.sample_weight)
-    digest = payload_digest("file", obs.X, obs.V, obs.input_noise_std, obs.sample_weight)
-    return Part(increments, summary, [digest])
+        raise ValueError(f"{piece.path}: {exc.detail}") from None
+    except (pa.ArrowInvalid, ValueError) as exc:
+        raise ValueError(f"{piece.path}: {exc}") from None
+    return total
+
+
+def file_digest(path: str) -> str:
+    """SHA-256 of a file's bytes, read in blocks (runs on a worker)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(1 << 24):
+            h.update(block)
+    return h.hexdigest()
 
 
 def merge(a: Part, b: Part) -> Part:
-    """The evidence of both parts (``a``'s files first)."""
+    """The evidence of both parts."""
     increments = dict(a.increments)
     for key, inc in b.increments.items():
         old = increments.get(key)
         increments[key] = (
             inc if old is None else Increment(old.evidence + inc.evidence, old.points + inc.points)
         )
+    reasons = a.summary["rejected"].keys() | b.summary["rejected"].keys()
     summary = {
         "accepted": a.summary["accepted"] + b.summary["accepted"],
-        "rejected": {k: a.summary["rejected"][k] + b.summary["rejected"][k] for k in a.summary["rejected"]},
+        "rejected": {
+            k: a.summary["rejected"].get(k, 0) + b.summary["rejected"].get(k, 0) for k in sorted(reasons)
+        },
     }
-    return Part(increments, summary, a.digests + b.digests)
+    return Part(increments, summary)
 
 
 def build(
@@ -77,31 +251,51 @@ def build(
     replace: bool = True,
     upload_id: str | None = None,
     progress: bool | None = None,
+    rows_per_task: int = ROWS_PER_TASK,
+    batch_rows: int = BATCH_ROWS,
 ) -> dict:
     """Learn ``region`` from observation files on the Dask ``client``'s workers.
 
     ``replace``: the map becomes these files alone (a fit); otherwise they are added.
-    ``upload_id`` defaults to one derived from the files' content, so re-running the
-    same build is a replay. Returns the ledger result, like an upload's.
-    ``progress``: a bar over the files (default: on a terminal).
+    ``upload_id`` defaults to one derived from the files' bytes, so re-running the same
+    build is a replay. Returns the ledger result, like an upload's.
+    ``progress``: a bar over the slices (default: on a terminal).
     """
     paths = [Path(p).resolve() for p in paths]
     if not paths:
         raise ValueError("a build needs at least one observation file")
     for p in paths:
-        if p.suffix not in SUFFIXES:
-            raise ValueError(f"{p}: a build reads {' or '.join(SUFFIXES)} files")
+        if suffix(p) not in SUFFIXES:
+            raise ValueError(f"{p}: a build reads {', '.join(SUFFIXES)} files")
         if not p.is_file():
             raise ValueError(f"{p}: no such file")
+    if rows_per_task < 1 or batch_rows < 1:
+        raise ValueError(f"rows_per_task and batch_rows must be positive, got {rows_per_task}, {batch_rows}")
+    try:
+        pieces = plan(paths, rows_per_task)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise ValueError(f"cannot read the files' metadata: {exc}") from None
     info = store.region(region)
     spec_id, spec_json = info.region_id, info.spec.model_dump_json()
-    parts = client.map(file_evidence, [spec_json] * len(paths), [str(p) for p in paths], pure=False)
-    _follow(parts, progress)
-    while len(parts) > 1:  # pairwise tree sum, on the workers
+    digests = client.map(file_digest, [str(p) for p in paths], pure=False)
+    leaves = client.map(
+        slice_evidence, [spec_json] * len(pieces), pieces, [batch_rows] * len(pieces), pure=False
+    )
+    parts = list(leaves)
+    while len(parts) > 1:  # pairwise tree sum, on the workers, as the slices finish
         pairs = [parts[i : i + 2] for i in range(0, len(parts), 2)]
         parts = [client.submit(merge, *pair, pure=False) if len(pair) == 2 else pair[0] for pair in pairs]
-    total = parts[0].result()
-    digest = hashlib.sha256(f"build:{replace}:{','.join(total.digests)}".encode()).hexdigest()
+    root = parts[0]
+    del parts
+    try:
+        _follow(leaves, progress)
+        total, digests = root.result(), client.gather(digests)
+    except (CommClosedError, CancelledError) as exc:
+        raise ClusterLost(
+            f"the Dask scheduler was lost mid-build ({type(exc).__name__}); nothing was stored: "
+            "run the build again"
+        ) from exc
+    digest = hashlib.sha256(f"build:{replace}:{','.join(digests)}".encode()).hexdigest()
     info = store.region(region)
     if info.region_id != spec_id:
         raise ValueError(f"region {region!r} was deleted and re-created during the build: run it again")
@@ -118,12 +312,15 @@ def build(
     )
 
 
-def _follow(futures, progress: bool | None) -> None:
-    """Wait for ``futures`` with a bar; the first failure raises here."""
+def _follow(futures: list, progress: bool | None) -> None:
+    """Wait for ``futures`` (emptied: finished results are then the tree's alone) with a
+    bar; the first failure raises here."""
     from distributed import as_completed
 
     disable = not sys.stderr.isatty() if progress is None else not progress
-    with tqdm(total=len(futures), unit="file", desc="evidence", disable=disable) as bar:
-        for future in as_completed(futures):
+    with tqdm(total=len(futures), unit="slice", desc="evidence", disable=disable) as bar:
+        pending = as_completed(futures)
+        futures.clear()
+        for future in pending:
             future.result()
             bar.update()

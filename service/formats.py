@@ -132,7 +132,7 @@ def _table(body: bytes, media: str) -> pa.Table:
         raise Problem(400, f"the body is not {kind}: {exc}") from exc
 
 
-def _columns(table: pa.Table, names) -> np.ndarray:
+def _columns(table: pa.Table | pa.RecordBatch, names) -> np.ndarray:
     out = np.empty((table.num_rows, len(names)))
     for i, name in enumerate(names):
         try:
@@ -142,7 +142,7 @@ def _columns(table: pa.Table, names) -> np.ndarray:
     return out
 
 
-def _table_positions(table: pa.Table) -> tuple[str, np.ndarray]:
+def _table_positions(table: pa.Table | pa.RecordBatch) -> tuple[str, np.ndarray]:
     names = set(table.column_names)
     has_enu, has_wgs = set(ENU_COLUMNS) <= names, set(WGS84_COLUMNS) <= names
     if has_enu == has_wgs:
@@ -166,21 +166,37 @@ def read_observations(spec: RegionSpec, body: bytes, media: str, max_points: int
             noise = _array(noise, 3 if noise and isinstance(noise[0], list) else 1)
     elif media == ARROW or media in PARQUET_ALIASES:
         table = _table(body, ARROW if media == ARROW else PARQUET)
-        missing = [c for c in VELOCITY_COLUMNS if c not in table.column_names]
-        if missing:
-            raise Problem(422, f"the table lacks the velocity columns {missing}")
-        frame, P = _table_positions(table)
-        V = _columns(table, VELOCITY_COLUMNS)
-        noise, weight = (
-            _columns(table, [c])[:, 0] if c in table.column_names else None
-            for c in ("input_noise_std", "sample_weight")
-        )
+        _check_count(table.num_rows, max_points)
+        return table_observations(spec, table)
     else:
         raise Problem(415, f"send {JSON}, {ARROW} or {PARQUET}, not {media or 'no Content-Type'}")
+    _check_count(len(P), max_points)
+    return _observations(spec, frame, P, V, noise, weight)
+
+
+def _check_count(n: int, max_points: int) -> None:
+    if n > max_points:
+        raise Problem(422, f"{n} observations in one request; the limit is {max_points}: split it")
+
+
+def table_observations(spec: RegionSpec, table: pa.Table | pa.RecordBatch) -> Observations:
+    """The observations of a table with the upload columns (an Arrow or Parquet body, or a
+    slice of a build's file)."""
+    missing = [c for c in VELOCITY_COLUMNS if c not in table.column_names]
+    if missing:
+        raise Problem(422, f"the table lacks the velocity columns {missing}")
+    frame, P = _table_positions(table)
+    V = _columns(table, VELOCITY_COLUMNS)
+    noise, weight = (
+        _columns(table, [c])[:, 0] if c in table.column_names else None
+        for c in ("input_noise_std", "sample_weight")
+    )
+    return _observations(spec, frame, P, V, noise, weight)
+
+
+def _observations(spec: RegionSpec, frame: str, P, V, noise, weight) -> Observations:
     if len(P) == 0:
         raise Problem(422, "the body holds no observations")
-    if len(P) > max_points:
-        raise Problem(422, f"{len(P)} observations in one request; the limit is {max_points}: split it")
     X, V = _to_region(spec, frame, P, V)
     return Observations(
         X,

@@ -86,9 +86,31 @@ def test_adsb_from_json_gz_csv_and_parquet(tmp_path):
     _check(ingest.read_adsb(tmp_path / "s.csv", PARIS))
 
 
+def test_adsb_from_opensky_state_vector_files(tmp_path):
+    """OpenSky's own files: seconds, metres, m/s, the geometric height (else the barometric)."""
+    si = {
+        "time": [r[0] / 1000 for r in ROWS],
+        "icao24": [r[1] for r in ROWS],
+        "callsign": [r[2] for r in ROWS],
+        "lat": [r[3] for r in ROWS],
+        "lon": [r[4] for r in ROWS],
+        "baroaltitude": [None if r[5] is None else r[5] * 0.3048 for r in ROWS],
+        "velocity": [r[6] * 1852 / 3600 for r in ROWS],
+        "heading": [r[7] for r in ROWS],
+        "vertrate": [r[8] * 0.3048 / 60 for r in ROWS],
+        "onground": [r[9] for r in ROWS],
+    }
+    pq.write_table(pa.table(si), tmp_path / "states.parquet")
+    _check(ingest.read_adsb(tmp_path / "states.parquet", PARIS))
+    si["geoaltitude"] = [None, 3100.0, 0.0, 3000.0]
+    obs = ingest.adsb_observations({k: np.array(v, dtype=object) for k, v in si.items()}, PARIS)
+    assert obs.dropped == {"on_ground": 1, "incomplete": 1}  # row 0 has no geometric height
+    np.testing.assert_allclose(obs.X, PARIS.to_enu([48.85, 48.87], [2.51, 2.53], [3100.0, 3000.0]), atol=1e-6)
+
+
 def test_adsb_missing_column_and_unknown_format(tmp_path):
     (tmp_path / "s.csv").write_text("latitude,longitude\n1,2\n")
-    with pytest.raises(ValueError, match="missing column 'timestamp'"):
+    with pytest.raises(ValueError, match="ADS-B state vectors need the columns icao24 and latitude"):
         ingest.read_adsb(tmp_path / "s.csv", PARIS)
     with pytest.raises(ValueError, match="unknown format"):
         ingest.read_adsb(tmp_path / "s.xlsx", PARIS)
