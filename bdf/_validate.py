@@ -41,6 +41,15 @@ def as_points(value, name: str, *, allow_empty: bool = False) -> np.ndarray:
     return arr
 
 
+def rows_all(mask: np.ndarray) -> np.ndarray:
+    """Rows of a boolean (n, k) array that are all true, column by column (numpy's row
+    reduction over a few values costs several times more)."""
+    out = mask[:, 0].copy()
+    for j in range(1, mask.shape[1]):
+        out &= mask[:, j]
+    return out
+
+
 def as_observations(X, V) -> tuple[np.ndarray, np.ndarray]:
     X = as_points(X, "X")
     V = as_points(V, "V")

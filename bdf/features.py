@@ -53,48 +53,59 @@ def _cut(factor: np.ndarray, cutoff: float) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _axis_factors(t, scale, width, cutoff):  # pragma: no cover (compiled)
-    """``exp(-scale_n (t_n - j)^2)`` for j = 0 .. width-1 (n, width), zero below ``cutoff``.
+def _axis_factors(t, scale, cutoff, out):  # pragma: no cover (compiled)
+    """``out[j, n] = exp(-scale_n (t_n - j)^2)`` for j = 0 .. width-1, zero below ``cutoff``;
+    ``scale`` has n values or one for all; ``out`` is (width, n).
 
-    Three exponentials per point instead of ``width``: from the lattice point nearest
+    Two exponentials per point instead of ``width``: from the lattice point nearest
     ``t_n`` outwards, each value is the previous times a ratio <= 1, and each ratio the
     previous one times ``exp(-2 scale_n)`` (no overflow; relative error ~ width x eps).
     """
-    n = t.shape[0]
-    out = np.zeros((n, width))
+    width, n = out.shape
+    out[:] = 0.0
+    s, c = -1.0, 0.0
     for i in range(n):
-        s, ti = scale[i], t[i]
-        c = np.exp(-2.0 * s)
+        if scale[min(i, scale.shape[0] - 1)] != s:
+            s = scale[min(i, scale.shape[0] - 1)]
+            c = np.exp(-2.0 * s)
+        ti = t[i]
         j0 = min(max(int(np.floor(ti + 0.5)), 0), width - 1)
         f0 = np.exp(-s * (ti - j0) ** 2)
-        f, r = f0, np.exp(-s * (2.0 * (j0 - ti) + 1.0))  # f(j+1) = f(j) r, j >= j0
+        up = np.exp(-s * (2.0 * (j0 - ti) + 1.0))  # f(j+1) = f(j) up, j >= j0
+        # f(j-1) = f(j) down, j <= j0; up * down = c
+        down = c / up if up > 1e-300 else np.exp(-s * (2.0 * (ti - j0) + 1.0))
+        f, r = f0, up
         for j in range(j0, width):
             if f < cutoff:
                 break
-            out[i, j] = f
+            out[j, i] = f
             f *= r
             r *= c
-        f, r = f0, np.exp(-s * (2.0 * (ti - j0) + 1.0))  # f(j-1) = f(j) r, j <= j0
+        f, r = f0, down
         for j in range(j0 - 1, -1, -1):
             f *= r
             r *= c
             if f < cutoff:
                 break
-            out[i, j] = f
+            out[j, i] = f
     return out
 
 
+def sort_key(key: np.ndarray) -> np.ndarray:
+    """Sort keys in 16 bits where they fit: numpy's stable sort is then a radix sort."""
+    return key.astype(np.uint16) if len(key) and 0 <= key.min() and key.max() < 2**16 else key
+
+
 @numba.njit(cache=True)
-def _row_outer(a, b):  # pragma: no cover (compiled)
-    """``out[n, i * q + j] = a[n, i] b[n, j]`` for ``a`` (n, p), ``b`` (n, q)."""
-    n, p = a.shape
-    q = b.shape[1]
-    out = np.empty((n, p * q))
-    for m in range(n):
-        for i in range(p):
-            ai = a[m, i]
-            for j in range(q):
-                out[m, i * q + j] = ai * b[m, j]
+def _outer(a, b, out):  # pragma: no cover (compiled)
+    """``out[i * q + j, n] = a[i, n] b[j, n]`` for ``a`` (p, n), ``b`` (q, n): per point,
+    the outer product of its columns (points last, so the loops run long and in SIMD)."""
+    p, n = a.shape
+    q = b.shape[0]
+    for i in range(p):
+        for j in range(q):
+            for m in range(n):
+                out[i * q + j, m] = a[i, m] * b[j, m]
     return out
 
 
@@ -111,12 +122,13 @@ class _Blocks:
 
     def __init__(self, lattice: Lattice, X: np.ndarray, k: np.ndarray, cutoff: float, block: int):
         """``block``: the smallest block edge in lattice cells; it doubles while blocks are sparse."""
-        k = np.asarray(k, float)
-        narrowest = k.reshape(-1, 3).min(axis=0)
-        k = np.broadcast_to(k, X.shape)
+        k = np.asarray(k, float).reshape(-1, 3)  # one row for all points, or one each
+        narrowest = k.min(axis=0)
         shape = np.array(lattice.shape)
         self.cutoff = cutoff
-        reach = np.ceil(np.sqrt(np.log(1.0 / cutoff) / narrowest) / lattice.step).astype(int)
+        # a lattice point g can weigh >= cutoff for x in cells [c, c + e) only if
+        # c - r <= g <= c + e - 1 + r, r the reach in steps: a window of e + 2 floor(r) + 1
+        reach = np.floor(np.sqrt(np.log(1.0 / cutoff) / narrowest) / lattice.step).astype(int)
         if len(X) < 2 * MIN_POINTS_PER_BLOCK or np.all(2 * reach + 1 >= shape):
             # too few points to split, or every window would span the lattice (small tiles,
             # radar scans): one window over the whole lattice
@@ -132,7 +144,7 @@ class _Blocks:
             blocks = np.floor_divide(cells, edge)
             low = blocks.min(axis=0)
             key = np.ravel_multi_index(tuple((blocks - low).T), tuple(blocks.max(axis=0) - low + 1))
-            self.order = np.argsort(key, kind="stable")
+            self.order = np.argsort(sort_key(key), kind="stable")
             key = key[self.order]
             edges = np.flatnonzero(np.diff(key)) + 1
             if len(X) >= MIN_POINTS_PER_BLOCK * (len(edges) + 1) or block >= shape.max():
@@ -144,7 +156,7 @@ class _Blocks:
         # exist, so no padding is needed and no window is wider than the lattice.
         self.width = np.minimum(edge + 2 * reach + 1, shape)
         self.start = np.clip(blocks[self.order] * edge - reach, 0, shape - self.width)
-        self._positions(lattice, X[self.order], k[self.order])
+        self._positions(lattice, X[self.order], k if len(k) == 1 else k[self.order])
 
     def _positions(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
         """Positions in lattice steps from each point's window start, and ``k`` in steps."""
@@ -152,12 +164,20 @@ class _Blocks:
         self.scale = k * lattice.step**2
 
     def _factors(self, rows: slice) -> list[np.ndarray]:
-        t, scale = self.t[rows], self.scale[rows]
-        return [_axis_factors(t[:, d], scale[:, d], int(self.width[d]), self.cutoff) for d in range(3)]
+        t, scale = self.t[rows], self.scale if len(self.scale) == 1 else self.scale[rows]
+        return [
+            _axis_factors(
+                t[:, d], np.ascontiguousarray(scale[:, d]), self.cutoff, scratch(self._scratch[d], w, len(t))
+            )
+            for d, w in enumerate(self.width)
+        ]
 
     def __iter__(self):
         """Yield (rows into the sorted points, window slices into the lattice array, and the
-        chunk's factors fx, fy, fz)."""
+        chunk's factors fx, fy, fz, each (width[d], chunk))."""
+        # one buffer per axis for all chunks: allocations of this size would each page-fault
+        # where malloc returns freed memory to the system at once (Dask workers set that)
+        self._scratch = [np.empty(int(w) * CHUNK_POINTS) for w in self.width]
         for a, b in zip(self.bounds[:-1], self.bounds[1:], strict=True):
             s = self.start[a]
             window = tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
@@ -166,22 +186,33 @@ class _Blocks:
                 yield rows, window, *self._factors(rows)
 
 
+def scratch(buffer: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """A contiguous (rows, cols) view of the start of a flat buffer."""
+    return buffer[: rows * cols].reshape(rows, cols)
+
+
 @single_threaded
 def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
     """``T[g, c] = sum_n W[n, c] prod_d exp(-k_nd (x_nd - g_d)^2)``, shape lattice + (C,)."""
     n_out = W.shape[1]
     nx, ny, nz = lattice.shape
-    # layout (x, c, y, z): the channels ride on the small x factor, so each block is
-    # one GEMM (Lx*C x n) @ (n x Ly*Lz) and one elementwise yz product
+    # layout (x, c, y, z): the channels ride on the small x factor, so each chunk is
+    # one GEMM (Lx*C x n) @ (n x Ly*Lz) and two outer products
     out = np.zeros((nx, n_out, ny, nz))
     if len(X):
         blocks = _Blocks(lattice, X, k, cutoff, block)
-        W = W[blocks.order]
-        Lx, Ly, Lz = blocks.width
+        WT = np.ascontiguousarray(np.asarray(W, float)[blocks.order].T)
+        Lx, Ly, Lz = (int(w) for w in blocks.width)
+        xc, yz = np.empty(Lx * n_out * CHUNK_POINTS), np.empty(Ly * Lz * CHUNK_POINTS)
+        product = np.empty((Lx * n_out, Ly * Lz))
         for rows, (wx, wy, wz), fx, fy, fz in blocks:
-            yz = _row_outer(fy, fz)
-            xc = _row_outer(fx, W[rows])
-            out[wx, :, wy, wz] += (xc.T @ yz).reshape(Lx, n_out, Ly, Lz)
+            n = rows.stop - rows.start
+            np.matmul(
+                _outer(fx, WT[:, rows], scratch(xc, Lx * n_out, n)),
+                _outer(fy, fz, scratch(yz, Ly * Lz, n)).T,
+                out=product,
+            )
+            out[wx, :, wy, wz] += product.reshape(Lx, n_out, Ly, Lz)
     return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
 
 
@@ -195,8 +226,10 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
     blocks = _Blocks(lattice, X, k, cutoff, block)
     T = gather_table(T)
     sorted_out = np.empty_like(out)
+    yz = np.empty(int(blocks.width[1] * blocks.width[2]) * CHUNK_POINTS)
     for rows, (wx, wy, wz), fx, fy, fz in blocks:
-        sorted_out[rows] = contract(fx, _row_outer(fy, fz), T[wy, wz, wx])
+        product = _outer(fy, fz, scratch(yz, len(fy) * len(fz), rows.stop - rows.start))
+        sorted_out[rows] = contract(fx.T, product.T, T[wy, wz, wx])
     out[blocks.order] = sorted_out
     return out
 
@@ -246,7 +279,7 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
     width = tuple(int(w) for w in blocks.width)
     local = np.arange(int(np.prod(width))).reshape(width)
     for rows, window, fx, fy, fz in blocks:
-        phi = fx[:, :, None, None] * fy[:, None, :, None] * fz[:, None, None, :]
+        phi = fx.T[:, :, None, None] * fy.T[:, None, :, None] * fz.T[:, None, None, :]
         phi = phi.reshape(len(phi), -1) * amplitude[rows, None]
         pairs = phi.T @ phi
         hinges = flat[window]

@@ -38,7 +38,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bdf import features, noise
-from bdf._validate import _bad_rows, as_headings, as_noise_std, as_observations, as_points, as_sample_weight
+from bdf._validate import (
+    _bad_rows,
+    as_headings,
+    as_noise_std,
+    as_observations,
+    as_points,
+    as_sample_weight,
+    rows_all,
+)
 from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
@@ -208,14 +216,14 @@ class RegionSpec(BaseModel):
 
     def inside(self, X: np.ndarray) -> np.ndarray:
         """Rows of ``X`` (n, 3) inside the region's box (closed)."""
-        return np.all((X >= self.lower) & (X <= self.upper), axis=1)
+        return rows_all((X >= self.lower) & (X <= self.upper))
 
     def home_tiles(self, X) -> dict[TileKey, np.ndarray]:
         """Row indices of ``X`` per tile whose core holds them (each row in one tile)."""
         X = self._inside_points(X)
         n = np.array(self.tile_counts)
         home = np.clip(np.floor((X - self.lower) / np.array(self.tile_size_m)).astype(np.int64), 0, n - 1)
-        order = np.argsort(np.ravel_multi_index(home.T, tuple(n)), kind="stable")  # radix sort
+        order = np.argsort(features.sort_key(np.ravel_multi_index(home.T, tuple(n))), kind="stable")
         return {key: order[a:b] for a, b, key in _runs(home[order])}
 
     def _inside_points(self, X) -> np.ndarray:

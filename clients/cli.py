@@ -325,7 +325,8 @@ def _build(args) -> int:
     print(
         f"{result['accepted']} accepted{f' ({rejected} rejected)' if rejected else ''}, "
         f"{result['tiles_updated']} tiles, region {args.region!r} version {result['region_version']}"
-        f"{' (a replay: nothing changed)' if result['replayed'] else ''}"
+        f"{' (a replay: nothing changed)' if result['replayed'] else ''}; evidence "
+        f"{result['seconds']['evidence']:.1f} s, commit {result['seconds']['commit']:.1f} s"
     )
     return 0
 
@@ -402,7 +403,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="auto",
         help="memory limit per local worker, e.g. 1GB (default: RAM / workers)",
     )
-    p.add_argument("--rows-per-task", type=int, help="rows per task (default 2,000,000)")
+    p.add_argument("--rows-per-task", type=int, help="rows per task (default 500,000)")
     p.add_argument(
         "--batch-rows", type=int, help="rows a worker holds at once (default 200,000; about 1 kB each)"
     )

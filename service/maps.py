@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bdf._validate import noise_std_rows
+from bdf._validate import noise_std_rows, rows_all
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.tiles import Increment, RegionSpec, TileKey
 from service.store import MapStore, RegionInfo, Snapshot, payload_digest
@@ -338,9 +338,9 @@ def observations_evidence(
 
 def _evidence(spec: RegionSpec, X, V, noise, weight, progress):
     """:func:`observations_evidence` of arrays :func:`_checked` has passed."""
-    finite = np.isfinite(X).all(1) & np.isfinite(V).all(1)
+    finite = rows_all(np.isfinite(X)) & rows_all(np.isfinite(V))
     if noise is not None:
-        finite &= np.isfinite(noise).all(1) & (noise >= 0).all(1)
+        finite &= rows_all(np.isfinite(noise) & (noise >= 0))
     if weight is not None:
         finite &= np.isfinite(weight) & (weight >= 0)
     inside = np.zeros(len(X), bool)
