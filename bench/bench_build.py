@@ -6,10 +6,10 @@
 For each size N, ``make_city`` writes the synthetic city (cached under ``--data``), then:
 
 * serial: every slice's evidence in this process, one after the other (no Dask);
-* Dask with 1 and 2 worker processes (``LocalCluster``, one thread each, ``--worker-memory``
-  per worker), building into a fresh SQLite store: points per second for the evidence,
-  the time to commit (the region's posterior, then the transaction) and each worker's
-  peak RSS, sampled every 20 ms with psutil;
+* Dask with 1 and 2 worker processes (:func:`service.build.local_cluster`, as ``bdf build``
+  starts them: one thread each, ``--worker-memory`` per worker), building into a fresh
+  SQLite store: points per second for the evidence, the time to commit (the region's
+  posterior, then the transaction) and each worker's peak RSS, sampled every 20 ms;
 * the built map against the city's known field on held-out traffic: RMSE of the mean
   against the true mean velocity, 95 % coverage of the predictive std, and with
   directions the RMSE of the mode of each point's true heading against its lane's velocity.
@@ -28,13 +28,13 @@ from pathlib import Path
 
 import numpy as np
 import psutil
-from distributed import Client, LocalCluster
+from distributed import Client
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_city
 
 from bdf.tiles import RegionSpec
-from service.build import BATCH_ROWS, build, merge, plan, slice_evidence
+from service.build import BATCH_ROWS, build, local_cluster, merge, plan, slice_evidence
 from service.maps import RegionMaps
 from service.store import open_store
 
@@ -66,12 +66,12 @@ class PeakRSS:
         self._thread.join()
 
 
-def city(data: Path, points: int) -> list[Path]:
-    folder = data / f"city-{points}"
+def city(data: Path, points: int, one_file: bool) -> list[Path]:
+    folder = data / f"city-{points}{'-one-file' * one_file}"
     files = sorted(folder.glob("*.parquet"))
-    if sum(1 for _ in files) and (folder / "done").exists():
+    if files and (folder / "done").exists():
         return files
-    files = make_city.write(folder, points)
+    files = make_city.write(folder, points, rows_per_file=None if one_file else make_city.ROWS_PER_FILE)
     (folder / "done").touch()
     return files
 
@@ -93,12 +93,7 @@ def serial(spec: RegionSpec, files, batch_rows: int) -> tuple[float, int, int]:
 def dask_build(spec: RegionSpec, files, workers: int, memory: str, batch_rows: int, store_url: str):
     store = open_store(store_url)
     store.create_region(spec)
-    with (
-        LocalCluster(
-            n_workers=workers, threads_per_worker=1, memory_limit=memory, dashboard_address=None
-        ) as cluster,
-        Client(cluster) as client,
-    ):
+    with local_cluster(workers, memory) as cluster, Client(cluster) as client:
         client.run(_warm, spec.model_dump_json())  # compile the kernels before the clock starts
         with PeakRSS(client.run(os.getpid).values()) as rss:
             start = time.perf_counter()
@@ -144,6 +139,7 @@ def main(argv=None) -> int:
     parser.add_argument("--worker-memory", default="1GB")
     parser.add_argument("--batch-rows", type=int, default=BATCH_ROWS)
     parser.add_argument("--serial", action=argparse.BooleanOptionalAction, default=True)
+    parser.add_argument("--one-file", action="store_true", help="each city in one Parquet file")
     parser.add_argument("--data", type=Path, default=Path(tempfile.gettempdir()) / "bdf-bench-city")
     args = parser.parse_args(argv)
     spec = RegionSpec.model_validate(make_city.region_spec(directions=args.directions))
@@ -153,7 +149,8 @@ def main(argv=None) -> int:
         f" on {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}. "
         f"City: {spec.grid.size} hinges ({' x '.join(map(str, spec.grid.shape))}), "
         f"{int(np.prod(spec.tile_counts))} tiles, directions {spec.directions}, cutoff {spec.cutoff:g}; "
-        f"batch {args.batch_rows:,} rows; worker memory limit {args.worker_memory}.\n"
+        f"batch {args.batch_rows:,} rows; worker memory limit {args.worker_memory}; "
+        f"{'one Parquet file' if args.one_file else 'files of 1M rows'}, row groups of 100k.\n"
     )
     print(
         "| N | path | evidence s | Mpts/s | per worker Mpts/s | commit s | peak RSS MB (per worker) | "
@@ -162,7 +159,7 @@ def main(argv=None) -> int:
     )
     print("|" + "---|" * (10 + 2 * (args.directions > 1)))
     for points in map(int, args.points):
-        files = city(args.data, points)
+        files = city(args.data, points, args.one_file)
         if args.serial:
             seconds, n, grown = serial(spec, files, args.batch_rows)
             print(

@@ -7,6 +7,7 @@ the mean velocity of all traffic (what a map of one class should learn), each la
 velocity (what the mode of its heading should learn) and each lane's share.
 
     python bench/make_city.py --points 20000000 --out /tmp/city   # 20 files of 1M rows
+    python bench/make_city.py --points 20000000 --out /tmp/city --rows-per-file 0   # one file
 
 writes Parquet files of the upload columns (``x, y, z, ve, vn, vu``, region metres) with
 row groups of 100,000 rows, and ``region.json``, the spec of the region to build them into.
@@ -130,23 +131,36 @@ def region_spec(name: str = "city", directions: int = 1) -> dict:
     }
 
 
-def write(out: Path, points: int, seed: int = 0, progress: bool = True) -> list[Path]:
-    """``points`` observations in files of ``ROWS_PER_FILE`` rows (memory: one file's rows)."""
+def write(
+    out: Path, points: int, seed: int = 0, progress: bool = True, rows_per_file: int | None = ROWS_PER_FILE
+) -> list[Path]:
+    """``points`` observations in files of ``rows_per_file`` rows (None: one file), written
+    a million rows at a time."""
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     paths, left = [], points
     with tqdm(total=points, unit="pt", unit_scale=True, desc="city", disable=not progress) as bar:
+        writer, in_file = None, 0
         while left > 0:
-            X, V, _ = sample(int(min(left, ROWS_PER_FILE) * 1.02) + 100, rng)  # a few fall outside
-            X, V = X[: min(left, ROWS_PER_FILE)], V[: min(left, ROWS_PER_FILE)]
-            path = out / f"part-{len(paths):05d}.parquet"
+            rows = min(left, ROWS_PER_FILE, (rows_per_file or points) - in_file)
+            X, V, _ = sample(int(rows * 1.02) + 100, rng)  # a few fall outside
+            X, V = X[:rows], V[:rows]
             columns = {n: X[:, i] for i, n in enumerate("xyz")} | {
                 n: V[:, i] for i, n in enumerate(("ve", "vn", "vu"))
             }
-            pq.write_table(pa.table(columns), path, row_group_size=ROW_GROUP, compression="zstd")
-            paths.append(path)
-            left -= len(X)
-            bar.update(len(X))
+            table = pa.table(columns)
+            if writer is None:
+                paths.append(out / f"part-{len(paths):05d}.parquet")
+                writer = pq.ParquetWriter(paths[-1], table.schema, compression="zstd")
+            writer.write_table(table, row_group_size=ROW_GROUP)
+            in_file += rows
+            if in_file == (rows_per_file or points):
+                writer.close()
+                writer, in_file = None, 0
+            left -= rows
+            bar.update(rows)
+        if writer is not None:
+            writer.close()
     (out / "region.json").write_text(json.dumps(region_spec(), indent=1))
     return paths
 
@@ -156,8 +170,9 @@ def main(argv=None) -> int:
     parser.add_argument("--points", type=int, default=20_000_000)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rows-per-file", type=int, default=ROWS_PER_FILE, help="0: one file")
     args = parser.parse_args(argv)
-    paths = write(args.out, args.points, args.seed)
+    paths = write(args.out, args.points, args.seed, rows_per_file=args.rows_per_file or None)
     print(f"{args.points:,} points in {len(paths)} files under {args.out}")
     return 0
 

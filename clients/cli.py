@@ -288,9 +288,9 @@ def _serve(args) -> int:
 
 def _build(args) -> int:
     """A Dask build straight into the store (no HTTP): the service replicas see it at once."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    from service.build import build
+    from service.build import build, local_cluster
     from service.settings import Settings
     from service.store import RegionNotFound, UploadConflict, open_store
 
@@ -301,13 +301,8 @@ def _build(args) -> int:
             if args.scheduler:
                 client = stack.enter_context(Client(args.scheduler))
             else:
-                cluster = LocalCluster(
-                    n_workers=args.workers,
-                    threads_per_worker=1,
-                    memory_limit=args.worker_memory,
-                    dashboard_address=None,
-                )
-                client = stack.enter_context(Client(stack.enter_context(cluster)))
+                cluster = stack.enter_context(local_cluster(args.workers, args.worker_memory))
+                client = stack.enter_context(Client(cluster))
             result = build(
                 store,
                 args.region,

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import gzip
 import hashlib
+import os
 import sys
 import time
 from collections.abc import Iterator
@@ -63,6 +64,32 @@ _CSV_FLOATS = (
     *{c for cols, *_ in ingest.ADSB_SCHEMAS.values() for c in cols},
     "baroaltitude",
 )
+
+
+#: Dask starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which also pins glibc's
+#: mmap threshold at 128 kB: every larger temporary of the evidence kernels is then a
+#: fresh mapping that page-faults (measured: a slice 1.4x slower). A worker's memory is
+#: bounded by its batch, so builds start workers with this instead (give it to
+#: ``dask worker`` on a cluster too).
+WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(128 * 2**20)}
+
+
+def local_cluster(workers: int, memory_limit: str = "auto"):
+    """A ``LocalCluster`` of ``workers`` single-threaded worker processes for builds."""
+    from distributed import LocalCluster
+
+    saved = {k: os.environ.get(k) for k in WORKER_ENV}
+    os.environ.update(WORKER_ENV)  # the nanny passes the parent's value on at spawn
+    try:
+        return LocalCluster(
+            n_workers=workers, threads_per_worker=1, memory_limit=memory_limit, dashboard_address=None
+        )
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k)
+            else:
+                os.environ[k] = v
 
 
 class ClusterLost(RuntimeError):
