@@ -155,10 +155,11 @@ def _arrow_batches(path) -> Iterator[pa.RecordBatch]:
     source = pa.memory_map(str(path))
     try:
         reader = pa.ipc.open_file(source)
-        yield from (reader.get_batch(i) for i in range(reader.num_record_batches))
-    except pa.ArrowInvalid:
+    except pa.ArrowInvalid:  # no file footer: a stream
         source.seek(0)
         yield from pa.ipc.open_stream(source)
+        return
+    yield from (reader.get_batch(i) for i in range(reader.num_record_batches))
 
 
 def read_slice(piece: Slice, batch_rows: int = BATCH_ROWS) -> Iterator[pa.RecordBatch | pa.Table]:
