@@ -116,8 +116,8 @@ def adsb_schema(names) -> str | None:
 def adsb_state(
     table: dict, frame: ENUFrame, *, source="table"
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """ADS-B state vectors -> ENU positions and velocities of every row, the rows kept, and
-    the rows dropped per reason (on the ground, or missing a value)."""
+    """ADS-B state vectors -> ENU positions and velocities of the rows kept, the mask of
+    those rows, and the rows dropped per reason (on the ground, or missing a value)."""
     schema = adsb_schema(table)
     if schema is None:
         raise ValueError(
