@@ -46,6 +46,7 @@ bench: install
 	$(PY) bench/bench_tiles.py
 	$(PY) bench/bench_service.py
 	$(PY) bench/bench_planner.py
+	$(PY) bench/bench_build.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
