@@ -54,8 +54,8 @@ ROWS_PER_TASK = 500_000
 BATCH_ROWS = 200_000
 #: CSV bytes per task per row of ``rows_per_task`` (a line of the upload columns, about).
 CSV_BYTES_PER_ROW = 64
-#: Numeric columns read as float64 from CSV (type inference per block could differ).
-_CSV_FLOATS = (
+#: Numeric columns: float64 from CSV (type inference per block could differ), numpy from ADS-B.
+_NUMERIC_COLUMNS = (
     *formats.ENU_COLUMNS,
     *formats.WGS84_COLUMNS,
     *formats.VELOCITY_COLUMNS,
@@ -68,7 +68,7 @@ _CSV_FLOATS = (
 
 #: Dask starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which also pins glibc's
 #: mmap threshold at 128 kB: every larger temporary of the evidence kernels is then a
-#: fresh mapping that page-faults (measured: a slice 1.4x slower). A worker's memory is
+#: fresh mapping that page-faults (a slice measured slower in a worker). A worker's memory is
 #: bounded by its batch, so builds start workers with this instead (give it to
 #: ``dask worker`` on a cluster too).
 WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(128 * 2**20)}
@@ -199,7 +199,7 @@ def _csv_batches(path: Path, piece: Slice, batch_rows: int) -> Iterator[pa.Recor
         source,
         read_options=pacsv.ReadOptions(block_size=max(batch_rows * 64, 1 << 20)),
         convert_options=pacsv.ConvertOptions(
-            column_types={n: pa.float64() for n in names if n in _CSV_FLOATS}
+            column_types={n: pa.float64() for n in names if n in _NUMERIC_COLUMNS}
         ),
     )
     for batch in reader:
@@ -219,7 +219,11 @@ def _line_start(fh, offset: int) -> int:
 def batch_evidence(spec: RegionSpec, batch: pa.RecordBatch | pa.Table) -> Part:
     """The evidence of one batch of rows (upload columns or ADS-B state vectors)."""
     if ingest.adsb_schema(batch.column_names):
-        table = {n: batch.column(n).to_numpy(zero_copy_only=False) for n in batch.column_names}
+        # the numbers and the ground flag as numpy; the strings stay Arrow (never read here)
+        table = {
+            n: col.to_numpy(zero_copy_only=False) if n in _NUMERIC_COLUMNS or n == "onground" else col
+            for n, col in zip(batch.column_names, batch.columns, strict=True)
+        }
         X, V, _, dropped = ingest.adsb_state(table, spec.frame())
         increments, summary = observations_evidence(spec, X, V)
         summary["rejected"]["non_finite"] += dropped["incomplete"]
@@ -239,7 +243,7 @@ def slice_evidence(spec_json: str, piece: Slice, batch_rows: int = BATCH_ROWS) -
                 total = merge(total, batch_evidence(spec, batch))
     except Problem as exc:
         raise ValueError(f"{piece.path}: {exc.detail}") from None
-    except (pa.ArrowInvalid, ValueError) as exc:
+    except ValueError as exc:  # pyarrow's ArrowInvalid among them
         raise ValueError(f"{piece.path}: {exc}") from None
     return total
 

@@ -179,10 +179,10 @@ def test_a_worker_killed_mid_build_changes_nothing(store, spec, tmp_path):
         Client(cluster) as client,
     ):
         pids = client.run(os.getpid)
-        killed = {}
+        killed, finished = {}, threading.Event()
 
         def kill_when_some_slices_are_done():
-            while True:
+            while not finished.is_set():
                 done = client.run_on_scheduler(_slices_done)
                 if done >= 6:
                     holder = max(client.has_what().items(), key=lambda item: len(item[1]))[0]
@@ -193,8 +193,11 @@ def test_a_worker_killed_mid_build_changes_nothing(store, spec, tmp_path):
 
         killer = threading.Thread(target=kill_when_some_slices_are_done)
         killer.start()
-        result = build(store, "town", paths, client, progress=False, rows_per_task=500, batch_rows=50)
-        killer.join()
+        try:
+            result = build(store, "town", paths, client, progress=False, rows_per_task=500, batch_rows=50)
+        finally:
+            finished.set()  # a failed build must not leave the killer waiting
+            killer.join()
         assert 6 <= killed["done"] < 80  # 80 slices: the kill came before the last one
         assert killed["pid"] not in client.run(os.getpid).values()  # a new worker process took over
     assert result["accepted"] == len(X) and result["region_version"] == 1
