@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 import anyio
 import numpy as np
 from fastapi import APIRouter, FastAPI, Header, Path, Query, Request, Response
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
@@ -36,6 +37,12 @@ log = logging.getLogger("bdf.service")
 PNG = "image/png"
 VIEWER_HTML = (pathlib.Path(__file__).parent / "viewer.html").read_text()
 NAME = r"^[a-z0-9][a-z0-9_-]{0,62}$"
+#: the viewer runs its own inline script and style and draws PNGs fetched from this origin
+#: as blob: URLs; nothing else loads, and no other page may frame it
+VIEWER_POLICY = (
+    "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src blob:; "
+    "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
+)
 RegionName = Annotated[str, Path(pattern=NAME, description="region name")]
 
 
@@ -635,7 +642,7 @@ def readyz(request: Request):
 def viewer():
     """The map viewer: region, altitude slider, component and layer, drawn from slice.png.
     The page itself is public; its requests carry the token typed into it, if any."""
-    return HTMLResponse(VIEWER_HTML)
+    return HTMLResponse(VIEWER_HTML, headers={"Content-Security-Policy": VIEWER_POLICY})
 
 
 @ops.get("/metrics", **scoped(PUBLIC))
@@ -668,6 +675,14 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     app.state.jobs = Jobs()
     app.state.metrics = Metrics(maps.cache)
     problems.install(app)
+    if settings.cors_origins:  # off unless configured: browsers on other origins get no access
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "Content-Type", "Accept", "Idempotency-Key", "If-None-Match"],
+            expose_headers=["ETag", "X-Region-Version", "X-Request-ID", "Location", "Retry-After"],
+        )
     app.add_middleware(
         RequestMiddleware, max_body_bytes=int(settings.max_body_mb * 2**20), metrics=app.state.metrics
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import uuid
 from http import HTTPStatus
 
 from fastapi import FastAPI, Request
@@ -11,7 +12,16 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException
 
-from service.store import RegionExists, RegionNotFound, StoreError, UploadConflict
+from service.store import (
+    RegionExists,
+    RegionNotFound,
+    StoreError,
+    StoreFull,
+    StoreUnavailable,
+    UploadConflict,
+)
+
+REQUEST_ID_HEADER = "X-Request-ID"
 
 PROBLEM = "application/problem+json"
 log = logging.getLogger("bdf.service")
@@ -25,12 +35,28 @@ class Problem(Exception):
         self.status, self.detail, self.headers = status, detail, headers
 
 
-def problem(status: int, detail, instance: str = "", headers: dict | None = None) -> JSONResponse:
+def problem(status: int, detail, scope, headers: dict | None = None) -> JSONResponse:
+    """The problem response to the request of ASGI ``scope``: its path is the instance, and
+    its request id (:mod:`service.telemetry`) is in the body and the headers, so a report
+    of any error can be matched to the server's log line."""
     title = HTTPStatus(status).phrase
-    body = {"type": "about:blank", "title": title, "status": status, "detail": detail}
-    if instance:
-        body["instance"] = instance
+    request_id = request_id_of(scope)
+    body = {
+        "type": "about:blank",
+        "title": title,
+        "status": status,
+        "detail": detail,
+        "instance": scope["path"],
+        "request_id": request_id,
+    }
+    headers = {**(headers or {}), REQUEST_ID_HEADER: request_id}
     return JSONResponse(body, status_code=status, media_type=PROBLEM, headers=headers)
+
+
+def request_id_of(scope) -> str:
+    """The id :class:`service.telemetry.RequestMiddleware` gave the request (one is made
+    here for a request that never reached it)."""
+    return scope.setdefault("state", {}).setdefault("request_id", uuid.uuid4().hex)
 
 
 def install(app: FastAPI) -> None:
@@ -40,7 +66,7 @@ def install(app: FastAPI) -> None:
         def decorator(fn):
             async def handler(request: Request, exc):
                 code, detail, headers = fn(exc)
-                return problem(code, detail, request.url.path, headers)
+                return problem(code, detail, request.scope, headers)
 
             app.add_exception_handler(exc_type, handler)
             return fn
@@ -59,15 +85,22 @@ def install(app: FastAPI) -> None:
     ):
         on(exc_type)(lambda e, status=status: (status, str(e), None))
 
+    @on(StoreUnavailable)
+    def _unavailable(exc):
+        log.warning("store unavailable: %s", exc)
+        status = 507 if isinstance(exc, StoreFull) else 503
+        return status, f"{exc}; retry later", {"Retry-After": str(exc.retry_after_s)}
+
     @on(StoreError)
     def _store(exc):
         log.error("store error: %s", exc)
-        return 503, f"the map store failed: {exc}", None
+        return 500, f"the map store failed: {exc}", None
 
-    @on(Exception)
-    def _internal(exc):
-        log.exception("unhandled error")
-        return 500, "internal error (logged on the server)", None
+    async def internal(request: Request, exc: Exception):
+        log.exception("unhandled error in request %s", request_id_of(request.scope))
+        return problem(500, "internal error (logged on the server with this request id)", request.scope)
+
+    app.add_exception_handler(Exception, internal)
 
 
 def _describe(errors) -> str:

@@ -1,18 +1,30 @@
 """Per-request bookkeeping as one ASGI middleware: body size limit, Prometheus metrics,
-and one structured log line per request (route, status, duration, region; never headers).
+request ids, security headers, and one structured log line per request (route, status,
+duration, region, request id; never other headers, so never tokens).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 import time
+import uuid
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from service.problems import Problem, problem
+from service.problems import REQUEST_ID_HEADER, Problem, problem
 
+#: a client's request id is kept if it is a plain token (it goes into logs and headers)
+REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")
+#: on every response: no MIME sniffing, no referrer leaks, no framing of the viewer
+#: (its own policy, with the scripts it needs, is set on the viewer route)
+SECURITY_HEADERS = [
+    (b"x-content-type-options", b"nosniff"),
+    (b"referrer-policy", b"no-referrer"),
+    (b"x-frame-options", b"DENY"),
+]
 disable_created_metrics()  # the *_created series only add noise to every scrape
 access_log = logging.getLogger("bdf.access")
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
@@ -65,6 +77,10 @@ class _CacheCollector:
 
 
 class RequestMiddleware:
+    """Gives every request an id (the client's ``X-Request-ID`` when it is a plain token, else
+    a new one), returned in that header and in every problem body; adds the headers every
+    response carries (:data:`SECURITY_HEADERS`); bounds the body; counts and logs."""
+
     def __init__(self, app, max_body_bytes: int, metrics: Metrics):
         self.app, self.max_body_bytes, self.metrics = app, max_body_bytes, metrics
 
@@ -73,35 +89,41 @@ class RequestMiddleware:
             return await self.app(scope, receive, send)
         start = time.perf_counter()
         status = 500
-        length = dict(scope["headers"]).get(b"content-length")
-        if length is not None and length.isdigit() and int(length) > self.max_body_bytes:
-            response = problem(413, self._too_large(), scope["path"])
-            return await response(scope, receive, send)
-        received = 0
+        given = dict(scope["headers"]).get(b"x-request-id", b"").decode("latin-1")
+        request_id = given if REQUEST_ID.fullmatch(given) else uuid.uuid4().hex
+        scope.setdefault("state", {})["request_id"] = request_id
+        extra = [(REQUEST_ID_HEADER.lower().encode(), request_id.encode()), *SECURITY_HEADERS]
 
-        async def limited_receive():
-            nonlocal received
-            message = await receive()
-            received += len(message.get("body", b""))
-            if received > self.max_body_bytes:
-                raise Problem(413, self._too_large())
-            return message
-
-        async def send_status(message):
+        async def send_with_headers(message):
             nonlocal status
             if message["type"] == "http.response.start":
                 status = message["status"]
+                present = {name.lower() for name, _ in message.get("headers", ())}
+                message["headers"] = [*message.get("headers", ()), *(h for h in extra if h[0] not in present)]
             await send(message)
 
         try:
-            await self.app(scope, limited_receive, send_status)
+            length = dict(scope["headers"]).get(b"content-length")
+            if length is not None and length.isdigit() and int(length) > self.max_body_bytes:
+                return await problem(413, self._too_large(), scope)(scope, receive, send_with_headers)
+            received = 0
+
+            async def limited_receive():
+                nonlocal received
+                message = await receive()
+                received += len(message.get("body", b""))
+                if received > self.max_body_bytes:
+                    raise Problem(413, self._too_large())
+                return message
+
+            await self.app(scope, limited_receive, send_with_headers)
         finally:
-            self._record(scope, status, time.perf_counter() - start)
+            self._record(scope, status, time.perf_counter() - start, request_id)
 
     def _too_large(self) -> str:
         return f"the request body exceeds the limit of {self.max_body_bytes / 2**20:g} MiB; split it"
 
-    def _record(self, scope, status: int, seconds: float) -> None:
+    def _record(self, scope, status: int, seconds: float, request_id: str) -> None:
         route = getattr(scope.get("route"), "path", "unmatched")
         self.metrics.requests.labels(route, scope["method"], str(status)).inc()
         self.metrics.latency.labels(route, scope["method"]).observe(seconds)
@@ -112,5 +134,6 @@ class RequestMiddleware:
                 "status": status,
                 "ms": round(seconds * 1e3, 2),
                 "region": scope.get("path_params", {}).get("name"),
+                "request_id": request_id,
             }
             access_log.info(json.dumps(line))

@@ -70,6 +70,19 @@ class UploadConflict(StoreError):
     """An upload id already used for a different payload."""
 
 
+class StoreUnavailable(StoreError):
+    """The database cannot be reached or written right now (down, connection lost, locked,
+    read-only): nothing was stored, and the same request may succeed later."""
+
+    retry_after_s = 5
+
+
+class StoreFull(StoreUnavailable):
+    """The database is out of disk space: nothing was stored."""
+
+    retry_after_s = 60
+
+
 @dataclass(frozen=True)
 class RegionInfo:
     spec: RegionSpec
@@ -170,6 +183,11 @@ class MapStore(ABC):
         with self._lock:
             self._connections.append(conn)
         return conn
+
+    def _forget(self, conn) -> None:
+        with self._lock:
+            if conn in self._connections:
+                self._connections.remove(conn)
 
     def close(self) -> None:
         """Close every connection this store opened, in all threads."""

@@ -12,7 +12,10 @@ from contextlib import contextmanager
 
 import psycopg
 
-from service.store.base import MapStore
+from service.store.base import MapStore, StoreFull, StoreUnavailable
+
+#: seconds to wait for a connection before answering 503 (a dead host must not hang requests)
+CONNECT_TIMEOUT_S = 5
 
 
 class PostgresStore(MapStore):
@@ -31,24 +34,37 @@ class PostgresStore(MapStore):
             self._init_schema(q)
 
     def _connection(self) -> psycopg.Connection:
+        """This thread's connection; a new one where the last was lost (the server restarted
+        or the network cut it), so service resumes without a restart of ours."""
         conn = getattr(self._local, "conn", None)
         if conn is None or conn.closed:
-            conn = self._remember(psycopg.connect(self.url, options=f"-c search_path={self.schema}"))
+            if conn is not None:
+                self._forget(conn)
+            conn = self._remember(
+                psycopg.connect(
+                    self.url, options=f"-c search_path={self.schema}", connect_timeout=CONNECT_TIMEOUT_S
+                )
+            )
         return conn
 
     @contextmanager
     def _transaction(self, first: str | None):
-        conn = self._connection()
-        with conn.transaction(), conn.cursor(binary=True) as cur:
-            if first:
-                cur.execute(first)
+        try:
+            conn = self._connection()
+            with conn.transaction(), conn.cursor(binary=True) as cur:
+                if first:
+                    cur.execute(first)
 
-            def q(sql, params=()):
-                cur.execute(sql.replace("?", "%s"), params)
-                return cur.fetchall() if cur.description else []
+                def q(sql, params=()):
+                    cur.execute(sql.replace("?", "%s"), params)
+                    return cur.fetchall() if cur.description else []
 
-            q.many = lambda sql, rows: cur.executemany(sql.replace("?", "%s"), rows)
-            yield q
+                q.many = lambda sql, rows: cur.executemany(sql.replace("?", "%s"), rows)
+                yield q
+        except psycopg.errors.DiskFull as exc:
+            raise StoreFull(f"PostgreSQL is out of disk space ({exc}); nothing was stored") from exc
+        except (psycopg.OperationalError, psycopg.InterfaceError) as exc:
+            raise StoreUnavailable(f"PostgreSQL cannot be reached ({type(exc).__name__}: {exc})") from exc
 
     def _write(self):
         return self._transaction(None)

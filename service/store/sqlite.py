@@ -12,7 +12,7 @@ import sqlite3
 from contextlib import contextmanager
 from pathlib import Path
 
-from service.store.base import MapStore
+from service.store.base import MapStore, StoreFull, StoreUnavailable
 
 FILE_NAME = "maps.sqlite3"
 
@@ -46,19 +46,26 @@ class SqliteStore(MapStore):
 
     @contextmanager
     def _transaction(self, begin: str):
-        conn = self._connection()
-        conn.execute(begin)
-
-        def q(sql, params=()):
-            return conn.execute(sql, params).fetchall()
-
-        q.many = conn.executemany
         try:
-            yield q
-        except BaseException:
-            conn.execute("ROLLBACK")
-            raise
-        conn.execute("COMMIT")
+            conn = self._connection()
+            conn.execute(begin)
+
+            def q(sql, params=()):
+                return conn.execute(sql, params).fetchall()
+
+            q.many = conn.executemany
+            try:
+                yield q
+            except BaseException:
+                if conn.in_transaction:  # SQLite rolls back by itself on some errors (disk full)
+                    conn.execute("ROLLBACK")
+                raise
+            conn.execute("COMMIT")
+        except sqlite3.Error as exc:
+            mapped = _unavailable(exc)
+            if mapped is None:
+                raise
+            raise mapped from exc
 
     def _write(self):
         return self._transaction("BEGIN IMMEDIATE")
@@ -68,3 +75,18 @@ class SqliteStore(MapStore):
 
     def _lock_region(self) -> str:
         return ""  # BEGIN IMMEDIATE already holds the database's write lock
+
+
+#: SQLite result codes (``sqlite_errorname`` prefixes) of a database that cannot be used now
+#: but may be later; any other error is ours (a 500).
+UNAVAILABLE = ("SQLITE_BUSY", "SQLITE_LOCKED", "SQLITE_READONLY", "SQLITE_IOERR", "SQLITE_CANTOPEN")
+
+
+def _unavailable(exc: sqlite3.Error) -> StoreUnavailable | None:
+    """The store error a SQLite error means, or None for an error of ours."""
+    name = getattr(exc, "sqlite_errorname", "")
+    if name.startswith("SQLITE_FULL"):
+        return StoreFull(f"the SQLite database's disk is full ({exc}); nothing was stored")
+    if name.startswith(UNAVAILABLE):
+        return StoreUnavailable(f"the SQLite database cannot be used now ({name}: {exc})")
+    return None
