@@ -291,11 +291,9 @@ def _build(args) -> int:
     from distributed import Client
 
     from service.build import build, local_cluster
-    from service.settings import Settings
-    from service.store import RegionNotFound, UploadConflict, open_store
+    from service.store import RegionNotFound, UploadConflict
 
-    overrides = {k: v for k, v in (("store_url", args.store_url), ("data_dir", args.data_dir)) if v}
-    store = open_store(Settings(**overrides).store)
+    store = _open_store(args)
     try:
         with contextlib.ExitStack() as stack:
             if args.scheduler:
@@ -324,6 +322,39 @@ def _build(args) -> int:
         f"{result['seconds']['evidence']:.1f} s, commit {result['seconds']['commit']:.1f} s"
     )
     return 0
+
+
+def _open_store(args):
+    """The store ``--store-url`` or ``--data-dir`` names, as ``bdf serve`` would open it."""
+    from service.settings import Settings
+    from service.store import open_store
+
+    overrides = {k: v for k, v in (("store_url", args.store_url), ("data_dir", args.data_dir)) if v}
+    return open_store(Settings(**overrides).store)
+
+
+def _verify(args) -> int:
+    """Check every stored tile against its checksum; exit 1 if any is damaged."""
+    store = _open_store(args)
+    try:
+        report = store.verify()
+    finally:
+        store.close()
+    for region, problems in report.items():
+        print(f"{region}: {'ok' if not problems else f'{len(problems)} damaged tiles'}")
+        for problem in problems:
+            print(f"  {problem}")
+    damaged = sum(map(len, report.values()))
+    print(f"{len(report)} regions, {damaged} damaged tiles")
+    return 1 if damaged else 0
+
+
+def store_options(p: argparse.ArgumentParser) -> None:
+    """The options of commands that open the store directly (no HTTP)."""
+    p.add_argument(
+        "--store-url", help="sqlite:///dir or postgresql://... (default: $BDF_STORE_URL or --data-dir)"
+    )
+    p.add_argument("--data-dir", help="folder of the default SQLite store (default ./bdf-data)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -385,10 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("files", nargs="+", type=Path, help=".parquet, .arrow, .csv or .csv.gz files")
     p.add_argument("--region", required=True, help="an existing region")
-    p.add_argument(
-        "--store-url", help="sqlite:///dir or postgresql://... (default: $BDF_STORE_URL or --data-dir)"
-    )
-    p.add_argument("--data-dir", help="folder of the default SQLite store (default ./bdf-data)")
+    store_options(p)
     p.add_argument("--scheduler", help="Dask scheduler address, e.g. tcp://scheduler:8786 (default: local)")
     p.add_argument(
         "--workers", type=int, default=os.cpu_count(), help="local worker processes (default: cores)"
@@ -405,6 +433,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--add", action="store_true", help="add to the map instead of replacing it")
     p.add_argument("--upload-id", help="ledger id (default: derived from the files' content)")
     p.set_defaults(run=_build)
+
+    p = sub.add_parser(
+        "verify",
+        help="check a store's tiles against their checksums",
+        description="Reads every stored tile of every region, checks it against the checksum "
+        "stored with it and decodes it. Lists damaged tiles and exits 1 if there are any.",
+    )
+    store_options(p)
+    p.set_defaults(run=_verify)
 
     def connection(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
         p.add_argument(

@@ -22,12 +22,21 @@ class LocalService:
     """
 
     def __init__(
-        self, data_dir, env: dict | None = None, args=(), log_path=None, start_timeout_s: float = 60
+        self,
+        data_dir,
+        env: dict | None = None,
+        args=(),
+        log_path=None,
+        start_timeout_s: float = 60,
+        port: int | None = None,
     ):
+        """``port``: where to listen (default: a free one), e.g. a restart's old port."""
         data_dir = Path(data_dir)
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            self.port = sock.getsockname()[1]
+        if port is None:
+            with socket.socket() as sock:
+                sock.bind(("127.0.0.1", 0))
+                port = sock.getsockname()[1]
+        self.port = port
         self.url = f"http://127.0.0.1:{self.port}"
         self.log_path = Path(log_path or data_dir / f"server-{self.port}.log")
         self.log_path.parent.mkdir(parents=True, exist_ok=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from service.store.base import (
+    CorruptTile,
     MapStore,
     RegionExists,
     RegionInfo,
@@ -35,6 +36,7 @@ def open_store(url: str) -> MapStore:
 
 
 __all__ = [
+    "CorruptTile",
     "MapStore",
     "RegionExists",
     "RegionInfo",

@@ -1,11 +1,12 @@
 """The MapStore interface, shared by the SQLite and PostgreSQL backends.
 
-What is stored (schema version 2; both backends, same tables):
+What is stored (schema version 3; both backends, same tables):
 
     meta     key, value                          schema_version
     regions  name, region_id, spec (JSON), version, observations, hyper (JSON or NULL),
              created_at, updated_at
-    tiles    region_id, key "i_j_k", version, count, points, stats (blob), format_version, updated_at
+    tiles    region_id, key "i_j_k", version, count, points, stats (blob), format_version, updated_at,
+             checksum (sha256 hex of stats)
     uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
 
 ``tiles.stats`` is :meth:`bdf.stats.SectorEvidence.to_bytes` (little-endian float64, layout in
@@ -22,6 +23,11 @@ writes them with its tiles, an upload writes them only where none are set (the r
 first data), and :meth:`MapStore.set_hyperparameters` replaces them (a new version, since
 the map changes). Schema 1 stored tiles that overlapped (each observation in up to 8
 tiles), which a region-wide field cannot use: such a store is refused with that reason.
+
+Integrity: every read of ``stats`` checks its checksum first, so bytes damaged on disk are
+reported (:class:`CorruptTile`, naming the tile) and never decoded into a map;
+:meth:`MapStore.verify` checks a whole store. Schema 2 (no checksums) is upgraded in place
+when opened: its blobs are trusted once and checksummed.
 
 Exactly once: ``apply`` adds the increments of all tiles, bumps the version and writes
 the ledger row in one transaction, under the region's row lock. A replay of an upload id
@@ -47,7 +53,7 @@ import numpy as np
 from bdf.stats import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence
 from bdf.tiles import Increment, RegionSpec, TileKey, key_str, parse_key
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
 WRITE_CHUNK = 16
 #: Upload ids are client idempotency keys: printable, bounded.
@@ -68,6 +74,10 @@ class RegionExists(StoreError):
 
 class UploadConflict(StoreError):
     """An upload id already used for a different payload."""
+
+
+class CorruptTile(StoreError):
+    """A tile's stored statistics do not match their checksum (or cannot be decoded)."""
 
 
 class StoreUnavailable(StoreError):
@@ -210,7 +220,7 @@ class MapStore(ABC):
                 region_id TEXT NOT NULL REFERENCES regions (region_id) ON DELETE CASCADE,
                 key TEXT NOT NULL, version BIGINT NOT NULL, count DOUBLE PRECISION NOT NULL,
                 points BIGINT NOT NULL, stats {blob_type} NOT NULL, format_version INTEGER NOT NULL,
-                updated_at DOUBLE PRECISION NOT NULL, PRIMARY KEY (region_id, key))""",
+                updated_at DOUBLE PRECISION NOT NULL, checksum TEXT, PRIMARY KEY (region_id, key))""",
             """CREATE TABLE IF NOT EXISTS uploads (
                 region_id TEXT NOT NULL REFERENCES regions (region_id) ON DELETE CASCADE,
                 upload_id TEXT NOT NULL, kind TEXT NOT NULL, digest TEXT NOT NULL,
@@ -222,6 +232,14 @@ class MapStore(ABC):
         rows = q("SELECT value FROM meta WHERE key = 'schema_version'")
         if not rows:
             q("INSERT INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+        elif int(rows[0][0]) == 2:  # schema 3 adds checksums: computed once over the stored blobs
+            q("ALTER TABLE tiles ADD COLUMN checksum TEXT")
+            for region_id, key, blob in q("SELECT region_id, key, stats FROM tiles"):
+                q(
+                    "UPDATE tiles SET checksum = ? WHERE region_id = ? AND key = ?",
+                    (checksum(blob), region_id, key),
+                )
+            q("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))
         elif int(rows[0][0]) != SCHEMA_VERSION:
             raise StoreError(
                 f"store schema version {rows[0][0]}, this code reads {SCHEMA_VERSION}: schema 1 kept "
@@ -313,12 +331,13 @@ class MapStore(ABC):
             evidence = {}
             if wanted:
                 marks = ",".join("?" * len(wanted))
-                for key, blob, fmt in q(
-                    f"SELECT key, stats, format_version FROM tiles WHERE region_id = ? AND key IN ({marks})",
+                for key, blob, fmt, stored_checksum in q(
+                    "SELECT key, stats, format_version, checksum FROM tiles"
+                    f" WHERE region_id = ? AND key IN ({marks})",
                     (region.region_id, *[key_str(k) for k in wanted]),
                 ):
                     k = parse_key(key)
-                    evidence[k] = _decode(region.spec, k, blob, fmt)
+                    evidence[k] = _decode(region.spec, k, blob, fmt, stored_checksum)
         return Snapshot(region, dict(sorted(tiles.items())), evidence)
 
     # -- uploads ---------------------------------------------------------------------------------
@@ -384,19 +403,20 @@ class MapStore(ABC):
             old = {}
             if keys and not replace:
                 marks = ",".join("?" * len(keys))
-                for k, blob, fmt, points in q(
-                    "SELECT key, stats, format_version, points FROM tiles"
+                for k, blob, fmt, stored_checksum, points in q(
+                    "SELECT key, stats, format_version, checksum, points FROM tiles"
                     f" WHERE region_id = ? AND key IN ({marks})",
                     (region_id, *map(key_str, keys)),
                 ):
                     key = parse_key(k)
-                    old[key] = (_decode(spec, key, blob, fmt), int(points))
+                    old[key] = (_decode(spec, key, blob, fmt, stored_checksum), int(points))
             for start in range(0, len(keys), WRITE_CHUNK):
                 rows = []
                 for key in keys[start : start + WRITE_CHUNK]:
                     total, points = increments[key]
                     if key in old:
                         total, points = old[key][0] + total, old[key][1] + points
+                    blob = total.to_bytes()
                     rows.append(
                         (
                             region_id,
@@ -404,18 +424,19 @@ class MapStore(ABC):
                             version,
                             total.count,
                             points,
-                            total.to_bytes(),
+                            blob,
                             FORMAT_VERSION,
                             now,
+                            checksum(blob),
                         )
                     )
                 q.many(
                     "INSERT INTO tiles"
-                    " (region_id, key, version, count, points, stats, format_version, updated_at)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (region_id, key) DO UPDATE SET"
+                    " (region_id, key, version, count, points, stats, format_version, updated_at, checksum)"
+                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (region_id, key) DO UPDATE SET"
                     " version = excluded.version, count = excluded.count, points = excluded.points,"
                     " stats = excluded.stats, format_version = excluded.format_version,"
-                    " updated_at = excluded.updated_at",
+                    " updated_at = excluded.updated_at, checksum = excluded.checksum",
                     rows,
                 )
                 if self.after_tile_write is not None:
@@ -461,13 +482,47 @@ class MapStore(ABC):
             )
         return self.region(name)
 
+    def verify(self) -> dict[str, list[str]]:
+        """Check every stored tile of every region against its checksum and decode it;
+        returns, per region, the problems found (empty lists: the store is sound)."""
+        report = {}
+        for info in self.list_regions():
+            problems = report.setdefault(info.spec.name, [])
+            with self._read() as q:
+                keys = [r[0] for r in q("SELECT key FROM tiles WHERE region_id = ?", (info.region_id,))]
+            for key in keys:  # one tile in memory at a time
+                with self._read() as q:
+                    rows = q(
+                        "SELECT stats, format_version, checksum FROM tiles WHERE region_id = ? AND key = ?",
+                        (info.region_id, key),
+                    )
+                if rows:
+                    try:
+                        _decode(info.spec, parse_key(key), *rows[0])
+                    except StoreError as exc:
+                        problems.append(str(exc))
+        return report
 
-def _decode(spec: RegionSpec, key: TileKey, blob, format_version) -> SectorEvidence:
+
+def checksum(blob) -> str:
+    return hashlib.sha256(blob).hexdigest()
+
+
+def _decode(spec: RegionSpec, key: TileKey, blob, format_version, stored_checksum) -> SectorEvidence:
+    """A tile's statistics, after checking them against their checksum."""
+    where = f"tile {key_str(key)} of region {spec.name!r}"
     if int(format_version) not in READABLE_FORMATS:
-        raise StoreError(
-            f"tile {key_str(key)} has statistics format {format_version}, this code reads {READABLE_FORMATS}"
+        raise StoreError(f"{where} has statistics format {format_version}; readable: {READABLE_FORMATS}")
+    blob = bytes(blob)
+    if stored_checksum != checksum(blob):
+        raise CorruptTile(
+            f"{where}: its stored statistics fail their checksum (damaged on disk); "
+            "`bdf verify` lists every such tile; restore the store from a backup or fit the region again"
         )
-    return spec.decode(key, bytes(blob), int(format_version))
+    try:
+        return spec.decode(key, blob, int(format_version))
+    except ValueError as exc:
+        raise CorruptTile(f"{where}: its stored statistics cannot be decoded ({exc})") from exc
 
 
 @functools.lru_cache(maxsize=256)

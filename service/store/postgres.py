@@ -8,6 +8,7 @@ Tables live in the schema named by ``schema`` (default ``bdf``), created on firs
 
 from __future__ import annotations
 
+import contextlib
 from contextlib import contextmanager
 
 import psycopg
@@ -50,8 +51,9 @@ class PostgresStore(MapStore):
     @contextmanager
     def _transaction(self, first: str | None):
         try:
-            conn = self._connection()
-            with conn.transaction(), conn.cursor(binary=True) as cur:
+            with contextlib.ExitStack() as stack:
+                conn = self._begin(stack)
+                cur = stack.enter_context(conn.cursor(binary=True))
                 if first:
                     cur.execute(first)
 
@@ -65,6 +67,20 @@ class PostgresStore(MapStore):
             raise StoreFull(f"PostgreSQL is out of disk space ({exc}); nothing was stored") from exc
         except (psycopg.OperationalError, psycopg.InterfaceError) as exc:
             raise StoreUnavailable(f"PostgreSQL cannot be reached ({type(exc).__name__}: {exc})") from exc
+
+    def _begin(self, stack: contextlib.ExitStack) -> psycopg.Connection:
+        """This thread's connection in a new transaction. A connection found lost at BEGIN
+        (nothing sent yet) is replaced once, so the first request after the database comes
+        back does not fail on a stale connection."""
+        for attempt in range(2):
+            conn = self._connection()
+            try:
+                stack.enter_context(conn.transaction())
+                return conn
+            except psycopg.OperationalError:
+                if attempt or not conn.closed:
+                    raise
+        raise AssertionError("unreachable")
 
     def _write(self):
         return self._transaction(None)

@@ -8,11 +8,12 @@ WAL journal (readers never block the writer and read one snapshot), ``synchronou
 
 from __future__ import annotations
 
+import os
 import sqlite3
 from contextlib import contextmanager
 from pathlib import Path
 
-from service.store.base import MapStore, StoreFull, StoreUnavailable
+from service.store.base import SCHEMA_VERSION, MapStore, StoreFull, StoreUnavailable
 
 FILE_NAME = "maps.sqlite3"
 
@@ -24,21 +25,38 @@ class SqliteStore(MapStore):
         if path.is_dir() or path.suffix == "":
             path.mkdir(parents=True, exist_ok=True)
             path = path / FILE_NAME
-        self.path = path
+        self.path = path.absolute()
         self._timeout = busy_timeout_s
         self._init_connections()
+        if self._current():
+            return  # nothing to write: a store on read-only media opens, and serves reads
         with self._write() as q:
             for statement in self._schema("BLOB"):
                 q(statement)
             self._init_schema(q)
 
+    def _current(self) -> bool:
+        """The database exists at this code's schema version."""
+        with self._read() as q:
+            if not q("SELECT 1 FROM sqlite_master WHERE name = 'meta'"):
+                return False
+            return q("SELECT value FROM meta WHERE key = 'schema_version'") == [(str(SCHEMA_VERSION),)]
+
     def _connection(self) -> sqlite3.Connection:
         conn = getattr(self._local, "conn", None)
         if conn is None:
+            # on read-only media SQLite cannot make the WAL's shared-memory file, so the
+            # database opens immutable: reads are served, writes fail as SQLITE_READONLY
+            writable = os.access(self.path.parent, os.W_OK)
             conn = sqlite3.connect(
-                self.path, timeout=self._timeout, isolation_level=None, check_same_thread=False
+                self.path.as_uri() + ("" if writable else "?immutable=1"),
+                uri=True,
+                timeout=self._timeout,
+                isolation_level=None,
+                check_same_thread=False,
             )
-            conn.execute("PRAGMA journal_mode=WAL")
+            if writable:
+                conn.execute("PRAGMA journal_mode=WAL")
             conn.execute("PRAGMA synchronous=FULL")
             conn.execute("PRAGMA foreign_keys=ON")
             self._remember(conn)
