@@ -321,3 +321,30 @@ def test_server_killed_during_an_upload_storm_applies_every_acknowledged_upload_
     finally:
         restarted.stop()
     assert_stored(store_url, acked)
+
+
+def test_a_schema_2_store_is_upgraded_with_checksums_and_loses_nothing(store_url):
+    with TestClient(create_app(Settings(store_url=store_url))) as c:
+        assert c.post("/v1/regions", json=SPEC).status_code == 201
+        assert upload(c, "a", 1).status_code == 200
+    if store_url.startswith("sqlite"):
+        import sqlite3
+
+        conn = sqlite3.connect(store_url.removeprefix("sqlite:///") + f"/{FILE_NAME}", isolation_level=None)
+        execute = conn.execute
+    else:
+        import psycopg
+
+        base, _, schema = store_url.partition("?schema=")
+        conn = psycopg.connect(base, autocommit=True, options=f"-c search_path={schema}")
+        execute = conn.execute
+    execute("ALTER TABLE tiles DROP COLUMN checksum")
+    execute("UPDATE meta SET value = '2' WHERE key = 'schema_version'")
+    conn.close()
+
+    store = open_store(store_url)
+    try:
+        assert store.verify() == {NAME: []}
+    finally:
+        store.close()
+    assert_stored(store_url, [1])
