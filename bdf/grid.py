@@ -49,11 +49,12 @@ class HingeGrid(Lattice):
         spacing = as_vector3(spacing, "spacing", positive=True)
         if np.any(upper <= lower):
             raise ValueError(f"upper {upper.tolist()} must exceed lower {lower.tolist()} on every axis")
-        counts = np.floor((upper - lower) / spacing + 1e-9).astype(int) + 1
-        size = int(np.prod(counts))
-        if size > MAX_HINGES:
+        with np.errstate(over="ignore"):  # a tiny spacing counts as infinitely many hinges
+            counts = np.floor((upper - lower) / spacing + 1e-9) + 1
+            size = float(np.prod(counts))
+        if not size <= MAX_HINGES:
             raise ValueError(
-                f"the grid would have {size} hinges ({counts.tolist()} per axis), more than "
+                f"the grid would have {size:.6g} hinges ({counts.tolist()} per axis), more than "
                 f"{MAX_HINGES}; increase spacing"
             )
         super().__init__(lower, spacing, tuple(int(c) for c in counts))

@@ -391,12 +391,20 @@ class RegionSpec(BaseModel):
         return posterior.predict_grid_modes(self._grid_axes(axes))
 
     @staticmethod
-    def box_axes(lo, hi, step) -> list[np.ndarray]:
-        """The voxel grid of a box: per axis ``lo + i * step`` up to ``hi`` inclusive."""
+    def box_axes(lo, hi, step, max_voxels: float = np.inf) -> list[np.ndarray]:
+        """The voxel grid of a box: per axis ``lo + i * step`` up to ``hi`` inclusive.
+        ``ValueError`` above ``max_voxels``, checked before anything is allocated."""
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         step = np.broadcast_to(np.asarray(step, float), (3,))
-        counts = np.floor((hi - lo) / step + 1e-9).astype(np.int64) + 1
-        return [lo[d] + step[d] * np.arange(counts[d]) for d in range(3)]
+        with np.errstate(over="ignore"):  # a tiny step counts as infinitely many voxels
+            counts = np.floor((hi - lo) / step + 1e-9) + 1
+            voxels = float(np.prod(counts))
+        if not voxels <= max_voxels:
+            raise ValueError(
+                f"the grid would have {voxels:.6g} voxels ({counts.tolist()} per axis); the limit is "
+                f"{max_voxels}"
+            )
+        return [lo[d] + step[d] * np.arange(int(counts[d])) for d in range(3)]
 
     def _grid_axes(self, axes) -> list[np.ndarray]:
         axes = [np.asarray(a, float).ravel() for a in axes]

@@ -53,9 +53,13 @@ def _body_doc(model: type[BaseModel], binary: tuple[str, ...]) -> dict:
     return {"requestBody": {"required": True, "content": content}}
 
 
-def scoped(scope: str, **extra) -> dict:
-    """Route keyword arguments declaring its scope (enforced and documented)."""
-    out = {"openapi_extra": {"x-scope": scope, **extra}}
+def scoped(scope: str, responses: dict | None = None, **extra) -> dict:
+    """Route keyword arguments declaring its scope (enforced and documented) and its
+    responses: ``responses`` and the errors every route may answer (problem+json)."""
+    out = {
+        "openapi_extra": {"x-scope": scope, **extra},
+        "responses": {**problems.ERRORS, **(responses or {})},
+    }
     if scope != PUBLIC:
         out["dependencies"] = [require(scope)]
     return out
@@ -188,12 +192,7 @@ def grid_axes(spec: RegionSpec, bbox: str | None, step: str, max_voxels: int):
                 f"bbox {box.tolist()} leaves region {spec.name!r}, whose bounds are "
                 f"{spec.bounds_m.min} .. {spec.bounds_m.max} (ENU metres)",
             )
-    axes = RegionSpec.box_axes(lo, hi, step_v)
-    counts = [len(a) for a in axes]
-    voxels = int(np.prod(counts))
-    if voxels > max_voxels:
-        raise Problem(422, f"the grid would have {voxels} voxels ({counts}); the limit is {max_voxels}")
-    return axes
+    return RegionSpec.box_axes(lo, hi, step_v, max_voxels)
 
 
 def _mesh(axes) -> np.ndarray:
@@ -279,8 +278,11 @@ def _apply(app, name: str, upload_id: str, obs: formats.Observations, **kw) -> d
 @router.post(
     "/regions/{name}/fit",
     response_model=UploadResult,
-    responses={202: {"model": JobView, "description": "a large fit runs as a job"}},
-    **scoped("write", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
+    **scoped(
+        "write",
+        **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET)),
+        responses={202: {"model": JobView, "description": "a large fit runs as a job"}},
+    ),
 )
 async def post_fit(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
     """Replace the map with this data. Large bodies run as a job (202); the old map keeps
@@ -317,7 +319,9 @@ def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Re
 @router.post(
     "/regions/{name}/query",
     response_model=formats.QueryResult,
-    **scoped("read", **_body_doc(formats.QueryBody, binary=(ARROW,))),
+    **scoped(
+        "read", responses={200: {"content": {ARROW: {}}}}, **_body_doc(formats.QueryBody, binary=(ARROW,))
+    ),
 )
 async def query(name: RegionName, request: Request, min_version: MinVersion = 0, modes: WithModes = False):
     """Predictive mean and std at points; Arrow in and out on request. A directional region
@@ -392,8 +396,7 @@ Step = Annotated[str, Query(description="dx,dy,dz metres (or one number for all 
 
 @router.get(
     "/regions/{name}/grid",
-    responses={200: {"content": {NPZ: {}, ARROW: {}}}},
-    **scoped("read"),
+    **scoped("read", responses={200: {"content": {NPZ: {}, ARROW: {}}}}),
 )
 def grid(
     name: RegionName,
@@ -468,8 +471,7 @@ def _json_size(voxels: int, settings: Settings) -> None:
 
 @router.get(
     "/regions/{name}/tubes",
-    responses={200: {"content": {GEOJSON: {}, NPZ: {}, ARROW: {}}}},
-    **scoped("read"),
+    **scoped("read", responses={200: {"content": {GEOJSON: {}, NPZ: {}, ARROW: {}}}}),
 )
 def tubes(
     name: RegionName,
@@ -548,8 +550,7 @@ def tubes(
 @router.get(
     "/regions/{name}/slice.png",
     response_class=Response,
-    responses={200: {"content": {PNG: {}}}},
-    **scoped("read"),
+    **scoped("read", responses={200: {"content": {PNG: {}}}}),
 )
 def slice_png(
     name: RegionName,
@@ -645,7 +646,11 @@ def viewer():
     return HTMLResponse(VIEWER_HTML, headers={"Content-Security-Policy": VIEWER_POLICY})
 
 
-@ops.get("/metrics", **scoped(PUBLIC))
+@ops.get(
+    "/metrics",
+    response_class=Response,
+    **scoped(PUBLIC, responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}}),
+)
 def metrics(request: Request):
     """Prometheus text format: requests and latency per route, cache, uploads."""
     return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

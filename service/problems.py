@@ -9,7 +9,7 @@ from http import HTTPStatus
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException
 
 from service.store import (
@@ -25,6 +25,27 @@ REQUEST_ID_HEADER = "X-Request-ID"
 
 PROBLEM = "application/problem+json"
 log = logging.getLogger("bdf.service")
+
+
+class ProblemBody(BaseModel):
+    """An error as RFC 9457 problem details, with the request id of the server's log line."""
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    instance: str
+    request_id: str
+
+
+#: how errors are documented on every route (OpenAPI ``responses``)
+ERRORS = {
+    status: {
+        "description": HTTPStatus(status).phrase,
+        "content": {PROBLEM: {"schema": ProblemBody.model_json_schema()}},
+    }
+    for status in (400, 401, 403, 404, 406, 409, 413, 415, 422, 500, 503, 507)
+}
 
 
 class Problem(Exception):

@@ -39,13 +39,14 @@ def slice_axes(lower, upper, spacing, bbox: tuple[float, float, float, float] | 
         step = max(min(spacing[:2]) / 4, float(np.max(hi - lo)) / (MAX_SIDE - 1))
     if not step > 0:
         raise ValueError(f"step must be positive, got {step}")
-    counts = np.floor((hi - lo) / step + 1e-9).astype(int) + 1
-    if np.any(counts > MAX_SIDE):
+    with np.errstate(over="ignore"):  # a tiny step counts as infinitely many cells
+        counts = np.floor((hi - lo) / step + 1e-9) + 1
+    if not np.all(counts <= MAX_SIDE):
         raise ValueError(
             f"a slice of {counts.tolist()} cells exceeds {MAX_SIDE} per axis: "
             "use a larger step or a smaller bbox"
         )
-    return lo[0] + step * np.arange(counts[0]), lo[1] + step * np.arange(counts[1])
+    return lo[0] + step * np.arange(int(counts[0])), lo[1] + step * np.arange(int(counts[1]))
 
 
 def render_slice(
