@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install sparse browser test lint demo bench clean
+.PHONY: install sparse browser test lint audit demo bench clean
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -35,6 +35,10 @@ lint: install
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/hadolint docker/Dockerfile
 
+# known vulnerabilities of what is installed (PyPI's advisory data, through the registry)
+audit: install
+	$(VENV)/bin/pip-audit --progress-spinner off --skip-editable
+
 test: lint browser
 	$(PY) -m pytest
 
@@ -47,6 +51,8 @@ bench: install
 	$(PY) bench/bench_service.py
 	$(PY) bench/bench_planner.py
 	$(PY) bench/bench_build.py
+	$(PY) bench/bench_load.py
+	$(PY) bench/bench_fuzz.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
