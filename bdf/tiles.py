@@ -119,9 +119,7 @@ class RegionSpec(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self):
-        n = self.tile_counts
-        if int(np.prod(n)) > MAX_TILES:
-            raise ValueError(f"{int(np.prod(n))} tiles ({n} per axis) is more than {MAX_TILES}")
+        self.tile_counts  # noqa: B018  (raises if the region would have too many tiles)
         self.grid  # noqa: B018  (raises if the region would have too many hinges)
         self.noise_lattice  # noqa: B018  (or too many noise lattice points)
         return self
@@ -142,8 +140,11 @@ class RegionSpec(BaseModel):
 
     @functools.cached_property  # a tuple: equality of specs still compares fields only
     def tile_counts(self) -> tuple[int, int, int]:
-        n = np.ceil((self.upper - self.lower) / np.array(self.tile_size_m) - 1e-9).astype(int)
-        return tuple(int(c) for c in np.maximum(n, 1))
+        with np.errstate(over="ignore"):  # a tiny tile counts as infinitely many
+            n = np.maximum(np.ceil((self.upper - self.lower) / np.array(self.tile_size_m) - 1e-9), 1)
+        if not np.prod(n) <= MAX_TILES:
+            raise ValueError(f"{np.prod(n):.6g} tiles ({n.tolist()} per axis) is more than {MAX_TILES}")
+        return tuple(int(c) for c in n)
 
     @property
     def grid(self) -> HingeGrid:

@@ -196,7 +196,8 @@ def _grid_params(step, bbox) -> dict[str, str]:
 
 
 def _npz(body: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(body)) as data:
+    """The arrays of an npz answer; never unpickles (a body is data, not code)."""
+    with np.load(io.BytesIO(body), allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
 
 
