@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install sparse browser test lint audit demo bench clean
+.PHONY: install sparse browser wrk test lint audit demo bench clean
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -30,6 +30,12 @@ browser:
 	  { apt-get install -y -q chromium >/dev/null || { apt-get update -q && apt-get install -y -q chromium >/dev/null; }; }; } || \
 	  echo "chromium is not installed: the viewer test skips (fails under BDF_TEST_BROWSER=required)"
 
+# bench_service drives its load with wrk (a C load generator); installed here when we may
+wrk:
+	@command -v wrk >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	  { apt-get install -y -q wrk >/dev/null || { apt-get update -q && apt-get install -y -q wrk >/dev/null; }; }; } || \
+	  { echo "wrk is not installed: apt-get install wrk (Debian/Ubuntu), then make bench again"; exit 1; }
+
 lint: install
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
@@ -45,7 +51,7 @@ test: lint browser
 demo: install
 	$(VENV)/bin/bdf demo --out demo-output
 
-bench: install
+bench: install wrk
 	$(PY) bench/bench_core.py
 	$(PY) bench/bench_tiles.py
 	$(PY) bench/bench_service.py

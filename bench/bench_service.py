@@ -1,18 +1,24 @@
-"""The HTTP service under load on loopback: queries (JSON vs Arrow), grids, concurrent uploads.
+"""The HTTP service under load on loopback: 1,000-point queries (JSON vs Arrow) driven by
+``wrk``, grids, concurrent uploads, and the library's own compute for the same query.
 
-    .venv/bin/python bench/bench_service.py [--postgres URL] [--seconds 10] [--workers 1] [--no-append]
+    .venv/bin/python bench/bench_service.py [--postgres URL] [--seconds 10] [--workers 2]
+        [--directions 1,8] [--no-append]
 
-A real ``bdf serve`` (``--workers`` uvicorn workers, SQLite unless --postgres) holds the Paris
-map of bench_tiles.py (core grid, flight split, fitted over HTTP as one Arrow body). The load
-generator is asyncio + httpx in this process (it shares the 2 cores with the server):
+A real ``bdf serve`` (``--workers`` uvicorn workers, SQLite unless --postgres) holds the
+demo's Paris map (core grid, flight split, fitted over HTTP as one Arrow body), with one
+class and with the demo's 8 heading sectors:
 
-* queries: 1,000 random test-set points per request; one client in sequence (latency
-  unloaded), then 16 concurrent clients for ``--seconds`` (throughput, p50, p99), with the
-  CPU time the server (all its processes) and the load generator spent per request;
-* grid: 100 x 100 x 30 voxels over the whole region, npz and Arrow, warm cache, median of 5;
-* uploads: 10 concurrent uploaders, 1,000 rows each request (Arrow), distinct keys.
-* library: the same 1,000-point queries through ``RegionSpec.predict`` in this process
+* queries: ``wrk`` (a C load generator: microseconds of CPU per request, so the server's
+  cost is what is measured) POSTs the same 1,000 test points with 1, 4, 16 and 64
+  connections for ``--seconds``: p50, p99, requests/s, and the server's CPU per request
+  (user + system of all its processes, from /proc);
+* grid: 100 x 100 x 30 voxels over the whole region, npz and Arrow, warm, median of 5 (httpx);
+* uploads: 10 concurrent uploaders, 1,000 rows each request (Arrow), distinct keys (httpx);
+* library: the same 1,000-point query through ``RegionSpec.predict`` in this process
   (median of 50): the compute inside one request.
+
+``make bench`` installs wrk with apt-get where it may (root); elsewhere install the
+Debian/Ubuntu package ``wrk`` (or build it from github.com/wg/wrk).
 """
 
 from __future__ import annotations
@@ -23,6 +29,9 @@ import datetime
 import json
 import os
 import platform
+import re
+import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -96,38 +105,57 @@ def build(url: str, spec, obs, test) -> float:
         return time.perf_counter() - t0
 
 
-def query_bodies(points, n, fmt, seed=0):
-    rng = np.random.default_rng(seed)
-    bodies = []
-    for _ in range(n):
-        X = points[rng.choice(len(points), QUERY_POINTS, replace=False)]
-        if fmt == "arrow":
-            bodies.append((arrow_points(X), {"Content-Type": ARROW, "Accept": ARROW}))
-        else:
-            bodies.append((json.dumps({"points": X.tolist()}).encode(), {"Content-Type": "application/json"}))
-    return bodies
+WRK_SCRIPT = """
+local f = io.open(os.getenv("BDF_BENCH_BODY"), "rb")
+wrk.method = "POST"
+wrk.body = f:read("*a")
+f:close()
+wrk.headers["Content-Type"] = os.getenv("BDF_BENCH_TYPE")
+wrk.headers["Accept"] = os.getenv("BDF_BENCH_TYPE")
+done = function(summary, latency, requests)
+  io.write(string.format("BDF %d %d %d %d\\n", summary.requests, summary.duration,
+    latency:percentile(50), latency:percentile(99)))
+  io.write(string.format("BDF_ERRORS %d %d\\n", summary.errors.status, summary.errors.connect
+    + summary.errors.read + summary.errors.write + summary.errors.timeout))
+end
+"""
 
 
-async def query_load(url, bodies, clients, seconds) -> dict:
-    latencies = []
-    limits = httpx.Limits(max_connections=clients)
-    async with httpx.AsyncClient(base_url=url, timeout=60, limits=limits) as c:
+def query_points(points, seed=0) -> np.ndarray:
+    return points[np.random.default_rng(seed).choice(len(points), QUERY_POINTS, replace=False)]
 
-        async def worker(k):
-            i = k
-            while time.perf_counter() < stop:
-                body, headers = bodies[i % len(bodies)]
-                t0 = time.perf_counter()
-                r = await c.post("/v1/regions/paris/query", content=body, headers=headers)
-                latencies.append(time.perf_counter() - t0)
-                assert r.status_code == 200, r.text
-                i += clients
 
-        start = time.perf_counter()
-        stop = start + seconds
-        await asyncio.gather(*(worker(k) for k in range(clients)))
-        wall = time.perf_counter() - start
-    return stats(latencies, wall)
+def query_body(points, fmt) -> tuple[bytes, str]:
+    X = query_points(points)
+    if fmt == "arrow":
+        return arrow_points(X), ARROW
+    return json.dumps({"points": X.tolist()}).encode(), "application/json"
+
+
+def wrk_load(url: str, pid: int, body: tuple[bytes, str], connections: int, seconds: float) -> dict:
+    """``wrk`` POSTing ``body`` on ``connections`` for ``seconds``: p50, p99, requests/s and
+    the server's CPU per request."""
+    with tempfile.TemporaryDirectory() as tmp:
+        script, data = Path(tmp) / "post.lua", Path(tmp) / "body"
+        script.write_text(WRK_SCRIPT)
+        data.write_bytes(body[0])
+        cmd = ["wrk", "-t1", f"-c{connections}", f"-d{seconds:g}s", "--timeout", "30s", "-s", str(script)]
+        env = {**os.environ, "BDF_BENCH_BODY": str(data), "BDF_BENCH_TYPE": body[1]}
+        cpu = process_tree_cpu_s(pid)
+        out = subprocess.run([*cmd, f"{url}/v1/regions/paris/query"], env=env, capture_output=True, text=True)
+        cpu = process_tree_cpu_s(pid) - cpu
+    found = re.search(r"^BDF (\d+) (\d+) (\d+) (\d+)$", out.stdout, re.M)
+    errors = re.search(r"^BDF_ERRORS (\d+) (\d+)$", out.stdout, re.M)
+    if out.returncode or not found or errors.groups() != ("0", "0"):
+        raise RuntimeError(f"wrk failed or saw errors:\n{out.stdout}\n{out.stderr}")
+    requests, micros, p50, p99 = (int(v) for v in found.groups())
+    return {
+        "requests": requests,
+        "p50 ms": p50 / 1e3,
+        "p99 ms": p99 / 1e3,
+        "req/s": requests / (micros / 1e6),
+        "server CPU ms/req": 1e3 * cpu / requests,
+    }
 
 
 async def upload_load(url, obs, uploaders, per_uploader) -> dict:
@@ -157,17 +185,14 @@ async def upload_load(url, obs, uploaders, per_uploader) -> dict:
     return out
 
 
-def library_query_ms(spec, obs, test, repeat=50) -> float:
-    """Median ms of ``RegionSpec.predict`` at 1,000 test points on the same map, in this
-    process: the compute inside one query request, without HTTP or store."""
+def library_query_ms(spec, obs, test, X, repeat=50) -> float:
+    """Median ms of ``RegionSpec.predict`` at the 1,000 points ``X`` the load sends, on the
+    same map, in this process: the compute inside one query request, without HTTP or store."""
     train = obs.subset(~test)
     increments = spec.increments(train.X, train.V)
     post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
-    rng = np.random.default_rng(0)
-    points = obs.X[test]
     times = []
     for _ in range(repeat):
-        X = points[rng.choice(len(points), QUERY_POINTS, replace=False)]
         t0 = time.perf_counter()
         spec.predict(X, post, increments)
         times.append(time.perf_counter() - t0)
@@ -189,67 +214,78 @@ def grid_times(url, spec, accept, repeat=5) -> dict:
     return {"voxels": 300_000, "median ms": 1e3 * float(np.median(times)), "MB": len(r.content) / 2**20}
 
 
+CONNECTIONS = (1, 4, 16, 64)
+
+
 def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], float]:
     rows = []
-    with LocalService(data_dir, url_env) as svc:
+    with LocalService(data_dir, url_env, ["--workers", url_env["BDF_WORKERS"]]) as svc:
         fit_s = build(svc.url, spec, obs, test)
         points = obs.X[test]
-        with httpx.Client(base_url=svc.url, timeout=120) as c:  # warm every tile's posterior
-            for _ in range(4 * int(url_env.get("BDF_WORKERS", 1))):  # in each worker, likely
+        with httpx.Client(base_url=svc.url, timeout=120) as c:  # every worker's map ready
+            for _ in range(8):
                 c.post(
                     "/v1/regions/paris/query",
-                    content=arrow_points(points[:20000]),
+                    content=arrow_points(points[:100]),
                     headers={"Content-Type": ARROW},
                 )
         for fmt in ("json", "arrow"):
-            bodies = query_bodies(points, 64, fmt)
-            for clients, duration in ((1, seconds / 2), (CLIENTS, seconds)):
-                server, client = process_tree_cpu_s(svc.proc.pid), time.process_time()
-                load = asyncio.run(query_load(svc.url, bodies, clients, duration))
-                load["server CPU ms/req"] = (
-                    1e3 * (process_tree_cpu_s(svc.proc.pid) - server) / load["requests"]
-                )
-                load["client CPU ms/req"] = 1e3 * (time.process_time() - client) / load["requests"]
-                rows.append(
-                    {"what": f"query 1,000 pts, {fmt}, {clients} client{'s' * (clients > 1)}", **load}
-                )
+            body = query_body(points, fmt)
+            for connections in CONNECTIONS:
+                load = wrk_load(svc.url, svc.proc.pid, body, connections, seconds)
+                rows.append({"what": f"query 1,000 pts, {fmt}, {connections} conn (wrk)", **load})
+                print(rows[-1], flush=True)
         for accept, name in ((NPZ, "npz"), (ARROW, "arrow")):
             g = grid_times(svc.url, spec, accept)
             rows.append({"what": f"grid 100x100x30, {name}, warm", "p50 ms": g["median ms"], "MB": g["MB"]})
         up = asyncio.run(upload_load(svc.url, obs, UPLOADERS, 10))
         rows.append({"what": f"upload 1,000 rows, arrow, {UPLOADERS} uploaders", **up})
-    rows.append({"what": "query 1,000 pts, library (no HTTP)", "p50 ms": library_query_ms(spec, obs, test)})
+    library = library_query_ms(spec, obs, test, query_points(obs.X[test]))
+    rows.append({"what": "query 1,000 pts, library (no HTTP)", "p50 ms": library})
     return rows, fit_s
 
 
 def main():
     parser = arguments(__doc__)
-    parser.add_argument("--seconds", type=float, default=10.0, help="duration of each concurrent query run")
+    parser.add_argument("--seconds", type=float, default=10.0, help="duration of each wrk run")
     parser.add_argument("--threads", type=int, default=2, help="the service's compute threads (BDF_THREADS)")
-    parser.add_argument("--workers", type=int, default=1, help="uvicorn worker processes (BDF_WORKERS)")
+    parser.add_argument("--workers", type=int, default=2, help="uvicorn worker processes (BDF_WORKERS)")
+    parser.add_argument("--directions", default="1,8", help="heading sectors of the maps (the demo's: 8)")
     args = parser.parse_args()
+    if shutil.which("wrk") is None:
+        sys.exit("bench_service needs wrk: apt-get install wrk (make bench does, as root)")
 
     obs, lower, upper = ingest.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
-    spec = ingest.paris_region(lower, upper, GRIDS["core grid"])
     report = [
         f"## HTTP service, {datetime.date.today()}",
         "",
         f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
-        f"{os.cpu_count()} cores; {args.workers} uvicorn worker(s) with {args.threads} compute threads "
-        "each; the load generator (asyncio + httpx) shares the machine. Paris map of bench_tiles "
-        f"(core grid), fitted over HTTP from {int((~test).sum())} rows in one Arrow body. Targets: "
-        "1,000-point query p50 < 20 ms with Arrow; 100x100x30 grid < 300 ms warm.",
+        f"{os.cpu_count()} cores; {args.workers} uvicorn workers with {args.threads} compute threads "
+        "each; wrk (1 thread) on the same machine. The demo's Paris map (core grid), fitted over HTTP "
+        f"from {int((~test).sum())} rows in one Arrow body. Targets (issue 20): 16 connections, Arrow, "
+        "p50 < 20 ms and < 2.5 ms of server CPU per request; 1 connection p50 < 4 ms; grid < 100 ms warm.",
     ]
     backends = ["SQLite", "PostgreSQL"] if args.postgres else ["SQLite"]
-    for name in backends:
-        env = {"BDF_LOG_LEVEL": "warning", "BDF_THREADS": str(args.threads), "BDF_WORKERS": str(args.workers)}
-        with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
-            if name == "PostgreSQL":
-                env["BDF_STORE_URL"] = stack.enter_context(postgres_schema(args.postgres))
-            rows, fit_s = run(env, tmp, spec, obs, test, args.seconds)
-        report += ["", f"{name}: fit over HTTP {fit_s:.2f} s", "", rows_table(rows)]
-        print(rows_table(rows), flush=True)
+    for directions in (int(d) for d in args.directions.split(",")):
+        spec = ingest.paris_region(lower, upper, GRIDS["core grid"], directions=directions)
+        for name in backends:
+            env = {
+                "BDF_LOG_LEVEL": "warning",
+                "BDF_THREADS": str(args.threads),
+                "BDF_WORKERS": str(args.workers),
+            }
+            with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+                if name == "PostgreSQL":
+                    env["BDF_STORE_URL"] = stack.enter_context(postgres_schema(args.postgres))
+                rows, fit_s = run(env, tmp, spec, obs, test, args.seconds)
+            report += [
+                "",
+                f"{name}, directions {directions}: fit over HTTP {fit_s:.2f} s",
+                "",
+                rows_table(rows),
+            ]
+            print(rows_table(rows), flush=True)
     publish([*report, ""], not args.no_append)
 
 
