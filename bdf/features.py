@@ -29,6 +29,10 @@ from bdf.grid import Lattice
 DEFAULT_CUTOFF = 1e-12
 #: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
 MIN_POINTS_PER_BLOCK = 32
+#: Gathers of at most this many points run point by point, compiled; more share BLAS
+#: products by blocks (measured on the Paris map: the compiled path is 1.3-1.7x faster at
+#: 1,000 points, the blocked one 1.2-1.8x faster at 100,000; bench/RESULTS.md)
+POINTWISE_MAX_POINTS = 2048
 #: Points per BLAS call at most: its temporaries stay in cache (bench/RESULTS.md, builds).
 CHUNK_POINTS = 2048
 
@@ -216,9 +220,21 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
 
 
-@single_threaded
 def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
-    """``out[n, c] = sum_g T[g, c] prod_d exp(-k_d (x_nd - g_d)^2)``, shape (N, C)."""
+    """``out[n, c] = sum_g T[g, c] prod_d exp(-k_d (x_nd - g_d)^2)``, shape (N, C).
+
+    Up to :data:`POINTWISE_MAX_POINTS` points (a query) each point is summed over its own
+    window by a compiled kernel (:func:`gather_pointwise`); above, blocks of points share
+    windows and BLAS products (:func:`gather_blocked`), which reuse the table's values
+    across points (bench/RESULTS.md, "Query throughput")."""
+    if len(X) <= POINTWISE_MAX_POINTS:
+        return gather_pointwise(lattice, X, T, k, cutoff=cutoff)
+    return gather_blocked(lattice, X, T, k, cutoff=cutoff, block=block)
+
+
+@single_threaded
+def gather_blocked(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
+    """:func:`gather` by blocks of points and BLAS products (the reference path)."""
     n_out = T.shape[-1]
     out = np.empty((len(X), n_out))
     if len(X) == 0:
@@ -291,3 +307,69 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
             b = a + (o[0] * width[1] + o[1]) * width[2] + o[2]
             out[k, hinges[sel].ravel()] += pairs[a, b]
     return out
+
+
+@numba.njit(cache=True)
+def _gather_points(t, scale, cutoff, table, out):  # pragma: no cover (compiled)
+    """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz table[i, j, k, c]`` over
+    each point's own window (the lattice points within reach, factors from
+    ``_axis_factors``). ``t`` (n, 3) positions in lattice steps, ``scale`` (1 or n, 3) k in
+    steps^-2, ``table`` (nx, ny, nz * C). The innermost loop is one multiply-add over z and
+    the channels, contiguous in ``table``, so it vectorises whatever C is."""
+    n = t.shape[0]
+    nx, ny, nzc = table.shape
+    C = out.shape[1]
+    shape = (nx, ny, nzc // C)
+    one, s1 = np.empty(1), np.empty(1)
+    factors = np.zeros((3, max(shape), 1))
+    lo, width = np.empty(3, np.int64), np.empty(3, np.int64)
+    acc, acc_i = np.empty(nzc), np.empty(nzc)
+    for p in range(n):
+        row = min(p, scale.shape[0] - 1)
+        for d in range(3):
+            reach = np.sqrt(np.log(1.0 / cutoff) / scale[row, d])
+            a = max(int(np.ceil(t[p, d] - reach)), 0)
+            b = min(int(np.floor(t[p, d] + reach)), shape[d] - 1)
+            lo[d], width[d] = a, max(b - a + 1, 0)
+        if width.min() == 0:  # no lattice point within reach
+            out[p] = 0.0
+            continue
+        for d in range(3):
+            one[0], s1[0] = t[p, d] - lo[d], scale[row, d]
+            _axis_factors(one, s1, cutoff, factors[d, : width[d]])
+        first, span = lo[2] * C, width[2] * C
+        acc[:span] = 0.0
+        for i in range(width[0]):
+            fi = factors[0, i, 0]
+            if fi == 0.0:
+                continue
+            acc_i[:span] = 0.0
+            for j in range(width[1]):
+                fj = factors[1, j, 0]
+                if fj == 0.0:
+                    continue
+                values = table[lo[0] + i, lo[1] + j, first : first + span]
+                for q in range(span):
+                    acc_i[q] += fj * values[q]
+            for q in range(span):
+                acc[q] += fi * acc_i[q]
+        for c in range(C):
+            total = 0.0
+            for k in range(width[2]):
+                total += factors[2, k, 0] * acc[k * C + c]
+            out[p, c] = total
+    return out
+
+
+def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
+    """:func:`gather` compiled point by point (each point's own window, no sorting, no
+    temporaries): the fast path of queries. Equal to :func:`gather_blocked` to rounding
+    (tests/bdf/test_features.py)."""
+    X = np.asarray(X, float)
+    T = np.ascontiguousarray(T, dtype=float)  # a view where it is already (the posteriors' tables)
+    out = np.empty((len(X), T.shape[-1]))
+    if len(X) == 0:
+        return out
+    scale = np.ascontiguousarray(np.asarray(k, float).reshape(-1, 3)) * lattice.step**2
+    t = np.ascontiguousarray((X - lattice.origin) / lattice.step)
+    return _gather_points(t, scale, float(cutoff), T.reshape(T.shape[0], T.shape[1], -1), out)

@@ -330,23 +330,20 @@ class RegionSpec(BaseModel):
     def known(self, X: np.ndarray, data_tiles) -> np.ndarray:
         """(n,) True where a tile core with data lies within the kernel's reach (where it is
         above :data:`KNOWN_KERNEL`)."""
-        n = np.array(self.tile_counts)
-        has = np.zeros(self.tile_counts, bool)
-        for key in data_tiles:
-            has[key] = True
-        if not len(X) or not has.any():
+        data_tiles = frozenset(data_tiles)
+        if not len(X) or not data_tiles:
             return np.zeros(len(X), bool)
+        n = np.array(self.tile_counts)
+        table = _summed_area(self.tile_counts, data_tiles)
         reach = np.sqrt(np.log(1.0 / KNOWN_KERNEL) / np.array(self.gamma))
         size = np.array(self.tile_size_m)
-        lo = np.clip(np.floor((X - reach - self.lower) / size).astype(int), 0, n - 1)
-        hi = np.clip(np.floor((X + reach - self.lower) / size).astype(int), 0, n - 1) + 1
-        table = np.zeros(tuple(n + 1))  # summed-area table: box counts in 8 reads
-        table[1:, 1:, 1:] = has.cumsum(0).cumsum(1).cumsum(2)
-        total = np.zeros(len(X))
-        for corner in itertools.product((0, 1), repeat=3):
-            idx = tuple(np.where(c, hi[:, d], lo[:, d]) for d, c in enumerate(corner))
-            total += (-1) ** (3 - sum(corner)) * table[idx]
-        return total > 0
+        lower = self.lower
+        lo = np.clip(np.floor((X - reach - lower) / size).astype(np.int64), 0, n - 1)
+        hi = np.clip(np.floor((X + reach - lower) / size).astype(np.int64), 0, n - 1) + 1
+        # the box's count: the table at its 8 corners, signed (inclusion-exclusion)
+        corners = np.stack([lo, hi], axis=-1) * (np.array(table.strides) // table.itemsize)[:, None]
+        flat = corners[:, 0, :, None, None] + corners[:, 1, None, :, None] + corners[:, 2, None, None, :]
+        return np.einsum("nabc,abc->n", table.ravel()[flat], _CORNER_SIGNS) > 0
 
     def predict(
         self, X, posterior: Posterior | Mixture, data_tiles, heading_deg=None, modes: Modes | None = None
@@ -418,6 +415,25 @@ class RegionSpec(BaseModel):
             ):
                 raise ValueError(f"grid axis {d} must be finite, non-empty and inside region {self.name!r}")
         return axes
+
+
+#: the sign of each corner of a box in a summed-area table, (-1)^(3 - number of upper sides)
+_CORNER_SIGNS = np.array(
+    [[[(-1) ** (3 - a - b - c) for c in (0, 1)] for b in (0, 1)] for a in (0, 1)], float
+)
+
+
+@functools.lru_cache(maxsize=64)
+def _summed_area(tile_counts: tuple[int, int, int], data_tiles: frozenset) -> np.ndarray:
+    """The summed-area table of the tiles with data (box counts in 8 reads), once per map
+    state: queries of one region version share it."""
+    has = np.zeros(tile_counts, bool)
+    for key in data_tiles:
+        has[key] = True
+    table = np.zeros(tuple(np.array(tile_counts) + 1))
+    table[1:, 1:, 1:] = has.cumsum(0).cumsum(1).cumsum(2)
+    table.flags.writeable = False
+    return table
 
 
 @functools.lru_cache(maxsize=64)

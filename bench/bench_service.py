@@ -15,7 +15,8 @@ class and with the demo's 8 heading sectors:
 * grid: 100 x 100 x 30 voxels over the whole region, npz and Arrow, warm, median of 5 (httpx);
 * uploads: 10 concurrent uploaders, 1,000 rows each request (Arrow), distinct keys (httpx);
 * library: the same 1,000-point query through ``RegionSpec.predict`` in this process
-  (median of 50): the compute inside one request.
+  (median of 50): the compute inside one request, by the compiled gather queries use and
+  by the blocked numpy/BLAS reference path.
 
 ``make bench`` installs wrk with apt-get where it may (root); elsewhere install the
 Debian/Ubuntu package ``wrk`` (or build it from github.com/wg/wrk).
@@ -50,7 +51,7 @@ from bench_core import (  # bench/ is on the path as a script
     rows_table,
 )
 
-from bdf import ingest
+from bdf import features, ingest
 from clients.local import LocalService
 from service.formats import ARROW, NPZ, arrow_bytes
 
@@ -185,18 +186,27 @@ async def upload_load(url, obs, uploaders, per_uploader) -> dict:
     return out
 
 
-def library_query_ms(spec, obs, test, X, repeat=50) -> float:
+def library_query_ms(spec, obs, test, X, repeat=50) -> dict[str, float]:
     """Median ms of ``RegionSpec.predict`` at the 1,000 points ``X`` the load sends, on the
-    same map, in this process: the compute inside one query request, without HTTP or store."""
+    same map, in this process: the compute inside one query request, without HTTP or store;
+    by the compiled point-by-point gather (what queries use) and by the blocked BLAS one
+    (the reference path), interleaved so both see the same machine."""
     train = obs.subset(~test)
     increments = spec.increments(train.X, train.V)
     post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        spec.predict(X, post, increments)
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+    keys = frozenset(increments)
+    limits = {"compiled, point by point": features.POINTWISE_MAX_POINTS, "numpy + BLAS, by blocks": 0}
+    times = {name: [] for name in limits}
+    try:
+        for _ in range(repeat):
+            for name, limit in limits.items():
+                features.POINTWISE_MAX_POINTS = limit
+                t0 = time.perf_counter()
+                spec.predict(X, post, keys)
+                times[name].append(time.perf_counter() - t0)
+    finally:
+        features.POINTWISE_MAX_POINTS = limits["compiled, point by point"]
+    return {name: 1e3 * float(np.median(t)) for name, t in times.items()}
 
 
 def grid_times(url, spec, accept, repeat=5) -> dict:
@@ -240,8 +250,8 @@ def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], 
             rows.append({"what": f"grid 100x100x30, {name}, warm", "p50 ms": g["median ms"], "MB": g["MB"]})
         up = asyncio.run(upload_load(svc.url, obs, UPLOADERS, 10))
         rows.append({"what": f"upload 1,000 rows, arrow, {UPLOADERS} uploaders", **up})
-    library = library_query_ms(spec, obs, test, query_points(obs.X[test]))
-    rows.append({"what": "query 1,000 pts, library (no HTTP)", "p50 ms": library})
+    for path, ms in library_query_ms(spec, obs, test, query_points(obs.X[test])).items():
+        rows.append({"what": f"query 1,000 pts, library (no HTTP), {path}", "p50 ms": ms})
     return rows, fit_s
 
 

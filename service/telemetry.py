@@ -9,12 +9,11 @@ import json
 import logging
 import re
 import time
-import uuid
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from service.problems import REQUEST_ID_HEADER, Problem, problem
+from service.problems import REQUEST_ID_HEADER, Problem, new_request_id, problem
 
 #: a client's request id is kept if it is a plain token (it goes into logs and headers)
 REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")
@@ -90,7 +89,7 @@ class RequestMiddleware:
         start = time.perf_counter()
         status = 500
         given = dict(scope["headers"]).get(b"x-request-id", b"").decode("latin-1")
-        request_id = given if REQUEST_ID.fullmatch(given) else uuid.uuid4().hex
+        request_id = given if REQUEST_ID.fullmatch(given) else new_request_id()
         scope.setdefault("state", {})["request_id"] = request_id
         extra = [(REQUEST_ID_HEADER.lower().encode(), request_id.encode()), *SECURITY_HEADERS]
 

@@ -1,0 +1,54 @@
+"""The two gather paths (compiled point by point, and BLAS by blocks) against each other
+and against the dense sum."""
+
+import numpy as np
+import pytest
+
+from bdf import features
+from bdf.grid import Lattice
+
+
+def dense_gather(lattice, X, T, k, cutoff):
+    """The sum written out: every lattice point, per-axis factors below the cutoff zeroed."""
+    out = np.zeros((len(X), T.shape[-1]))
+    k = np.broadcast_to(np.asarray(k, float).reshape(-1, 3), (len(X), 3))
+    for n, x in enumerate(X):
+        f = []
+        for d in range(3):
+            fd = np.exp(-k[n, d] * (x[d] - lattice.axis(d)) ** 2)
+            f.append(np.where(fd < cutoff, 0.0, fd))
+        w = f[0][:, None, None] * f[1][None, :, None] * f[2][None, None, :]
+        out[n] = np.tensordot(w, T, axes=3)
+    return out
+
+
+@pytest.mark.parametrize("cutoff", [1e-12, 1e-6])
+@pytest.mark.parametrize("per_point_k", [False, True])
+@pytest.mark.parametrize("channels", [1, 3, 10])
+def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, per_point_k, channels):
+    rng = np.random.default_rng(channels)
+    lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (23, 17, 9))
+    T = rng.standard_normal((*lattice.shape, channels))
+    lo, hi = lattice.origin, lattice.origin + lattice.step * (np.array(lattice.shape) - 1)
+    X = rng.uniform(lo - 60, hi + 60, (300, 3))  # some points outside the lattice
+    X[:5] = lattice.points()[[0, 7, 100, 1000, -1]]  # some exactly on lattice points
+    X[5:8] = [[-1e4, 100, 50], [200, 1e5, 50], [200, 100, -1e3]]  # beyond every lattice point's reach
+    k = (1.0 / lattice.step**2) * (rng.uniform(0.5, 2.0, (len(X), 3)) if per_point_k else 1.0)
+    pointwise = features.gather_pointwise(lattice, X, T, k, cutoff=cutoff)
+    blocked = features.gather_blocked(lattice, X, T, k, cutoff=cutoff)
+    scale = np.abs(blocked).max()
+    assert np.abs(pointwise - blocked).max() <= 1e-12 * scale
+    assert np.abs(pointwise - dense_gather(lattice, X, T, k, cutoff)).max() <= 1e-12 * scale
+
+
+def test_gather_takes_the_pointwise_path_for_queries_and_blocks_above():
+    rng = np.random.default_rng(0)
+    lattice = Lattice(np.zeros(3), np.ones(3), (12, 12, 6))
+    T = rng.standard_normal((*lattice.shape, 2))
+    k = np.ones(3)
+    for n in (features.POINTWISE_MAX_POINTS, features.POINTWISE_MAX_POINTS + 1):
+        X = rng.uniform(0, 11, (n, 3))
+        got = features.gather(lattice, X, T, k)
+        path = features.gather_pointwise if n <= features.POINTWISE_MAX_POINTS else features.gather_blocked
+        np.testing.assert_array_equal(got, path(lattice, X, T, k))
+    assert features.gather(lattice, np.empty((0, 3)), T, k).shape == (0, 2)
