@@ -309,7 +309,7 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)  # queries in other threads run meanwhile
 def _gather_points(t, scale, cutoff, table, out):  # pragma: no cover (compiled)
     """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz table[i, j, k, c]`` over
     each point's own window (the lattice points within reach, factors from

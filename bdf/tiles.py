@@ -34,6 +34,7 @@ import itertools
 from collections.abc import Callable, Mapping
 from typing import Annotated, Literal, NamedTuple
 
+import numba
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -333,17 +334,15 @@ class RegionSpec(BaseModel):
         data_tiles = frozenset(data_tiles)
         if not len(X) or not data_tiles:
             return np.zeros(len(X), bool)
-        n = np.array(self.tile_counts)
-        table = _summed_area(self.tile_counts, data_tiles)
         reach = np.sqrt(np.log(1.0 / KNOWN_KERNEL) / np.array(self.gamma))
-        size = np.array(self.tile_size_m)
-        lower = self.lower
-        lo = np.clip(np.floor((X - reach - lower) / size).astype(np.int64), 0, n - 1)
-        hi = np.clip(np.floor((X + reach - lower) / size).astype(np.int64), 0, n - 1) + 1
-        # the box's count: the table at its 8 corners, signed (inclusion-exclusion)
-        corners = np.stack([lo, hi], axis=-1) * (np.array(table.strides) // table.itemsize)[:, None]
-        flat = corners[:, 0, :, None, None] + corners[:, 1, None, :, None] + corners[:, 2, None, None, :]
-        return np.einsum("nabc,abc->n", table.ravel()[flat], _CORNER_SIGNS) > 0
+        return _boxes_hold_data(
+            np.ascontiguousarray(X, dtype=float),
+            self.lower,
+            reach,
+            np.array(self.tile_size_m),
+            _summed_area(self.tile_counts, data_tiles),
+            np.empty(len(X), bool),
+        )
 
     def predict(
         self, X, posterior: Posterior | Mixture, data_tiles, heading_deg=None, modes: Modes | None = None
@@ -417,10 +416,31 @@ class RegionSpec(BaseModel):
         return axes
 
 
-#: the sign of each corner of a box in a summed-area table, (-1)^(3 - number of upper sides)
-_CORNER_SIGNS = np.array(
-    [[[(-1) ** (3 - a - b - c) for c in (0, 1)] for b in (0, 1)] for a in (0, 1)], float
-)
+@numba.njit(cache=True, nogil=True)  # queries in other threads run meanwhile
+def _boxes_hold_data(X, origin, reach, size, table, out):  # pragma: no cover (compiled)
+    """``out[n]``: some tile with data overlaps the box ``X[n] -/+ reach`` (tiles of ``size``
+    from ``origin``, the box clipped to the region): the summed-area ``table`` at the box's
+    8 corners, signed (inclusion-exclusion), is positive."""
+    lo, hi = np.empty(3, np.int64), np.empty(3, np.int64)
+    for p in range(X.shape[0]):
+        for d in range(3):
+            last = table.shape[d] - 2.0
+            lo[d] = int(min(max(np.floor((X[p, d] - reach[d] - origin[d]) / size[d]), 0.0), last))
+            hi[d] = int(min(max(np.floor((X[p, d] + reach[d] - origin[d]) / size[d]), 0.0), last)) + 1
+        a, b, c = lo
+        A, B, C = hi
+        count = (
+            table[A, B, C]
+            - table[a, B, C]
+            - table[A, b, C]
+            - table[A, B, c]
+            + table[a, b, C]
+            + table[a, B, c]
+            + table[A, b, c]
+            - table[a, b, c]
+        )
+        out[p] = count > 0.5
+    return out
 
 
 @functools.lru_cache(maxsize=64)
