@@ -6,6 +6,7 @@ examples per route for a longer run (bench/RESULTS.md, "Fuzzing")."""
 import io
 import json
 import os
+import tempfile
 
 import hypothesis.strategies as st
 import pyarrow as pa
@@ -70,7 +71,10 @@ def _binary(ctx, value) -> bytes:
     return value if isinstance(value, bytes) else json.dumps(value).encode()
 
 
-APP = make_app(os.environ.get("BDF_FUZZ_DIR") or __import__("tempfile").mkdtemp(prefix="bdf-fuzz-"))
+# schemathesis parametrizes from the app's schema at import, so the app is made here; its
+# store lives as long as the test session
+DATA = tempfile.TemporaryDirectory(prefix="bdf-fuzz-")
+APP = make_app(DATA.name)
 SCHEMA = schemathesis.openapi.from_asgi("/openapi.json", APP)
 SCHEMA.config.update(headers=AUTH, parameters={"name": NAME})
 
