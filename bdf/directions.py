@@ -67,5 +67,8 @@ def mixture_moments(share: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tup
     """Mean and std per component (..., 3) of the mixture with weights ``share`` (..., C) of
     modes ``mean``, ``std`` (..., C, 3)."""
     m = np.einsum("...c,...cd->...d", share, mean)
-    second = np.einsum("...c,...cd->...d", share, std**2 + mean**2)
+    # sum_c share_c (std_c^2 + mean_c^2), without (..., C, 3) temporaries (grids are large)
+    second = np.einsum("...c,...cd,...cd->...d", share, std, std) + np.einsum(
+        "...c,...cd,...cd->...d", share, mean, mean
+    )
     return m, np.sqrt(np.maximum(second - m * m, 0.0))

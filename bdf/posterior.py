@@ -107,15 +107,17 @@ class Posterior:
         var = features.gather_grid(
             self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
         )[..., columns]
-        if not include_noise:
-            scatter = 0.0
-        elif self._moments is None:
-            scatter = 1.0 / self.beta
-        else:
-            scatter = noise.noise_variance_grid(
-                self.noise_lattice, self._moments, axes, mean, self.beta, self.noise_prior
-            )
+        scatter = self.noise_variance_grid(axes, mean) if include_noise else 0.0
         return mean, np.maximum(var / self.beta, 0.0) + scatter
+
+    def noise_variance_grid(self, axes, mean: np.ndarray):
+        """:meth:`noise_variance` on the grid ``axes`` where the posterior mean is ``mean``
+        (nx, ny, nz, 3): ``1/beta`` (3,), or the local estimate on the grid."""
+        if self._moments is None:
+            return 1.0 / self.beta
+        return noise.noise_variance_grid(
+            self.noise_lattice, self._moments, axes, mean, self.beta, self.noise_prior
+        )
 
     def noise_variance(self, X: np.ndarray, mean: np.ndarray) -> np.ndarray:
         """The noise term of the predictive variance at ``X`` (n, 3): ``1/beta``, or the
@@ -293,20 +295,26 @@ class Mixture:
         return mean, std**2
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
-        """:class:`Modes` on the grid ``axes``, each array with the grid's shape first."""
-        T = self.share_weights.reshape(*self.grid.shape, -1)
-        weights_at = features.gather_grid(self.grid, axes, T, self.gamma, cutoff=self.cutoff)
+        """:class:`Modes` on the grid ``axes``, each array with the grid's shape first: like
+        :meth:`predict_modes`, each lattice's tables gathered once for every class."""
+        weights, densities, columns = self._gather_tables()
+        C = len(self.modes)
+        at = features.gather_grid(self.grid, axes, weights, self.gamma, cutoff=self.cutoff)
+        var = features.gather_grid(
+            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
+        )
+        n = at.shape[:3]
+        mean = at[..., : 3 * C].reshape(*n, C, 3)
+        std = var[..., np.array(columns[:C])]  # (nx, ny, nz, C, 3), then in place
+        std /= np.stack([m.beta for m in self.modes])
+        np.maximum(std, 0.0, out=std)
+        if include_noise:
+            for c, mode in enumerate(self.modes):
+                std[..., c, :] += mode.noise_variance_grid(axes, mean[..., c, :])
+        np.sqrt(std, out=std)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
-        densities, columns = self.total.variance_table()
-        base = features.gather_grid(
-            self.grid.midpoints(), axes, densities[..., columns[:1]], 2.0 * self.gamma, cutoff=self.cutoff
-        )[..., 0]
-        share, share_std = self._share(weights_at.reshape(-1, weights_at.shape[-1]), base.ravel())
-        grids = [m.predict_grid(axes, include_noise) for m in self.modes]
-        mean = np.stack([g[0] for g in grids], axis=3)
-        std = np.sqrt(np.stack([g[1] for g in grids], axis=3))
-        n = mean.shape[:3]
-        return Modes(share.reshape(*n, -1), share_std.reshape(n), mean, std)
+        share, share_std = self._share(at[..., 3 * C :].reshape(-1, C), var[..., columns[-1][0]].ravel())
+        return Modes(share.reshape(*n, C), share_std.reshape(n), mean, std)
 
     def compact(self) -> Mixture:
         self.total.compact()
