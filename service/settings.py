@@ -31,7 +31,7 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(
-        1, ge=1, le=64, description="uvicorn worker processes (PostgreSQL for more than one)"
+        1, ge=1, le=64, description="uvicorn worker processes (SQLite: one host; PostgreSQL: across hosts)"
     )
     data_dir: Path = Field(Path("bdf-data"), description="where the default SQLite store lives")
     store_url: str | None = Field(
