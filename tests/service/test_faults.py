@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.parse
 import uuid
 
 import httpx
@@ -62,7 +63,7 @@ class Proxy:
     """A TCP proxy to PostgreSQL on a fixed local port that a test can cut (close every
     connection and refuse new ones) and restore."""
 
-    def __init__(self, target=("127.0.0.1", 5432)):
+    def __init__(self, target: tuple[str, int]):
         self.target = target
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
@@ -120,9 +121,11 @@ def test_postgres_lost_answers_503_and_service_resumes_without_restart():
         pytest.skip(f"needs {POSTGRES_ENV}")
     import psycopg
 
-    proxy = Proxy()
+    server = urllib.parse.urlsplit(base)
+    proxy = Proxy((server.hostname, server.port or 5432))
     schema = f"bdf_test_{uuid.uuid4().hex[:12]}"
-    url = base.replace("127.0.0.1:5432", f"127.0.0.1:{proxy.port}") + f"?schema={schema}"
+    netloc = f"{server.netloc.rpartition('@')[0]}@127.0.0.1:{proxy.port}".lstrip("@")
+    url = server._replace(netloc=netloc).geturl() + f"?schema={schema}"
     try:
         with TestClient(create_app(Settings(store_url=url))) as c:
             assert c.post("/v1/regions", json=SPEC).status_code == 201
