@@ -30,8 +30,8 @@ DEFAULT_CUTOFF = 1e-12
 #: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
 MIN_POINTS_PER_BLOCK = 32
 #: Gathers of at most this many points run point by point, compiled; more share BLAS
-#: products by blocks (measured on the Paris map: the compiled path is 1.3-1.7x faster at
-#: 1,000 points, the blocked one 1.2-1.8x faster at 100,000; bench/RESULTS.md)
+#: products by blocks (bench_service.py's library rows, Paris map: the compiled path is
+#: 1.6x faster at 1,000 points, the blocked one 1.3x at 10,000 and 1.7x at 100,000)
 POINTWISE_MAX_POINTS = 2048
 #: Points per BLAS call at most: its temporaries stay in cache (bench/RESULTS.md, builds).
 CHUNK_POINTS = 2048

@@ -13,6 +13,14 @@ from bdf._validate import as_vector3
 MAX_HINGES = 250_000
 
 
+def axis_counts(lower, upper, step) -> np.ndarray:
+    """Points ``lower + i * step`` up to ``upper`` inclusive, per axis, as floats: a tiny
+    step counts as infinitely many, never as an overflowed integer, so callers check their
+    limit before they allocate anything."""
+    with np.errstate(over="ignore"):
+        return np.floor((np.asarray(upper) - lower) / step + 1e-9) + 1
+
+
 @dataclass(frozen=True)
 class Lattice:
     """Points ``origin + i * step`` for ``i`` in ``[0, shape)`` per axis, in C order."""
@@ -49,9 +57,8 @@ class HingeGrid(Lattice):
         spacing = as_vector3(spacing, "spacing", positive=True)
         if np.any(upper <= lower):
             raise ValueError(f"upper {upper.tolist()} must exceed lower {lower.tolist()} on every axis")
-        with np.errstate(over="ignore"):  # a tiny spacing counts as infinitely many hinges
-            counts = np.floor((upper - lower) / spacing + 1e-9) + 1
-            size = float(np.prod(counts))
+        counts = axis_counts(lower, upper, spacing)
+        size = float(np.prod(counts))
         if not size <= MAX_HINGES:
             raise ValueError(
                 f"the grid would have {size:.6g} hinges ({counts.tolist()} per axis), more than "

@@ -51,7 +51,7 @@ from bdf._validate import (
 from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
-from bdf.grid import HingeGrid, Lattice
+from bdf.grid import HingeGrid, Lattice, axis_counts
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence, stencil_of
 
@@ -393,9 +393,8 @@ class RegionSpec(BaseModel):
         ``ValueError`` above ``max_voxels``, checked before anything is allocated."""
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         step = np.broadcast_to(np.asarray(step, float), (3,))
-        with np.errstate(over="ignore"):  # a tiny step counts as infinitely many voxels
-            counts = np.floor((hi - lo) / step + 1e-9) + 1
-            voxels = float(np.prod(counts))
+        counts = axis_counts(lo, hi, step)
+        voxels = float(np.prod(counts))
         if not voxels <= max_voxels:
             raise ValueError(
                 f"the grid would have {voxels:.6g} voxels ({counts.tolist()} per axis); the limit is "

@@ -6,7 +6,8 @@ region listing), then a check that the store holds exactly the acknowledged uplo
 
 The load generator is asyncio + httpx in this process and shares the 2 cores with the
 server's 2 workers, so throughputs are a floor. The region is the suite's small town
-(300 x 200 x 60 m, 6 tiles), so the figures measure the service, not the model.
+(tests/service/test_store.py: 300 x 200 x 60 m, 6 tiles), so the figures measure the
+service, not the model.
 """
 
 from __future__ import annotations
@@ -28,15 +29,7 @@ from bench_core import arguments, postgres_schema, publish, rows_table  # bench/
 from bdf.tiles import RegionSpec
 from clients.load import mixed_load, stored_difference, upload_batch
 from clients.local import LocalService
-
-SPEC = {
-    "name": "town",
-    "origin": {"lat": 48.0, "lon": 2.0},
-    "bounds_m": {"min": [0, 0, 0], "max": [300, 200, 60]},
-    "tile_size_m": [100, 100, 60],
-    "spacing_m": [25, 25, 20],
-    "gamma": [1 / 1250, 1 / 1250, 1 / 800],
-}
+from tests.service.test_store import SPEC  # the suite's small town
 
 
 def run(store_url: str, seconds: float, clients: int) -> tuple[list[dict], dict]:

@@ -14,9 +14,11 @@ class and with the demo's 8 heading sectors:
   (user + system of all its processes, from /proc);
 * grid: 100 x 100 x 30 voxels over the whole region, npz and Arrow, warm, median of 5 (httpx);
 * uploads: 10 concurrent uploaders, 1,000 rows each request (Arrow), distinct keys (httpx);
+* the fixed cost of a request: ``GET /healthz`` and a 1-point Arrow query (wrk, 4 connections);
 * library: the same 1,000-point query through ``RegionSpec.predict`` in this process
   (median of 50): the compute inside one request, by the compiled gather queries use and
-  by the blocked numpy/BLAS reference path.
+  by the blocked numpy/BLAS reference path; the same at 10,000 and 100,000 points (where
+  the gathers switch paths), and the 100 x 100 x 30 grid.
 
 ``make bench`` installs wrk with apt-get where it may (root); elsewhere install the
 Debian/Ubuntu package ``wrk`` (or build it from github.com/wg/wrk).
@@ -107,12 +109,15 @@ def build(url: str, spec, obs, test) -> float:
 
 
 WRK_SCRIPT = """
-local f = io.open(os.getenv("BDF_BENCH_BODY"), "rb")
-wrk.method = "POST"
-wrk.body = f:read("*a")
-f:close()
-wrk.headers["Content-Type"] = os.getenv("BDF_BENCH_TYPE")
-wrk.headers["Accept"] = os.getenv("BDF_BENCH_TYPE")
+local path = os.getenv("BDF_BENCH_BODY")
+if path ~= "" then
+  local f = io.open(path, "rb")
+  wrk.method = "POST"
+  wrk.body = f:read("*a")
+  f:close()
+  wrk.headers["Content-Type"] = os.getenv("BDF_BENCH_TYPE")
+  wrk.headers["Accept"] = os.getenv("BDF_BENCH_TYPE")
+end
 done = function(summary, latency, requests)
   io.write(string.format("BDF %d %d %d %d\\n", summary.requests, summary.duration,
     latency:percentile(50), latency:percentile(99)))
@@ -120,6 +125,9 @@ done = function(summary, latency, requests)
     + summary.errors.read + summary.errors.write + summary.errors.timeout))
 end
 """
+
+
+QUERY = "/v1/regions/paris/query"
 
 
 def query_points(points, seed=0) -> np.ndarray:
@@ -133,17 +141,21 @@ def query_body(points, fmt) -> tuple[bytes, str]:
     return json.dumps({"points": X.tolist()}).encode(), "application/json"
 
 
-def wrk_load(url: str, pid: int, body: tuple[bytes, str], connections: int, seconds: float) -> dict:
-    """``wrk`` POSTing ``body`` on ``connections`` for ``seconds``: p50, p99, requests/s and
-    the server's CPU per request."""
+def wrk_load(
+    url: str, pid: int, body: tuple[bytes, str] | None, connections: int, seconds: float, path=QUERY
+) -> dict:
+    """``wrk`` POSTing ``body`` (or GETting, without) to ``path`` on ``connections`` for
+    ``seconds``: p50, p99, requests/s and the server's CPU per request."""
     with tempfile.TemporaryDirectory() as tmp:
-        script, data = Path(tmp) / "post.lua", Path(tmp) / "body"
+        script, data = Path(tmp) / "load.lua", Path(tmp) / "body"
         script.write_text(WRK_SCRIPT)
-        data.write_bytes(body[0])
+        env = {**os.environ, "BDF_BENCH_BODY": "", "BDF_BENCH_TYPE": ""}
+        if body is not None:
+            data.write_bytes(body[0])
+            env.update(BDF_BENCH_BODY=str(data), BDF_BENCH_TYPE=body[1])
         cmd = ["wrk", "-t1", f"-c{connections}", f"-d{seconds:g}s", "--timeout", "30s", "-s", str(script)]
-        env = {**os.environ, "BDF_BENCH_BODY": str(data), "BDF_BENCH_TYPE": body[1]}
         cpu = process_tree_cpu_s(pid)
-        out = subprocess.run([*cmd, f"{url}/v1/regions/paris/query"], env=env, capture_output=True, text=True)
+        out = subprocess.run([*cmd, f"{url}{path}"], env=env, capture_output=True, text=True)
         cpu = process_tree_cpu_s(pid) - cpu
     found = re.search(r"^BDF (\d+) (\d+) (\d+) (\d+)$", out.stdout, re.M)
     errors = re.search(r"^BDF_ERRORS (\d+) (\d+)$", out.stdout, re.M)
@@ -160,21 +172,18 @@ def wrk_load(url: str, pid: int, body: tuple[bytes, str], connections: int, seco
 
 
 async def warm(url: str, body: bytes, timeout_s: float = 600) -> None:
-    """Until every worker has the map: rounds of concurrent queries (so each worker gets
-    some) until a whole round answers within a second."""
-    async with httpx.AsyncClient(base_url=url, timeout=timeout_s) as c:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            t0 = time.monotonic()
+    """Until every worker has the map: rounds of 16 concurrent queries on new connections
+    (which the workers accept at random) until three rounds in a row answer within a second."""
+    deadline, fast = time.monotonic() + timeout_s, 0
+    while fast < 3:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the map was not ready in every worker within {timeout_s} s")
+        t0 = time.monotonic()
+        async with httpx.AsyncClient(base_url=url, timeout=timeout_s) as c:
             await asyncio.gather(
-                *(
-                    c.post("/v1/regions/paris/query", content=body, headers={"Content-Type": ARROW})
-                    for _ in range(8)
-                )
+                *(c.post(QUERY, content=body, headers={"Content-Type": ARROW}) for _ in range(16))
             )
-            if time.monotonic() - t0 < 1.0:
-                return
-        raise RuntimeError(f"the map was not ready in every worker within {timeout_s} s")
+        fast = fast + 1 if time.monotonic() - t0 < 1.0 else 0
 
 
 async def upload_load(url, obs, uploaders, per_uploader) -> dict:
@@ -204,27 +213,42 @@ async def upload_load(url, obs, uploaders, per_uploader) -> dict:
     return out
 
 
-def library_query_ms(spec, obs, test, X, repeat=50) -> dict[str, float]:
-    """Median ms of ``RegionSpec.predict`` at the 1,000 points ``X`` the load sends, on the
-    same map, in this process: the compute inside one query request, without HTTP or store;
-    by the compiled point-by-point gather (what queries use) and by the blocked BLAS one
-    (the reference path), interleaved so both see the same machine."""
+def library_rows(spec, obs, test, X) -> list[dict]:
+    """The compute inside requests, in this process on the same map (no HTTP, no store):
+    the 1,000-point query ``X`` the load sends, the same query at 10,000 and 100,000 test
+    points (where the gathers switch path), each by the compiled point-by-point gather and
+    by the blocked BLAS one, interleaved so both see the same machine; and the warm
+    100 x 100 x 30 grid. Medians."""
     train = obs.subset(~test)
     increments = spec.increments(train.X, train.V)
     post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
     keys = frozenset(increments)
-    limits = {"compiled, point by point": features.POINTWISE_MAX_POINTS, "numpy + BLAS, by blocks": 0}
-    times = {name: [] for name in limits}
+    limit = features.POINTWISE_MAX_POINTS
+    paths = {"compiled, point by point": np.inf, "numpy + BLAS, by blocks": 0}
+    rows = []
     try:
-        for _ in range(repeat):
-            for name, limit in limits.items():
-                features.POINTWISE_MAX_POINTS = limit
-                t0 = time.perf_counter()
-                spec.predict(X, post, keys)
-                times[name].append(time.perf_counter() - t0)
+        for points, repeat in ((X, 50), (obs.X[test][:10_000], 10), (obs.X[:100_000], 3)):
+            times = {name: [] for name in paths}
+            for _ in range(repeat):
+                for name, always in paths.items():
+                    features.POINTWISE_MAX_POINTS = always
+                    t0 = time.perf_counter()
+                    spec.predict(points, post, keys)
+                    times[name].append(time.perf_counter() - t0)
+            for name, t in times.items():
+                ms = 1e3 * float(np.median(t))
+                rows.append({"what": f"query {len(points):,} pts, library (no HTTP), {name}", "p50 ms": ms})
     finally:
-        features.POINTWISE_MAX_POINTS = limits["compiled, point by point"]
-    return {name: 1e3 * float(np.median(t)) for name, t in times.items()}
+        features.POINTWISE_MAX_POINTS = limit
+    axes = spec.box_axes(spec.lower, spec.upper, (spec.upper - spec.lower) / (np.array([100, 100, 30]) - 1))
+    spec.predict_grid(axes, post, keys)
+    times = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        spec.predict_grid(axes, post, keys)
+        times.append(time.perf_counter() - t0)
+    rows.append({"what": "grid 100x100x30, library (no HTTP)", "p50 ms": 1e3 * float(np.median(times))})
+    return rows
 
 
 def grid_times(url, spec, accept, repeat=5) -> dict:
@@ -257,13 +281,23 @@ def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], 
                 load = wrk_load(svc.url, svc.proc.pid, body, connections, seconds)
                 rows.append({"what": f"query 1,000 pts, {fmt}, {connections} conn (wrk)", **load})
                 print(rows[-1], flush=True)
+        # the fixed cost: the HTTP stack alone, and a query of one point
+        rows.append(
+            {
+                "what": "GET /healthz, 4 conn (wrk)",
+                **wrk_load(svc.url, svc.proc.pid, None, 4, seconds, "/healthz"),
+            }
+        )
+        one = (arrow_points(points[:1]), ARROW)
+        rows.append(
+            {"what": "query 1 pt, arrow, 4 conn (wrk)", **wrk_load(svc.url, svc.proc.pid, one, 4, seconds)}
+        )
         for accept, name in ((NPZ, "npz"), (ARROW, "arrow")):
             g = grid_times(svc.url, spec, accept)
             rows.append({"what": f"grid 100x100x30, {name}, warm", "p50 ms": g["median ms"], "MB": g["MB"]})
         up = asyncio.run(upload_load(svc.url, obs, UPLOADERS, 10))
         rows.append({"what": f"upload 1,000 rows, arrow, {UPLOADERS} uploaders", **up})
-    for path, ms in library_query_ms(spec, obs, test, query_points(obs.X[test])).items():
-        rows.append({"what": f"query 1,000 pts, library (no HTTP), {path}", "p50 ms": ms})
+    rows += library_rows(spec, obs, test, query_points(obs.X[test]))
     return rows, fit_s
 
 

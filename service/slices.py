@@ -13,6 +13,8 @@ import numpy as np
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
+from bdf.grid import axis_counts
+
 Layer = Literal["mean", "std", "tube", "modes", "share"]
 #: Arrows per horizontal axis on the modes layer.
 ARROWS_PER_SIDE = 24
@@ -39,8 +41,7 @@ def slice_axes(lower, upper, spacing, bbox: tuple[float, float, float, float] | 
         step = max(min(spacing[:2]) / 4, float(np.max(hi - lo)) / (MAX_SIDE - 1))
     if not step > 0:
         raise ValueError(f"step must be positive, got {step}")
-    with np.errstate(over="ignore"):  # a tiny step counts as infinitely many cells
-        counts = np.floor((hi - lo) / step + 1e-9) + 1
+    counts = axis_counts(lo, hi, step)
     if not np.all(counts <= MAX_SIDE):
         raise ValueError(
             f"a slice of {counts.tolist()} cells exceeds {MAX_SIDE} per axis: "

@@ -88,7 +88,8 @@ class RequestMiddleware:
             return await self.app(scope, receive, send)
         start = time.perf_counter()
         status = 500
-        given = dict(scope["headers"]).get(b"x-request-id", b"").decode("latin-1")
+        headers = dict(scope["headers"])
+        given = headers.get(b"x-request-id", b"").decode("latin-1")
         request_id = given if REQUEST_ID.fullmatch(given) else new_request_id()
         scope.setdefault("state", {})["request_id"] = request_id
         extra = [(REQUEST_ID_HEADER.lower().encode(), request_id.encode()), *SECURITY_HEADERS]
@@ -102,7 +103,7 @@ class RequestMiddleware:
             await send(message)
 
         try:
-            length = dict(scope["headers"]).get(b"content-length")
+            length = headers.get(b"content-length")
             if length is not None and length.isdigit() and int(length) > self.max_body_bytes:
                 return await problem(413, self._too_large(), scope)(scope, receive, send_with_headers)
             received = 0
