@@ -6,8 +6,8 @@ from bdf import linalg
 
 @pytest.mark.parametrize(("shape", "cutoff"), [((9, 8, 5), 1e-3), ((30, 28, 3), 1e-6)])
 def test_selected_inverse_equals_the_dense_inverse_on_the_stencil(shape, cutoff):
-    """Several supernodes, thin and wide, on a random positive definite band; the second
-    lattice is cut by the nested dissection (more than 2,000 hinges)."""
+    """Several supernodes, thin and wide, on a random positive definite band, in the nested
+    dissection's order."""
     stencil = linalg.stencil(shape, (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), cutoff)
     rng = np.random.default_rng(3)
     band = rng.uniform(-1.0, 1.0, (len(stencil.offsets), stencil.size))
