@@ -31,6 +31,7 @@ def cross_validate(
     seed=0,
     noise_spacing=None,
     noise_prior=0.1,
+    cutoff=features.DEFAULT_CUTOFF,
 ):
     """Pick ``(spacing, gamma)`` from ``candidates`` by K-fold cross-validation.
 
@@ -50,6 +51,8 @@ def cross_validate(
         What to minimise (averaged over the three components).
     noise_spacing, noise_prior
         Local noise for every candidate, as in :class:`bdf.BayesianDynamicField`.
+    cutoff : float
+        The kernel cutoff of every candidate (:mod:`bdf.features`; looser is faster).
 
     Returns
     -------
@@ -80,7 +83,9 @@ def cross_validate(
         grid = HingeGrid(lower, upper, spacing)
         gamma_v = np.broadcast_to(np.asarray(gamma, float), (3,)).copy()
         parts = [
-            Evidence.from_points(grid, gamma_v, X[f], V[f], None, weight[f], noise_lattice=lattice)
+            Evidence.from_points(
+                grid, gamma_v, X[f], V[f], None, weight[f], cutoff=cutoff, noise_lattice=lattice
+            )
             for f in (fold == k for k in range(n_splits))
         ]
         total = parts[0]
@@ -95,7 +100,7 @@ def cross_validate(
                 total - parts[k],
                 alpha,
                 beta,
-                features.DEFAULT_CUTOFF,
+                cutoff,
                 lattice,
                 noise_prior,
             )
@@ -107,6 +112,7 @@ def cross_validate(
             "spacing": np.broadcast_to(spacing, (3,)).tolist(),
             "gamma": gamma_v.tolist(),
             "hinges": grid.size,
+            "cutoff": cutoff,
             "rmse": float(np.mean(rmses)),
             "msll": float(np.mean(mslls)),
         }
