@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bdf.features import DEFAULT_CUTOFF
 from bdf.frames import ENUFrame
 
 log = logging.getLogger(__name__)
@@ -233,16 +234,33 @@ PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
 #: bench's training flights (bench/RESULTS.md): within 0.005 of the best CV MSLL, with a
 #: quarter of the best lattice's points.
 PARIS_NOISE_SPACING_M = np.array([1000.0, 1000.0, 125.0])
+#: The demo region's lattice and kernel: the best CV MSLL of the lattices at most 2 km
+#: apart horizontally (weighted, flight-grouped CV on the bench's training flights,
+#: `bench/bench_lattice.py` in bench/RESULTS.md: -0.558 against -0.433 for the core lattice),
+#: at the kernel cutoff 1e-9 (means within about 1e-6 of the climatology std of 1e-12's).
+PARIS_REGION_SPACING_M = np.array([2000.0, 2000.0, 500.0])
+PARIS_REGION_GAMMA = 2.0 / PARIS_REGION_SPACING_M**2
+PARIS_REGION_CUTOFF = 1e-9
 
 
-def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris", directions: int = 1):
+def paris_region(
+    lower,
+    upper,
+    spacing=PARIS_SPACING_M,
+    gamma=None,
+    *,
+    name: str = "paris",
+    directions: int = 1,
+    cutoff: float = DEFAULT_CUTOFF,
+):
     """The region of :func:`load_paris`'s box: one field, stored in 10 km tiles over the
-    whole altitude band, gamma = 1 / spacing^2, on the sample's origin, with ``directions``
-    heading sectors."""
+    whole altitude band, gamma = 1 / spacing^2 unless given, on the sample's origin, with
+    ``directions`` heading sectors."""
     from bdf.tiles import RegionSpec
 
     frame = sample_origin("paris")
     lower, upper, spacing = np.asarray(lower, float), np.asarray(upper, float), np.asarray(spacing, float)
+    gamma = 1.0 / spacing**2 if gamma is None else np.asarray(gamma, float)
     return RegionSpec.model_validate(
         {
             "name": name,
@@ -252,8 +270,9 @@ def paris_region(lower, upper, spacing=PARIS_SPACING_M, name: str = "paris", dir
             "bounds_m": {"min": (lower - [0, 0, 1000]).tolist(), "max": upper.tolist()},
             "tile_size_m": [10_000.0, 10_000.0, float(upper[2] - lower[2] + 1000)],
             "spacing_m": spacing.tolist(),
-            "gamma": (1.0 / spacing**2).tolist(),
+            "gamma": gamma.tolist(),
             "directions": directions,
+            "cutoff": cutoff,
         }
     )
 

@@ -50,6 +50,7 @@ class Posterior:
         cutoff,
         noise_lattice=None,
         noise_prior=None,
+        start=None,
     ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
@@ -64,6 +65,7 @@ class Posterior:
             evidence.count,
             alpha,
             beta,
+            start,
         )
         self.log_evidence = np.array(
             [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
@@ -210,8 +212,9 @@ class Mixture:
         rest = (cutoff, noise_lattice, noise_prior)
         total = evidence.total()
         self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest)
+        start = float(np.mean(self.total.alpha / self.total.beta))  # each mode's search starts there
         self.modes = [
-            Posterior(grid, gamma, e, alphas[1 + c], betas[1 + c], *rest)
+            Posterior(grid, gamma, e, alphas[1 + c], betas[1 + c], *rest, start=start)
             for c, e in enumerate(evidence.classes)
         ]
         self.fitted = self.total.fitted

@@ -80,8 +80,7 @@ def seam_ratio(values: np.ndarray, axes, spec) -> float:
 
 def paris(spacing, cutoff, directions=1) -> RegionSpec:
     _, lower, upper = ingest.load_paris()
-    spec = ingest.paris_region(lower, upper, spacing, directions=directions)
-    return RegionSpec.model_validate({**spec.model_dump(), "cutoff": cutoff})
+    return ingest.paris_region(lower, upper, spacing, directions=directions, cutoff=cutoff)
 
 
 def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
