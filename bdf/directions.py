@@ -21,6 +21,10 @@ import numpy as np
 
 #: Largest number of heading sectors.
 MAX_DIRECTIONS = 16
+#: A mode carrying less of the traffic than this is not a flow: tubes, pictures and the
+#: planner ignore it (a near-empty class can look certain, e.g. the slow class fitted as
+#: constant where it has no data).
+MIN_SHARE = 0.05
 
 
 @dataclass(frozen=True)

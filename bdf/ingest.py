@@ -234,12 +234,15 @@ PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
 #: bench's training flights (bench/RESULTS.md): within 0.005 of the best CV MSLL, with a
 #: quarter of the best lattice's points.
 PARIS_NOISE_SPACING_M = np.array([1000.0, 1000.0, 125.0])
-#: The demo region's lattice and kernel: the best CV MSLL of the lattices at most 2 km
-#: apart horizontally (weighted, flight-grouped CV on the bench's training flights,
-#: `bench/bench_lattice.py` in bench/RESULTS.md: -0.558 against -0.433 for the core lattice),
-#: at the kernel cutoff 1e-9 (means within about 1e-6 of the climatology std of 1e-12's).
-PARIS_REGION_SPACING_M = np.array([2000.0, 2000.0, 500.0])
-PARIS_REGION_GAMMA = 2.0 / PARIS_REGION_SPACING_M**2
+#: The demo region's lattice: weighted, flight-grouped CV on the bench's training flights
+#: (`bench/bench_lattice.py`, bench/RESULTS.md) of lattices at most 2 km apart
+#: horizontally, gamma = 1 / spacing^2 (twice that ripples the prior std by about 40 %
+#: between hinges). 2 km x 2 km x 1 km: CV MSLL -0.476 against -0.433 for the core
+#: lattice; 2 km x 2 km x 500 m scores -0.503 but its 8-sector fit takes about 11 minutes
+#: on 2 cores, too long for the demo. At the kernel cutoff 1e-9 (means within about 1e-6
+#: of the climatology std of 1e-12's).
+PARIS_REGION_SPACING_M = np.array([2000.0, 2000.0, 1000.0])
+PARIS_REGION_GAMMA = 1.0 / PARIS_REGION_SPACING_M**2
 PARIS_REGION_CUTOFF = 1e-9
 
 
@@ -274,6 +277,18 @@ def paris_region(
             "directions": directions,
             "cutoff": cutoff,
         }
+    )
+
+
+def paris_demo_region(lower, upper, directions: int = 1):
+    """The demo's region: :func:`paris_region` on the CV-picked lattice, kernel and cutoff."""
+    return paris_region(
+        lower,
+        upper,
+        PARIS_REGION_SPACING_M,
+        PARIS_REGION_GAMMA,
+        directions=directions,
+        cutoff=PARIS_REGION_CUTOFF,
     )
 
 

@@ -5,8 +5,8 @@
         [--directions 1,8] [--no-append]
 
 A real ``bdf serve`` (``--workers`` uvicorn workers, SQLite unless --postgres) holds the
-demo's Paris map (core grid, flight split, fitted over HTTP as one Arrow body), with one
-class and with the demo's 8 heading sectors:
+demo's Paris map (its lattice, ``bdf.ingest.paris_demo_region``; flight split, fitted over
+HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
 
 * queries: ``wrk`` (a C load generator: microseconds of CPU per request, so the server's
   cost is what is measured) POSTs the same 1,000 test points with 1, 4, 16 and 64
@@ -46,7 +46,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import (  # bench/ is on the path as a script
-    GRIDS,
     arguments,
     postgres_schema,
     publish,
@@ -318,13 +317,15 @@ def main():
         "",
         f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
         f"{os.cpu_count()} cores; {args.workers} uvicorn workers with {args.threads} compute threads "
-        "each; wrk (1 thread) on the same machine. The demo's Paris map (core grid), fitted over HTTP "
+        "each; wrk (1 thread) on the same machine. The demo's Paris map (its lattice: "
+        f"{ingest.PARIS_REGION_SPACING_M.tolist()} m, gamma 2/spacing^2, cutoff "
+        f"{ingest.PARIS_REGION_CUTOFF:g}), fitted over HTTP "
         f"from {int((~test).sum())} rows in one Arrow body. Targets (issue 20): 16 connections, Arrow, "
         "p50 < 20 ms and < 2.5 ms of server CPU per request; 1 connection p50 < 4 ms; grid < 100 ms warm.",
     ]
     backends = ["SQLite", "PostgreSQL"] if args.postgres else ["SQLite"]
     for directions in (int(d) for d in args.directions.split(",")):
-        spec = ingest.paris_region(lower, upper, GRIDS["core grid"], directions=directions)
+        spec = ingest.paris_demo_region(lower, upper, directions=directions)
         for name in backends:
             env = {
                 "BDF_LOG_LEVEL": "warning",

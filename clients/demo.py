@@ -43,14 +43,7 @@ def run(out: Path, plan_time_s: float = 5.0, url: str | None = None, token: str 
     out.mkdir(parents=True, exist_ok=True)
     obs, lower, upper = ingest.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
-    spec = ingest.paris_region(
-        lower,
-        upper,
-        ingest.PARIS_REGION_SPACING_M,
-        ingest.PARIS_REGION_GAMMA,
-        directions=DIRECTIONS,
-        cutoff=ingest.PARIS_REGION_CUTOFF,
-    )
+    spec = ingest.paris_demo_region(lower, upper, directions=DIRECTIONS)
     report: dict[str, object] = {}
     svc = None
     with contextlib.ExitStack() as stack:

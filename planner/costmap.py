@@ -40,7 +40,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import erfc
 
-from bdf.directions import Sectors
+from bdf.directions import MIN_SHARE, Sectors
 
 #: Where no tile has data, the std is at least this many tube bounds.
 UNKNOWN_STD_RATIO = 10.0
@@ -144,11 +144,13 @@ class CostMap:
         classes = class_curvature = None
         if self.modes is not None:
             per_class = self._class_fields(shape, known)  # (nx, ny, nz, C, 7)
-            # a state is in the tube when some class's mode is: its fields are the least s's
-            best = np.argmin(per_class[..., S], axis=-1)[..., None, None]
-            table[..., : CONFIDENCE + 1] = np.take_along_axis(per_class, best, axis=-2)[
-                ..., 0, : CONFIDENCE + 1
-            ]
+            # a state is in the tube when some class's mode with at least MIN_SHARE of the
+            # traffic is: its fields are the least s's (the mixture's where no class has)
+            s = np.where(per_class[..., SHARE] >= MIN_SHARE, per_class[..., S], np.inf)
+            best = np.argmin(s, axis=-1)[..., None, None]
+            chosen = np.take_along_axis(per_class, best, axis=-2)[..., 0, : CONFIDENCE + 1]
+            flowing = np.isfinite(s).any(axis=-1)[..., None]
+            table[..., : CONFIDENCE + 1] = np.where(flowing, chosen, table[..., : CONFIDENCE + 1])
             classes = per_class.reshape(-1, per_class.shape[-2] * per_class.shape[-1])
             class_curvature = np.stack(
                 [_cell_curvature(per_class[..., c, S]) for c in range(per_class.shape[-2])], axis=-2

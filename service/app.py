@@ -22,6 +22,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 from starlette.concurrency import run_in_threadpool
 
+from bdf import directions
 from bdf.tiles import RegionSpec, key_str
 from service import formats, problems, slices
 from service.auth import PUBLIC, require
@@ -248,16 +249,17 @@ async def post_observations(name: RegionName, request: Request, idempotency_key:
     app = request.app
 
     def work():
-        obs = _observations(app, name, body, request.headers.get("content-type"))
+        _, obs = _observations(app, name, body, request.headers.get("content-type"))
         return _apply(app, name, upload_id, obs)
 
     return await run_in_threadpool(work)
 
 
-def _observations(app, name: str, body: bytes, content_type: str | None) -> formats.Observations:
+def _observations(app, name: str, body: bytes, content_type: str | None):
+    """The region's spec and the body's observations, checked against it."""
     spec = app.state.maps.store.region(name).spec
     settings: Settings = app.state.settings
-    return formats.read_observations(spec, body, formats.media_type(content_type), settings.max_points)
+    return spec, formats.read_observations(spec, body, formats.media_type(content_type), settings.max_points)
 
 
 def _apply(app, name: str, upload_id: str, obs: formats.Observations, **kw) -> dict:
@@ -290,12 +292,14 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
     upload_id = _upload_id(idempotency_key)
     body = await request.body()
     app = request.app
-    obs = await run_in_threadpool(_observations, app, name, body, request.headers.get("content-type"))
+    spec, obs = await run_in_threadpool(_observations, app, name, body, request.headers.get("content-type"))
 
     def fit(progress=None):
         return _apply(app, name, upload_id, obs, replace=True, progress=progress)
 
-    if len(obs.X) <= app.state.settings.fit_job_points:
+    settings: Settings = app.state.settings
+    classes = spec.directions + 1 if spec.directions > 1 else 1
+    if len(obs.X) <= settings.fit_job_points and spec.grid.size * classes <= settings.fit_job_hinges:
         return await run_in_threadpool(fit)
     job = app.state.jobs.submit(name, upload_id, fit)
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
@@ -489,7 +493,9 @@ def tubes(
             "north, clockwise) and where its share is at least min_share",
         ),
     ] = None,
-    min_share: Annotated[float, Query(ge=0, le=1, description="with heading_deg: the least share")] = 0.05,
+    min_share: Annotated[
+        float, Query(ge=0, le=1, description="with heading_deg: the least share")
+    ] = directions.MIN_SHARE,
 ):
     """The voxels whose predictive std is below ``max_std_mps`` (all components, or one),
     where data lies within the kernel's reach, with their mean velocity: GeoJSON points (lon, lat, alt),
@@ -562,7 +568,9 @@ def slice_png(
     bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax in region ENU metres")] = None,
     step: Annotated[float | None, Query(gt=0, description="horizontal cell size, metres")] = None,
     min_version: MinVersion = 0,
-    min_share: Annotated[float, Query(ge=0, le=1, description="layer=modes: the least share drawn")] = 0.05,
+    min_share: Annotated[
+        float, Query(ge=0, le=1, description="layer=modes: the least share drawn")
+    ] = directions.MIN_SHARE,
 ):
     """A PNG of one horizontal slice with its colour scale and units (the viewer's image).
     ``modes`` draws each traffic class's arrows, ``share`` the largest class's share."""

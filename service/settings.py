@@ -48,6 +48,12 @@ class Settings(BaseSettings):
     max_grid_voxels: int = Field(4_000_000, ge=1, description="voxels per grid or tube request")
     max_json_voxels: int = Field(20_000, ge=1, description="voxels a JSON grid may hold (binary above)")
     fit_job_points: int = Field(100_000, ge=0, description="fits with more rows run as background jobs")
+    fit_job_hinges: int = Field(
+        20_000,
+        ge=0,
+        description="fits of regions with more hinges x traffic classes run as background jobs "
+        "(their evidence search takes minutes whatever the rows)",
+    )
     cors_origins: list[str] = Field(
         default_factory=list, description="origins whose browser pages may call the API (none: CORS off)"
     )

@@ -13,6 +13,7 @@ import numpy as np
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
+from bdf.directions import MIN_SHARE
 from bdf.grid import axis_counts
 
 Layer = Literal["mean", "std", "tube", "modes", "share"]
@@ -64,7 +65,7 @@ def render_slice(
     title: str,
     share: np.ndarray | None = None,
     mode_mean: np.ndarray | None = None,
-    min_share: float = 0.05,
+    min_share: float = MIN_SHARE,
 ) -> bytes:
     """PNG of one slice. ``mean``, ``std``: (nx, ny, 3) m/s; ``known``: (nx, ny);
     ``share`` (nx, ny, C) and ``mode_mean`` (nx, ny, C, 3): each traffic class's.

@@ -259,3 +259,28 @@ def test_a_directional_map_of_one_class_is_the_plain_map():
             w,
             modes=Modes(np.ones((2, 2, 2, 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
         )
+
+
+def test_a_class_without_traffic_does_not_open_the_tube():
+    """The slow class fitted as constant looks certain everywhere (std 1 mm/s) where it has
+    no share: below MIN_SHARE it must not count, so the tube is the lanes' alone."""
+    mix_mean, mix_std, modes = lanes()
+    w = CostWeights(max_std_mps=2.0, cruise_mps=20.0, conflict=1.0)
+    std = modes.std.copy()
+    std[mesh()[..., 0] > 500, :-1, :] = 8.0  # east of x = 500 m the lanes are unknown
+    modes = Modes(modes.share, modes.mean, std.copy(), modes.sectors)
+    lanes_only = CostMap(AXES, mix_mean, mix_std, w, modes=modes)
+    std[..., -1, :] = 0.001  # the slow class: certain, and no traffic in it
+    share = modes.share.copy()
+    share[..., -1] = 0.04
+    share[..., :-1] *= 0.96
+    empty_slow = CostMap(AXES, mix_mean, mix_std, w, modes=Modes(share, modes.mean, std, modes.sectors))
+    P = random_points(200, seed=5)
+    states = empty_slow.segments_in_tube(P, P)  # a state (no length): in the tube if any flow is
+    np.testing.assert_array_equal(states, lanes_only.segments_in_tube(P, P))
+    assert 0 < states.sum() < len(P)
+    np.testing.assert_allclose(empty_slow.fields(P)[:, :3], lanes_only.fields(P)[:, :3], rtol=1e-12)
+    share[..., -1] = 1.0  # with all the traffic it is a flow like any other
+    share[..., :-1] = 0.0
+    slow = CostMap(AXES, mix_mean, mix_std, w, modes=Modes(share, modes.mean, std, modes.sectors))
+    assert (slow.fields(P)[:, 0] < 0.01).all()

@@ -405,6 +405,23 @@ def test_small_fit_replaces_and_large_fit_runs_as_a_job(live_server):
         assert c.get("/v1/jobs/" + "0" * 32).status_code == 404
 
 
+def test_a_fit_of_a_large_region_runs_as_a_job_whatever_its_rows(live_server):
+    spec = RegionSpec.model_validate(SPEC)
+    server = live_server(env={"BDF_FIT_JOB_HINGES": str(spec.grid.size - 1)})
+    X, V = data(4, n=50)
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        c.post("/v1/regions", json=SPEC)
+        body = {"points": X.tolist(), "velocities": V.tolist()}
+        r = c.post(f"/v1/regions/{NAME}/fit", json=body, headers={"Idempotency-Key": "big"})
+        assert r.status_code == 202, r.text
+        for _ in range(600):
+            job = c.get(r.headers["location"]).json()
+            if job["state"] in ("succeeded", "failed"):
+                break
+            time.sleep(0.05)
+        assert job["state"] == "succeeded" and job["result"]["accepted"] == 50
+
+
 def test_limits_and_errors_are_problem_json(live_server):
     server = live_server(
         env={
