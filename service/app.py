@@ -298,8 +298,8 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
         return _apply(app, name, upload_id, obs, replace=True, progress=progress)
 
     settings: Settings = app.state.settings
-    classes = spec.directions + 1 if spec.directions > 1 else 1
-    if len(obs.X) <= settings.fit_job_points and spec.grid.size * classes <= settings.fit_job_hinges:
+    search = spec.grid.size * spec.sectors.classes  # a fit's cost grows with it, whatever the rows
+    if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
         return await run_in_threadpool(fit)
     job = app.state.jobs.submit(name, upload_id, fit)
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
