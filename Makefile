@@ -54,6 +54,7 @@ demo: install
 bench: install wrk
 	$(PY) bench/bench_core.py
 	$(PY) bench/bench_tiles.py
+	$(PY) bench/bench_lattice.py
 	$(PY) bench/bench_service.py
 	$(PY) bench/bench_planner.py
 	$(PY) bench/bench_build.py
