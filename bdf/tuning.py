@@ -100,8 +100,7 @@ def _at_ratios(stencil, band, proj, v_sq, lams) -> list[Solution]:
 def _search(cost, start) -> int:
     """Minimise ``cost(log_lam)`` by Brent's bounded method over :data:`LOG_RANGE`, or, with
     a ``start``, first over a window around it, moved outwards while the optimum sits at
-    its edge (the modes of a directional map from their map's ratio: 74 factorisations
-    instead of 80 for 8 sectors on the Paris core lattice).
+    its edge (the modes of a directional map start from their map's ratio).
     Returns the number of evaluations."""
     options = {"xatol": LOG_TOLERANCE}
     if start is None:

@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bdf import BayesianDynamicField, crossval, ingest, metrics
+from bdf import BayesianDynamicField, crossval, features, ingest, metrics
 from bdf.directions import Sectors
 from bdf.ingest import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M
 from bdf.stats import Evidence, SectorEvidence
@@ -278,14 +278,16 @@ def microscopic(repeat=200):
     return 1e3 * np.median(mean_only), 1e3 * np.median(with_std)
 
 
-def weighted_cv(obs: ingest.Observations, lower, upper) -> list[dict]:
+def weighted_cv(
+    obs: ingest.Observations, lower, upper, spacings=CV_SPACINGS_M, cutoff=features.DEFAULT_CUTOFF
+) -> list[dict]:
     """Flight-grouped 5-fold CV (MSLL) of grids and gammas with track weights, on ``obs``.
 
     Track weights depend on the grid, so each spacing is one :func:`crossval.cross_validate`
     call with its own weights; gamma is 1 or 2 times 1 / spacing^2.
     """
     rows = []
-    for spacing in CV_SPACINGS_M:
+    for spacing in spacings:
         weight = ingest.track_weights(obs, spacing)
         t0 = time.perf_counter()
         _, found = crossval.cross_validate(
@@ -296,6 +298,7 @@ def weighted_cv(obs: ingest.Observations, lower, upper) -> list[dict]:
             [(spacing, scale / spacing**2) for scale in (1.0, 2.0)],
             groups=obs.flight,
             sample_weight=weight,
+            cutoff=cutoff,
         )
         seconds = (time.perf_counter() - t0) / len(found)
         rows += [
