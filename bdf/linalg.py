@@ -8,12 +8,16 @@ the half of the offsets that is lexicographically >= 0 (the other half by symmet
 zeros where ``m + o_k`` leaves the lattice.
 
 A band is factored by CHOLMOD (scikit-sparse; supernodal, BLAS) in a geometric nested
-dissection of the lattice (:func:`dissection`: less fill than METIS, in a tenth of its time),
-after one symbolic analysis per pattern; the factor gives the log-determinant (evidence)
-and the solves (posterior mean). The variance density needs the posterior covariance
-only on the stencil's pairs, which lie in the factor's pattern: :func:`_selected_inverse`
-computes the inverse on that pattern by the Takahashi recursions, supernode by supernode
-(column-major dense blocks with BLAS and LAPACK, gathers compiled with numba).
+dissection of the lattice (:func:`dissection`: less fill than METIS, in a tenth of its time);
+the factor gives the log-determinant (evidence) and the solves (posterior mean). Only the
+hinges the data touch are factored (:class:`Support`): a hinge whose Gram diagonal is zero
+has a zero row (``G`` is positive semi-definite), so ``G + shift I`` is ``shift`` there, apart
+from the rest. Sparse traffic on a large lattice, and each heading sector of a directional
+map, touch a fraction of the hinges: the factor's work falls roughly with its cube.
+The variance density needs the posterior covariance only on the stencil's pairs, which
+lie in the factor's pattern: :func:`_selected_inverse` computes the inverse on that pattern
+by the Takahashi recursions, supernode by supernode (column-major dense blocks with BLAS
+and LAPACK, gathers compiled with numba).
 """
 
 from __future__ import annotations
@@ -43,8 +47,11 @@ def stencil(shape: tuple[int, int, int], step: tuple, gamma: tuple, cutoff: floa
 
 class Stencil:
     """Offsets ``o`` (hinge steps) with ``c(o) >= cutoff``: the half kept in bands
-    (``offsets``, lexicographically >= 0, zero first) and the CSC pattern they give, in a
-    nested-dissection order of the lattice (:func:`dissection`)."""
+    (``offsets``, lexicographically >= 0, zero first), and a nested-dissection order of the
+    lattice (:func:`dissection`)."""
+
+    #: Supports kept per stencil (the classes of a map, searched one after another).
+    SUPPORTS = 2
 
     def __init__(self, shape, step, gamma, cutoff):
         self.shape = tuple(shape)
@@ -59,10 +66,8 @@ class Stencil:
         self.offsets = o[np.lexsort((o[:, 2], o[:, 1], o[:, 0]))]
         self.factor = np.exp(-(self.offsets**2 @ steps))  # c(o)
         self._lock = threading.RLock()  # the lazy parts build on one another
-        self._pattern = None
         self._order = None
-        self._symbolic = None
-        self._layout = None
+        self._supports: dict[bytes, Support] = {}
 
     @property
     def size(self) -> int:
@@ -94,60 +99,80 @@ class Stencil:
                 self._order = dissection(self.shape, self.reach)
             return self._order
 
-    def pattern(self):
-        """``(csc_template, source)``: the lower triangle of the pattern as CSC in
-        :attr:`order` (all CHOLMOD reads of a symmetric matrix) and, per stored entry, its
-        index into a flattened band (``k * M + m``)."""
+    def support(self, active: np.ndarray) -> Support:
+        """The :class:`Support` of the hinges ``active`` (M,) bool; the last
+        :attr:`SUPPORTS` are kept (a search factors one support many times)."""
+        key = np.packbits(active).tobytes()
         order = self.order
         with self._lock:
-            if self._pattern is None:
-                rank = np.empty(self.size, np.int64)
-                rank[order] = np.arange(self.size)
-                indptr, rows, source = _lower_pattern(np.array(self.shape), self.offsets, rank)
-                M = self.size
-                template = sp.csc_matrix((np.ones(len(rows)), rows, indptr), shape=(M, M))
-                self._pattern = template, source
-            return self._pattern
+            found = self._supports.pop(key, None) or Support(self, active, order)
+            self._supports[key] = found  # the most recent last
+            while len(self._supports) > self.SUPPORTS:
+                self._supports.pop(next(iter(self._supports)))
+            return found
+
+    def factor_of(self, band: np.ndarray, shift: float) -> Factor:
+        """The factor of ``band + shift I`` on the hinges the band touches (nonzero diagonal)."""
+        return self.support(np.asarray(band[0]) != 0).factor_of(band, shift)
+
+
+class Support:
+    """The hinges a band touches (``active``) and what their factorisation needs: the lower
+    triangle of their pattern as CSC in the stencil's order restricted to them, and CHOLMOD's
+    symbolic analysis of it (done once). The other hinges are decoupled: ``shift`` alone."""
+
+    def __init__(self, stencil: Stencil, active: np.ndarray, order: np.ndarray):
+        self.stencil, self.active = stencil, np.asarray(active, bool)
+        self.order = order[self.active[order]]  # active hinges, in the dissection's order
+        rank = np.full(stencil.size, -1, np.int64)
+        rank[self.order] = np.arange(len(self.order))
+        indptr, rows, source = _lower_pattern(np.array(stencil.shape), stencil.offsets, rank)
+        n = len(self.order)
+        self._template = sp.csc_matrix((np.ones(len(rows)), rows, indptr), shape=(n, n))
+        self._source = source
+        self._symbolic = analyze(self._template, mode="supernodal", ordering_method="natural") if n else None
+        self._lock = threading.Lock()
+        self._layout = None
 
     def matrix(self, band: np.ndarray) -> sp.csc_matrix:
-        """The lower triangle of the symmetric matrix of ``band`` (len(offsets), M), rows and
-        columns in :attr:`order`."""
-        template, src = self.pattern()
-        out = template.copy()
-        out.data = np.asarray(band).ravel()[src]
+        """The lower triangle of ``band``'s matrix on the active hinges, in :attr:`order`."""
+        out = self._template.copy()
+        out.data = np.asarray(band).ravel()[self._source]
         return out
 
     def factor_of(self, band: np.ndarray, shift: float) -> Factor:
-        """CHOLMOD's factor of ``matrix(band) + shift I``; the analysis (the pattern of the
-        factor; the fill-reducing order is :attr:`order`) is done once per stencil."""
-        A = self.matrix(band)
-        with self._lock:
-            if self._symbolic is None:
-                self._symbolic = analyze(A, mode="supernodal", ordering_method="natural")
-            symbolic = self._symbolic
+        """CHOLMOD's factor of ``matrix(band) + shift I`` (with ``shift`` on the rest)."""
+        if self._symbolic is None:
+            return Factor(self, None, shift)
         try:
-            numeric = symbolic.cholesky(A, beta=shift)
+            numeric = self._symbolic.cholesky(self.matrix(band), beta=shift)
         except CholmodNotPositiveDefiniteError as exc:
             raise NotPositiveDefinite(str(exc)) from None
-        return Factor(self, numeric)
+        return Factor(self, numeric, shift)
 
 
 class Factor:
-    """One numeric factorisation ``P (A + shift I) P^T = L L^T`` (``A`` in the stencil's
-    order; CHOLMOD's ``P`` only postorders it)."""
+    """One numeric factorisation ``P (A + shift I) P^T = L L^T`` of a support's matrix ``A``
+    (in its order; CHOLMOD's ``P`` only postorders it); ``shift`` alone on the other hinges."""
 
-    def __init__(self, stencil: Stencil, numeric):
-        self.stencil, self._numeric = stencil, numeric
+    def __init__(self, support: Support, numeric, shift: float):
+        self.support, self._numeric, self.shift = support, numeric, float(shift)
         self._lower = None
 
+    @property
+    def stencil(self) -> Stencil:
+        return self.support.stencil
+
     def logdet(self) -> float:
-        return float(self._numeric.logdet())
+        idle = (self.stencil.size - len(self.support.order)) * np.log(self.shift)
+        return idle + (float(self._numeric.logdet()) if self._numeric is not None else 0.0)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``(A + shift I)^-1 b`` for ``b`` (M, ...) in the lattice's flat order."""
-        order = self.stencil.order
-        x = np.empty_like(b, dtype=float)
-        x[order] = self._numeric.solve_A(b[order])
+        x = np.asarray(b, float) / self.shift
+        if self._numeric is not None:
+            order = self.support.order
+            x[order] = self._numeric.solve_A(b[order])
         return x
 
     def lower(self) -> sp.csc_matrix:
@@ -160,7 +185,7 @@ class Factor:
     @property
     def nnz(self) -> int:
         """Entries of L (what the factorisation and the selected inversion work on)."""
-        return int(self.lower().nnz)
+        return int(self.lower().nnz) if self._numeric is not None else 0
 
     @property
     def madds(self) -> float:
@@ -180,39 +205,39 @@ class Factor:
         return float(np.sum(r * r * w + w * w * r + w**3 / 3 + r * w * w / 2))
 
     def inverse_band(self) -> np.ndarray:
-        """The inverse on the stencil, as a band (len(offsets), M): selected inversion."""
-        L = self.lower()
-        layout = self._layout()
-        blocks = _selected_inverse(L.indptr, L.indices, L.data, *layout[:3])
-        band = np.zeros(len(self.stencil.offsets) * self.stencil.size)
-        band[layout.where] = blocks[layout.source]
-        return band.reshape(len(self.stencil.offsets), self.stencil.size)
+        """The inverse on the stencil, as a band (len(offsets), M): selected inversion on the
+        active hinges, ``1 / shift`` on the diagonal of the others."""
+        st = self.stencil
+        band = np.zeros(len(st.offsets) * st.size)
+        band[: st.size] = 1.0 / self.shift
+        if self._numeric is not None:
+            L = self.lower()
+            layout = self._layout()
+            blocks = _selected_inverse(L.indptr, L.indices, L.data, *layout[:3])
+            band[layout.where] = blocks[layout.source]
+        return band.reshape(len(st.offsets), st.size)
 
     def _layout(self) -> _Layout:
-        """The supernodes of L and where each stencil pair sits in their blocks. Every factor
-        of one analysis has the same ordering and pattern, so this is computed once per
-        stencil."""
-        st = self.stencil
-        with st._lock:
-            if st._layout is None:
+        """The supernodes of L and where each entry of the support's matrix (a stencil pair
+        of active hinges) sits in their blocks. Every factor of one support has the same
+        pattern, so this is computed once per support."""
+        support = self.support
+        with support._lock:
+            if support._layout is None:
                 L = self.lower()
                 starts = _supernodes(L.indptr, L.indices)
                 heights = L.indptr[starts[:-1] + 1] - L.indptr[starts[:-1]]
                 offsets = np.concatenate([[0], np.cumsum(heights * np.diff(starts))])
                 column_node = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
-                inverse_perm = np.empty(st.size, np.int64)  # hinge -> column of L
-                inverse_perm[st.order[self._numeric.P()]] = np.arange(st.size)
-                where, source = [], []
-                for k in range(len(st.offsets)):
-                    m, partner = st.pairs(k)
-                    a, b = inverse_perm[m], inverse_perm[partner]
-                    row, col = np.maximum(a, b), np.minimum(a, b)
-                    where.append(k * st.size + m)
-                    found = _block_positions(L.indptr, L.indices, starts, offsets, column_node, row, col)
-                    source.append(found)
-                where, source = np.concatenate(where), np.concatenate(source)
-                st._layout = _Layout(starts, offsets, column_node, where, source)
-            return st._layout
+                column = np.empty(len(support.order), np.int64)  # the matrix's -> L's
+                column[self._numeric.P()] = np.arange(len(support.order))
+                A = support._template
+                a = column[A.indices]
+                b = column[np.repeat(np.arange(A.shape[1]), np.diff(A.indptr))]
+                row, col = np.maximum(a, b), np.minimum(a, b)
+                found = _block_positions(L.indptr, L.indices, starts, offsets, column_node, row, col)
+                support._layout = _Layout(starts, offsets, column_node, support._source, found)
+            return support._layout
 
 
 class _Layout(NamedTuple):
@@ -269,27 +294,34 @@ def dissection(shape, reach) -> np.ndarray:
 @numba.njit(cache=True)
 def _lower_pattern(shape, offsets, rank):  # pragma: no cover - compiled
     """CSC ``indptr``, ``rows`` of the stencil's lower triangle with hinge ``m`` at row and
-    column ``rank[m]``, and per entry its band index: the pair (m, m + o_k) on the lattice
-    is valued ``band[k, m]``."""
+    column ``rank[m]`` (hinges ranked -1 left out), and per entry its band index: the pair
+    (m, m + o_k) on the lattice is valued ``band[k, m]``."""
     M = shape[0] * shape[1] * shape[2]
+    n = 0
+    for m in range(M):
+        n += rank[m] >= 0
     K = len(offsets)
     flat = (offsets[:, 0] * shape[1] + offsets[:, 1]) * shape[2] + offsets[:, 2]
-    counts = np.zeros(M + 1, np.int64)
+    counts = np.zeros(n + 1, np.int64)
     for step in range(2):  # count the entries per column, then place them
         if step == 1:
-            indptr = np.zeros(M + 1, np.int64)
-            indptr[1:] = np.cumsum(counts[:M])
-            fill = indptr[:M].copy()
-            rows = np.empty(indptr[M], np.int64)
-            source = np.empty(indptr[M], np.int64)
+            indptr = np.zeros(n + 1, np.int64)
+            indptr[1:] = np.cumsum(counts[:n])
+            fill = indptr[:n].copy()
+            rows = np.empty(indptr[n], np.int64)
+            source = np.empty(indptr[n], np.int64)
         for i in range(shape[0]):
             for j in range(shape[1]):
                 for l in range(shape[2]):
                     m = (i * shape[1] + j) * shape[2] + l
+                    if rank[m] < 0:
+                        continue
                     for k in range(K):
                         a, b, c = i + offsets[k, 0], j + offsets[k, 1], l + offsets[k, 2]
                         if 0 <= a < shape[0] and 0 <= b < shape[1] and 0 <= c < shape[2]:
                             p, q = rank[m], rank[m + flat[k]]
+                            if q < 0:
+                                continue
                             row, col = max(p, q), min(p, q)
                             if step == 0:
                                 counts[col] += 1
@@ -297,7 +329,7 @@ def _lower_pattern(shape, offsets, rank):  # pragma: no cover - compiled
                                 rows[fill[col]] = row
                                 source[fill[col]] = k * M + m
                                 fill[col] += 1
-    for col in range(M):  # sorted rows in every column
+    for col in range(n):  # sorted rows in every column
         lo, hi = indptr[col], indptr[col + 1]
         by_row = np.argsort(rows[lo:hi])
         rows[lo:hi] = rows[lo:hi][by_row]

@@ -4,21 +4,32 @@ import pytest
 from bdf import linalg
 
 
-@pytest.mark.parametrize(("shape", "cutoff"), [((9, 8, 5), 1e-3), ((30, 28, 3), 1e-6)])
-def test_selected_inverse_equals_the_dense_inverse_on_the_stencil(shape, cutoff):
+@pytest.mark.parametrize(
+    ("shape", "cutoff", "idle"), [((9, 8, 5), 1e-3, 0.0), ((30, 28, 3), 1e-6, 0.0), ((12, 10, 4), 1e-4, 0.4)]
+)
+def test_selected_inverse_equals_the_dense_inverse_on_the_stencil(shape, cutoff, idle):
     """Several supernodes, thin and wide, on a random positive definite band, in the nested
-    dissection's order."""
+    dissection's order; with a fraction ``idle`` of the hinges untouched by the data (zero
+    rows: factored apart), the log-determinant and a solve too."""
     stencil = linalg.stencil(shape, (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), cutoff)
     rng = np.random.default_rng(3)
     band = rng.uniform(-1.0, 1.0, (len(stencil.offsets), stencil.size))
     band[0] = 2.0 * len(stencil.offsets) + rng.uniform(0.0, 1.0, stencil.size)  # dominant diagonal
+    untouched = rng.uniform(size=stencil.size) < idle
+    for k in range(len(stencil.offsets)):  # a Gram matrix's zero rows and columns
+        m, partner = stencil.pairs(k)
+        band[k, m[untouched[m] | untouched[partner]]] = 0.0
     factor = stencil.factor_of(band, 0.5)
+    assert np.array_equal(factor.support.active, ~untouched)
     dense = 0.5 * np.eye(stencil.size)
     for k in range(len(stencil.offsets)):
         m, partner = stencil.pairs(k)
         dense[m, partner] += band[k, m]
         dense[partner, m] += band[k, m] if k else 0.0
     inverse = np.linalg.inv(dense)
+    assert factor.logdet() == pytest.approx(np.linalg.slogdet(dense)[1], rel=1e-12)
+    b = rng.standard_normal((stencil.size, 2))
+    np.testing.assert_allclose(factor.solve(b), np.linalg.solve(dense, b), rtol=1e-10, atol=1e-12)
     got = factor.inverse_band()
     for k in range(len(stencil.offsets)):
         m, partner = stencil.pairs(k)
