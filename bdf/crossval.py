@@ -8,9 +8,10 @@ import numpy as np
 
 from bdf import features, metrics, noise
 from bdf._validate import as_observations, as_positive, as_sample_weight
+from bdf.directions import Sectors
 from bdf.grid import HingeGrid
-from bdf.posterior import Posterior
-from bdf.stats import Evidence
+from bdf.posterior import Mixture, Posterior
+from bdf.stats import SectorEvidence
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +33,7 @@ def cross_validate(
     noise_spacing=None,
     noise_prior=0.1,
     cutoff=features.DEFAULT_CUTOFF,
+    directions=1,
 ):
     """Pick ``(spacing, gamma)`` from ``candidates`` by K-fold cross-validation.
 
@@ -53,6 +55,9 @@ def cross_validate(
         Local noise for every candidate, as in :class:`bdf.BayesianDynamicField`.
     cutoff : float
         The kernel cutoff of every candidate (:mod:`bdf.features`; looser is faster).
+    directions : int
+        Heading sectors of every candidate (:mod:`bdf.directions`): the MSLL is the
+        mixture's (:func:`bdf.metrics.mixture_msll`), the RMSE its mean's.
 
     Returns
     -------
@@ -68,6 +73,7 @@ def cross_validate(
     if n_splits < 2:
         raise ValueError(f"n_splits must be at least 2, got {n_splits}")
     lattice = None if noise_spacing is None else noise.noise_lattice(lower, upper, noise_spacing)
+    sectors = Sectors(int(directions))
     noise_prior = as_positive(noise_prior, "noise_prior")
     rng = np.random.default_rng(seed)
     if groups is None:
@@ -83,8 +89,16 @@ def cross_validate(
         grid = HingeGrid(lower, upper, spacing)
         gamma_v = np.broadcast_to(np.asarray(gamma, float), (3,)).copy()
         parts = [
-            Evidence.from_points(
-                grid, gamma_v, X[f], V[f], None, weight[f], cutoff=cutoff, noise_lattice=lattice
+            SectorEvidence.from_points(
+                grid,
+                gamma_v,
+                X[f],
+                V[f],
+                None,
+                weight[f],
+                sectors=sectors,
+                cutoff=cutoff,
+                noise_lattice=lattice,
             )
             for f in (fold == k for k in range(n_splits))
         ]
@@ -94,25 +108,24 @@ def cross_validate(
         rmses, mslls = [], []
         for k in range(n_splits):
             test = fold == k
-            post = Posterior(
-                grid,
-                gamma_v,
-                total - parts[k],
-                alpha,
-                beta,
-                cutoff,
-                lattice,
-                noise_prior,
-            )
-            mean, std = post.predict(X[test], return_std=True)
+            evidence, rest = total - parts[k], (alpha, beta, cutoff, lattice, noise_prior)
+            if sectors.classes == 1:
+                post = Posterior(grid, gamma_v, evidence.classes[0], *rest)
+            else:
+                post = Mixture(grid, gamma_v, evidence, *rest, sectors)
+            modes = post.predict_modes(X[test])
+            mean, _ = modes.answer(sectors)
             train = V[~test]
             rmses.append(metrics.rmse(V[test], mean))
-            mslls.append(metrics.msll(V[test], mean, std, train.mean(0), train.std(0)))
+            mslls.append(
+                metrics.mixture_msll(V[test], modes.share, modes.mean, modes.std, train.mean(0), train.std(0))
+            )
         row = {
             "spacing": np.broadcast_to(spacing, (3,)).tolist(),
             "gamma": gamma_v.tolist(),
             "hinges": grid.size,
             "cutoff": cutoff,
+            "directions": sectors.directions,
             "rmse": float(np.mean(rmses)),
             "msll": float(np.mean(mslls)),
         }

@@ -237,12 +237,10 @@ PARIS_NOISE_SPACING_M = np.array([1000.0, 1000.0, 125.0])
 #: The demo region's lattice: weighted, flight-grouped CV on the bench's training flights
 #: (`bench/bench_lattice.py`, bench/RESULTS.md) of lattices at most 2 km apart
 #: horizontally, gamma = 1 / spacing^2 (twice that ripples the prior std by about 40 %
-#: between hinges). 2 km x 2 km x 1 km: CV MSLL -0.476 against -0.433 for the core
-#: lattice; 2 km x 2 km x 500 m scores -0.503 but its 8-sector fit would take about 11
-#: minutes on 2 cores (an estimate from bench_tiles' factor and inversion times), too long
-#: for the demo. At the kernel cutoff 1e-9 (means within about 1e-6
-#: of the climatology std of 1e-12's).
-PARIS_REGION_SPACING_M = np.array([2000.0, 2000.0, 1000.0])
+#: between hinges): 2 km x 2 km x 500 m, CV MSLL -0.503 against -0.476 for 2 km x 2 km x
+#: 1 km and -0.433 for the core lattice. At the kernel cutoff 1e-9 (means within about
+#: 1e-6 of the climatology std of 1e-12's).
+PARIS_REGION_SPACING_M = np.array([2000.0, 2000.0, 500.0])
 PARIS_REGION_GAMMA = 1.0 / PARIS_REGION_SPACING_M**2
 PARIS_REGION_CUTOFF = 1e-9
 

@@ -279,12 +279,18 @@ def microscopic(repeat=200):
 
 
 def weighted_cv(
-    obs: ingest.Observations, lower, upper, spacings=CV_SPACINGS_M, cutoff=features.DEFAULT_CUTOFF
+    obs: ingest.Observations,
+    lower,
+    upper,
+    spacings=CV_SPACINGS_M,
+    cutoff=features.DEFAULT_CUTOFF,
+    scales=(1.0, 2.0),
+    directions=1,
 ) -> list[dict]:
     """Flight-grouped 5-fold CV (MSLL) of grids and gammas with track weights, on ``obs``.
 
     Track weights depend on the grid, so each spacing is one :func:`crossval.cross_validate`
-    call with its own weights; gamma is 1 or 2 times 1 / spacing^2.
+    call with its own weights; gamma is each of ``scales`` times 1 / spacing^2.
     """
     rows = []
     for spacing in spacings:
@@ -295,10 +301,11 @@ def weighted_cv(
             obs.V,
             lower,
             upper,
-            [(spacing, scale / spacing**2) for scale in (1.0, 2.0)],
+            [(spacing, scale / spacing**2) for scale in scales],
             groups=obs.flight,
             sample_weight=weight,
             cutoff=cutoff,
+            directions=directions,
         )
         seconds = (time.perf_counter() - t0) / len(found)
         rows += [

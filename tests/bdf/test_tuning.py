@@ -104,3 +104,19 @@ def test_search_derivatives_equal_finite_differences_of_the_evidence(alpha, beta
     assert curvature == pytest.approx((up_slope - down_slope) / (2 * h), rel=1e-5)
     _, (estimate, _, _) = at(x, tuning._probes(M))
     assert abs(estimate - slope) < 0.03 * M
+
+
+def test_cross_validation_of_directional_maps_scores_the_mixture():
+    """Two opposing streams over the same box: one field averages them to nothing, four
+    heading sectors keep both; the CV's MSLL sees it."""
+    rng = np.random.default_rng(4)
+    X = rng.uniform(LOWER, UPPER, (1200, 3))
+    sign = np.where(np.arange(len(X)) % 2 == 0, 1.0, -1.0)
+    V = sign[:, None] * np.array([8.0, 0.0, 0.0]) + 0.3 * rng.standard_normal(X.shape)
+    groups = np.arange(len(X)) // 40  # each "flight" mixes both streams
+    rows = {
+        S: cross_validate(X, V, LOWER, UPPER, [(2.0, 0.25)], n_splits=3, groups=groups, directions=S)[0]
+        for S in (1, 4)
+    }
+    assert rows[4]["directions"] == 4 and rows[1]["directions"] == 1
+    assert rows[4]["msll"] < rows[1]["msll"] - 0.3
