@@ -318,7 +318,8 @@ def main():
         f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
         f"{os.cpu_count()} cores; {args.workers} uvicorn workers with {args.threads} compute threads "
         "each; wrk (1 thread) on the same machine. The demo's Paris map (its lattice: "
-        f"{ingest.PARIS_REGION_SPACING_M.tolist()} m, gamma 2/spacing^2, cutoff "
+        f"{ingest.PARIS_REGION_SPACING_M.tolist()} m, gamma "
+        f"{ingest.PARIS_REGION_GAMMA[0] * ingest.PARIS_REGION_SPACING_M[0] ** 2:g}/spacing^2, cutoff "
         f"{ingest.PARIS_REGION_CUTOFF:g}), fitted over HTTP "
         f"from {int((~test).sum())} rows in one Arrow body. Targets (issue 20): 16 connections, Arrow, "
         "p50 < 20 ms and < 2.5 ms of server CPU per request; 1 connection p50 < 4 ms; grid < 100 ms warm.",
