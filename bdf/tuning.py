@@ -46,6 +46,11 @@ MAX_AUTO_BETA = 1e6
 #: The search range of ``log(lam / mean(diag G))``: any data; and its resolution (5 % in
 #: lam: the evidence is flat there).
 LOG_RANGE, LOG_TOLERANCE = (np.log(1e-10), np.log(1e4)), 0.05
+#: The search also stops where its next step would gain less evidence than this (nats, by
+#: the local quadratic): below one nat two hyperparameters are not told apart (Kass and
+#: Raftery's "not worth more than a bare mention"), and the traces' estimate is about
+#: that noisy.
+EVIDENCE_TOLERANCE = 1.0
 #: The search's step (in ln lam) where it has no better guide, and its most factorisations.
 MAX_STEP, MAX_EVALUATIONS = 4.0, 40
 #: Random sign vectors of the trace estimate (fixed: the search is deterministic).
@@ -161,7 +166,7 @@ def _search(evaluate, x: float) -> int:
     the fixed point where it is not or goes further the same way (far from the optimum,
     where the curvature changes, it is the better guess), inside the bracket the slopes
     have shown (bisecting it where a step would leave it), until a step is below
-    :data:`LOG_TOLERANCE`.
+    :data:`LOG_TOLERANCE` or Newton's step would gain less than :data:`EVIDENCE_TOLERANCE`.
     Returns the number of evaluations.
     """
     lo, hi = -np.inf, np.inf
@@ -183,7 +188,8 @@ def _search(evaluate, x: float) -> int:
         if not lo < proposal < hi:
             proposal = (lo + hi) / 2 if np.isfinite(lo + hi) else x - np.sign(slope) * MAX_STEP
         proposal = float(np.clip(proposal, *LOG_RANGE))
-        if abs(proposal - x) < LOG_TOLERANCE:
+        newton = curvature > 0 and proposal == x - slope / curvature
+        if abs(proposal - x) < LOG_TOLERANCE or (newton and slope**2 / (2 * curvature) < EVIDENCE_TOLERANCE):
             return evaluations
         x = proposal
     return MAX_EVALUATIONS
