@@ -51,7 +51,7 @@ LOG_RANGE, LOG_TOLERANCE = (np.log(1e-10), np.log(1e4)), 0.05
 #: Raftery's "not worth more than a bare mention"), and the traces' estimate is about
 #: that noisy.
 EVIDENCE_TOLERANCE = 1.0
-#: The search's step (in ln lam) where it has no better guide, and its most factorisations.
+#: The search's longest step (in ln lam), and its most factorisations.
 MAX_STEP, MAX_EVALUATIONS = 4.0, 40
 #: Random sign vectors of the trace estimate (fixed: the search is deterministic).
 PROBES, PROBE_SEED = 64, 20261123
@@ -202,7 +202,7 @@ def fit_evidence(
 
     ``band``: ``G`` on ``stencil``. ``alpha``/``beta``: "auto" or 3-vectors. Fixed values
     need no search. "auto" for alpha shares ``lam`` over the components; a fixed alpha
-    with "auto" beta searches each component on its own (up to three factorisations).
+    with "auto" beta searches each component on its own.
     ``start``: a ratio alpha / beta near the optimum, if one is known (the search starts
     there; the optimum found is the same to the search's tolerance).
     """
