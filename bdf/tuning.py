@@ -146,7 +146,8 @@ def _derivatives(sol: Solution, a, b, count, comps, tied, profiled, probes) -> t
         rise = gamma - an + b * R - count
         drise = -(c1 - c2) + 2 * lam * a * q + an - b * R
     else:
-        d_an = an - 2 * lam * a * q - np.where(profiled[comps], an * lam * n / R, 0.0)
+        moved = np.divide(an * lam * n, R, out=np.zeros_like(R), where=profiled[comps])  # beta = N / R
+        d_an = an - 2 * lam * a * q - moved
         rise = gamma - an
         drise = -(c1 - c2) - d_an
     # MacKay: alpha n = gamma_eff (alpha = lam beta), or with alpha fixed
