@@ -13,6 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 
 from service.store import (
     RegionExists,
@@ -128,6 +129,12 @@ def install(app: FastAPI) -> None:
         (UploadConflict, 409),
     ):
         on(exc_type)(lambda e, status=status: (status, str(e), None))
+
+    @on(ClientDisconnect)
+    def _gone(exc):
+        # the client's fault, and no one reads the answer: a log line, not a traceback
+        log.info("the client closed the connection before its request arrived")
+        return 400, "the client closed the connection before the request body arrived", None
 
     @on(StoreUnavailable)
     def _unavailable(exc):

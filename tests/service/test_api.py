@@ -2,6 +2,7 @@
 
 import io
 import json
+import socket
 import threading
 import time
 
@@ -617,6 +618,24 @@ def test_metrics_health_and_request_logs(client, server):
     assert len(queries) == 3 and all(
         q["status"] == 200 and q["region"] == NAME and q["ms"] > 0 for q in queries
     )
+
+
+def test_a_client_gone_mid_body_is_its_fault_logged_in_one_line(client, server):
+    """A client that closes its connection before its body arrives (a load generator
+    stopping, a timeout) is a 400 in the logs and metrics, not a 500 with a traceback."""
+    host, port = server.url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port))) as sock:
+        sock.sendall(
+            f"POST /v1/regions/{NAME}/query HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            "Content-Length: 1000\r\n\r\n{\"points\": [".encode()
+        )
+    deadline = time.monotonic() + 10
+    while '"status": 400' not in server.log() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert "closed the connection before its request arrived" in server.log()
+    assert "unhandled error" not in server.log() and "Traceback" not in server.log()
+    metric = 'bdf_http_requests_total{method="POST",route="/v1/regions/{name}/query",status="400"} 1.0'
+    assert metric in client.get("/metrics").text
 
 
 def test_graceful_shutdown_finishes_an_upload_in_flight(live_server):
