@@ -627,7 +627,7 @@ def test_a_client_gone_mid_body_is_its_fault_logged_in_one_line(client, server):
     with socket.create_connection((host, int(port))) as sock:
         sock.sendall(
             f"POST /v1/regions/{NAME}/query HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
-            "Content-Length: 1000\r\n\r\n{\"points\": [".encode()
+            'Content-Length: 1000\r\n\r\n{"points": ['.encode()
         )
     deadline = time.monotonic() + 10
     while '"status": 400' not in server.log() and time.monotonic() < deadline:
