@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from bdf import features, linalg, noise, tuning
@@ -269,13 +270,42 @@ class Mixture:
             )
         return self._tables
 
-    def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
-        weights, densities, columns = self._gather_tables()
-        C = len(self.modes)
+    def _gather(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every table at ``X``: the weights (n, 4 C: the modes' means, then the share
+        weights) and the variance densities (n, D)."""
+        weights, densities, _ = self._gather_tables()
         at = features.gather(self.grid, X, weights, self.gamma, cutoff=self.cutoff)
         var = features.gather(
             self.grid.midpoints(), X, densities, 2.0 * self.gamma, cutoff=self.cutoff, block=MIDPOINT_BLOCK
         )
+        return at, var
+
+    def _moments(self, at, var, noise_of) -> tuple[np.ndarray, np.ndarray]:
+        """The mixture's mean and variance (n, 3) from the tables gathered at n points
+        (:meth:`_gather`), without the modes' (n, C, 3) arrays (:func:`_mixture_moments`);
+        ``noise_of(mode, mean)``: a mode's local noise variance where its mean is ``mean``
+        (n, 3), or None for none."""
+        C = len(self.modes)
+        noise = [
+            np.zeros((1, 3))
+            if noise_of is None
+            else 1.0 / m.beta[None]
+            if m._moments is None
+            else noise_of(m, at[:, 3 * c : 3 * c + 3]).reshape(-1, 3)
+            for c, m in enumerate(self.modes)
+        ]
+        rows = max(len(v) for v in noise)
+        noise = np.stack([np.broadcast_to(v, (rows, 3)) for v in noise])
+        columns = np.array(self._gather_tables()[2][:C])
+        inverse_beta = 1.0 / np.stack([m.beta for m in self.modes])
+        mean, variance = np.empty((len(at), 3)), np.empty((len(at), 3))
+        _mixture_moments(at, var, self.prior_share, columns, inverse_beta, noise, mean, variance)
+        return mean, variance
+
+    def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
+        columns = self._gather_tables()[2]
+        C = len(self.modes)
+        at, var = self._gather(X)
         mean = at[:, : 3 * C].reshape(len(X), C, 3)
         std = np.empty_like(mean)
         for c, mode in enumerate(self.modes):
@@ -289,13 +319,21 @@ class Mixture:
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """The mixture's mean (n, 3), and its std if asked (moments over the modes)."""
-        mean, std = self.predict_modes(X, include_noise).answer(self.sectors)
-        return (mean, std) if return_std else mean
+        local = (lambda m, mean: m.noise_variance(X, mean)) if include_noise else None
+        mean, var = self._moments(*self._gather(X), local)
+        return (mean, np.sqrt(var)) if return_std else mean
 
     def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance on the grid ``axes`` (see :meth:`Posterior.predict_grid`)."""
-        mean, std = self.predict_grid_modes(axes, include_noise).answer(self.sectors)
-        return mean, std**2
+        weights, densities, _ = self._gather_tables()
+        at = features.gather_grid(self.grid, axes, weights, self.gamma, cutoff=self.cutoff)
+        var = features.gather_grid(
+            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
+        )
+        n = at.shape[:3]
+        local = (lambda m, mean: m.noise_variance_grid(axes, mean.reshape(*n, 3))) if include_noise else None
+        mean, var = self._moments(at.reshape(-1, at.shape[-1]), var.reshape(-1, var.shape[-1]), local)
+        return mean.reshape(*n, 3), var.reshape(*n, 3)
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """:class:`Modes` on the grid ``axes``, each array with the grid's shape first: like
@@ -332,3 +370,32 @@ class Mixture:
         if self._tables is not None:
             held += self._tables[0].nbytes + self._tables[1].nbytes
         return held
+
+
+@numba.njit(cache=True, nogil=True)
+def _mixture_moments(at, var, prior_share, columns, inverse_beta, noise, mean, variance):  # pragma: no cover
+    """:func:`bdf.directions.mixture_moments` of the modes :meth:`Mixture.predict_modes`
+    makes, point by point from the gathered tables (no (n, C, 3) temporaries: grids are
+    large): the shares (prior plus share weights ``at[:, 3C:]``, cut at 0, renormalised),
+    each mode's mean ``at[:, 3c:3c+3]`` and variance (its density column over beta, at
+    least 0, plus ``noise[c, 0 or p]``), then the mixture's mean and variance into ``mean``
+    and ``variance`` (n, 3)."""
+    C = len(prior_share)
+    share = np.empty(C)
+    for p in range(at.shape[0]):
+        total = 0.0
+        for c in range(C):
+            share[c] = max(prior_share[c] + at[p, 3 * C + c], 0.0)
+            total += share[c]
+        for c in range(C):
+            share[c] /= total
+        row = min(p, noise.shape[1] - 1)
+        for d in range(3):
+            first, second = 0.0, 0.0
+            for c in range(C):
+                mu = at[p, 3 * c + d]
+                v = max(var[p, columns[c, d]] * inverse_beta[c, d], 0.0) + noise[c, row, d]
+                first += share[c] * mu
+                second += share[c] * (v + mu * mu)
+            mean[p, d] = first
+            variance[p, d] = max(second - first * first, 0.0)

@@ -18,7 +18,7 @@ HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
 * library: the same 1,000-point query through ``RegionSpec.predict`` in this process
   (median of 50): the compute inside one request, by the compiled gather queries use and
   by the blocked numpy/BLAS reference path; the same at 10,000 and 100,000 points (where
-  the gathers switch paths), and the 100 x 100 x 30 grid.
+  the gathers switch paths), and the 100 x 100 x 30 grid (with directions, also with modes).
 
 ``make bench`` installs wrk with apt-get where it may (root); elsewhere install the
 Debian/Ubuntu package ``wrk`` (or build it from github.com/wg/wrk).
@@ -247,6 +247,15 @@ def library_rows(spec, obs, test, X) -> list[dict]:
         spec.predict_grid(axes, post, keys)
         times.append(time.perf_counter() - t0)
     rows.append({"what": "grid 100x100x30, library (no HTTP)", "p50 ms": 1e3 * float(np.median(times))})
+    if spec.directions > 1:  # what a grid request with modes computes: the modes, then their moments
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            spec.predict_grid(axes, post, keys, spec.predict_grid_modes(axes, post))
+            times.append(time.perf_counter() - t0)
+        rows.append(
+            {"what": "grid 100x100x30 with modes, library (no HTTP)", "p50 ms": 1e3 * float(np.median(times))}
+        )
     return rows
 
 

@@ -112,9 +112,10 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
         mix.predict(Q, heading_deg=np.nan)
 
 
-def test_directional_grid_equals_points(crossing):
+@pytest.mark.parametrize("local", [{}, {"noise_spacing": (5.0, 4.0, 3.0)}], ids=["global", "local noise"])
+def test_directional_grid_equals_points(crossing, local):
     X, V = crossing
-    mix = field(4).fit(X, V)
+    mix = field(4, **local).fit(X, V)
     axes = [np.linspace(0, 10, 6), np.linspace(1, 7, 4), np.linspace(0, 6, 5)]
     points = np.stack([g.ravel() for g in np.meshgrid(*axes, indexing="ij")], axis=1)
     grid, ref = mix.posterior_.predict_grid_modes(axes), mix.predict_modes(points)
@@ -125,6 +126,13 @@ def test_directional_grid_equals_points(crossing):
     ref_mean, ref_std = mix.predict(points, return_std=True)
     assert_close(mean.reshape(-1, 3), ref_mean, 1e-9, "grid mixture mean")
     assert_close(var.reshape(-1, 3), ref_std**2, 1e-9, "grid mixture variance")
+    # the compiled moments are those of the modes
+    moments = mixture_moments(ref.share, ref.mean, ref.std)
+    assert_close(ref_mean, moments[0], 1e-12, "mixture mean")
+    assert_close(ref_std, moments[1], 1e-12, "mixture std")
+    epistemic = mix.predict_modes(points, include_noise=False)
+    moments = mixture_moments(epistemic.share, epistemic.mean, epistemic.std)
+    assert_close(mix.posterior_.predict(points, True, include_noise=False)[1], moments[1], 1e-12, "epistemic")
 
 
 def test_partial_fit_forgetting_and_save_load_per_sector(tmp_path, crossing):
