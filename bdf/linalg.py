@@ -54,6 +54,7 @@ class Stencil:
     SUPPORTS = 2
 
     def __init__(self, shape, step, gamma, cutoff):
+        self._key = (tuple(shape), tuple(step.tolist()), tuple(gamma.tolist()), float(cutoff))
         self.shape = tuple(shape)
         steps = gamma * step**2 / 2.0  # exponent per squared hinge step, per axis
         limit = np.log(1.0 / cutoff)
@@ -68,6 +69,11 @@ class Stencil:
         self._lock = threading.RLock()  # the lazy parts build on one another
         self._order = None
         self._supports: dict[bytes, Support] = {}
+
+    def __reduce__(self):
+        """Pickled as its key: unpickled, it is the cached stencil of that process (posteriors
+        computed in another process arrive without their factors, see RegionMaps)."""
+        return stencil, self._key
 
     @property
     def size(self) -> int:

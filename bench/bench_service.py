@@ -14,6 +14,8 @@ HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
   (user + system of all its processes, from /proc);
 * grid: 100 x 100 x 30 voxels over the whole region, npz and Arrow, warm, median of 5 (httpx);
 * uploads: 10 concurrent uploaders, 1,000 rows each request (Arrow), distinct keys (httpx);
+  then the same again while wrk queries (4 connections): the queries' latency while the
+  map's posterior is recomputed after each burst of uploads;
 * the fixed cost of a request: ``GET /healthz`` and a 1-point Arrow query (wrk, 4 connections);
 * library: the same 1,000-point query through ``RegionSpec.predict`` in this process
   (median of 50): the compute inside one request, by the compiled gather queries use and
@@ -38,6 +40,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
@@ -185,7 +188,7 @@ async def warm(url: str, body: bytes, timeout_s: float = 600) -> None:
         fast = fast + 1 if time.monotonic() - t0 < 1.0 else 0
 
 
-async def upload_load(url, obs, uploaders, per_uploader) -> dict:
+async def upload_load(url, obs, uploaders, per_uploader, key="load") -> dict:
     latencies = []
     async with httpx.AsyncClient(
         base_url=url, timeout=120, limits=httpx.Limits(max_connections=uploaders)
@@ -199,7 +202,7 @@ async def upload_load(url, obs, uploaders, per_uploader) -> dict:
                 r = await c.post(
                     "/v1/regions/paris/observations",
                     content=body,
-                    headers={"Content-Type": ARROW, "Idempotency-Key": f"load-{k}-{j}"},
+                    headers={"Content-Type": ARROW, "Idempotency-Key": f"{key}-{k}-{j}"},
                 )
                 latencies.append(time.perf_counter() - t0)
                 assert r.status_code == 200, r.text
@@ -305,6 +308,14 @@ def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], 
             rows.append({"what": f"grid 100x100x30, {name}, warm", "p50 ms": g["median ms"], "MB": g["MB"]})
         up = asyncio.run(upload_load(svc.url, obs, UPLOADERS, 10))
         rows.append({"what": f"upload 1,000 rows, arrow, {UPLOADERS} uploaders", **up})
+        # queries while uploads keep the map's posterior recomputing (after each burst)
+        with ThreadPoolExecutor(1) as pool:
+            during = pool.submit(asyncio.run, upload_load(svc.url, obs, UPLOADERS, 10, "during"))
+            time.sleep(1.0)
+            load = wrk_load(svc.url, svc.proc.pid, query_body(points, "arrow"), 4, seconds)
+            del load["server CPU ms/req"]  # the uploads' and refreshes' CPU is in it too
+            rows.append({"what": "query 1,000 pts, arrow, 4 conn (wrk), during the uploads", **load})
+            during.result()
     rows += library_rows(spec, obs, test, query_points(obs.X[test]))
     return rows, fit_s
 

@@ -43,7 +43,7 @@ from tqdm import tqdm
 from bdf import ingest
 from bdf.tiles import Increment, RegionSpec, TileKey
 from service import formats
-from service.maps import fitted, observations_evidence, write_posterior
+from service.maps import fitted, observations_evidence, posterior_evidence
 from service.problems import Problem
 from service.store import MapStore
 
@@ -337,7 +337,8 @@ def build(
     info = store.region(region)
     if info.region_id != spec_id:
         raise ValueError(f"region {region!r} was deleted and re-created during the build: run it again")
-    post = write_posterior(info, total.increments, replace)
+    evidence = posterior_evidence(info, total.increments, replace)
+    post = None if evidence is None else info.spec.posterior(evidence)
     result = store.apply(
         region,
         upload_id or f"build-{digest[:40]}",

@@ -11,19 +11,22 @@ least a given version (``min_version``: read your own writes), which waits for i
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import queue
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from bdf._validate import noise_std_rows, rows_all
 from bdf.posterior import Mixture, Modes, Posterior
+from bdf.stats import SectorEvidence
 from bdf.tiles import Increment, RegionSpec, TileKey
-from service.store import MapStore, RegionInfo, Snapshot, payload_digest
+from service.store import MapStore, RegionInfo, payload_digest
 
 log = logging.getLogger(__name__)
 
@@ -95,8 +98,14 @@ class RegionMaps:
     """Region maps over a :class:`MapStore`: exactly-once uploads, queries of the region's
     field, posteriors refreshed in the background."""
 
-    def __init__(self, store: MapStore, cache_mb: float = 512.0):
+    def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False):
+        """``isolate``: compute posteriors in a child process (the service does). CHOLMOD
+        holds the GIL while it factors, seconds on a city's lattice, and in this process
+        that would stall every request its other threads serve."""
         self.store = store
+        self._pool = (
+            ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) if isolate else None
+        )
         self.cache = PosteriorCache(cache_mb)
         self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
         self._lock = threading.Lock()
@@ -114,6 +123,14 @@ class RegionMaps:
         if worker is not None and worker.is_alive():
             self._queue.put(None)
             worker.join(timeout=120)
+        if self._pool is not None:
+            self._pool.shutdown(cancel_futures=True)
+
+    def _posterior(self, spec: RegionSpec, evidence, alpha=None, beta=None) -> Posterior | Mixture:
+        """``spec.posterior(evidence, alpha, beta)``, in the child process if isolated."""
+        if self._pool is None:
+            return spec.posterior(evidence, alpha, beta)
+        return self._pool.submit(spec.posterior, evidence, alpha, beta).result()
 
     def upload(
         self,
@@ -146,7 +163,8 @@ class RegionMaps:
         info = self.store.region(region)
         spec = info.spec
         increments, summary = _evidence(spec, X, V, noise, weight, progress)
-        post = write_posterior(info, increments, replace)
+        evidence = posterior_evidence(info, increments, replace)
+        post = None if evidence is None else self._posterior(spec, evidence)
         result = self.store.apply(
             region,
             upload_id,
@@ -175,7 +193,7 @@ class RegionMaps:
             raise ValueError(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
         if not snap.tiles:
             raise ValueError(f"region {region!r} has no data to fit its hyperparameters on")
-        post = spec.posterior(spec.region_evidence(snap.evidence))
+        post = self._posterior(spec, spec.region_evidence(snap.evidence))
         info = self.store.set_hyperparameters(region, fitted(post), snap.region.version)
         if info.region_id == snap.region.region_id and info.version == snap.region.version + 1:
             self._publish(MapState(spec, info.region_id, info.version, post, frozenset(snap.tiles)))
@@ -240,7 +258,9 @@ class RegionMaps:
             if state is not None:
                 return state
             snap = self.store.snapshot(region)
-            state = _state_of(snap)
+            spec = snap.region.spec
+            post = self._posterior(spec, spec.region_evidence(snap.evidence), *snap.region.hyperparameters())
+            state = MapState(spec, snap.region.region_id, snap.region.version, post, frozenset(snap.tiles))
             self._publish(state)
             return state
 
@@ -282,25 +302,17 @@ class RegionMaps:
                 log.exception("refreshing region %s failed; its previous version keeps answering", region)
 
 
-def _state_of(snap: Snapshot) -> MapState:
-    """The map state of a snapshot holding every tile's evidence."""
-    spec = snap.region.spec
-    alpha, beta = snap.region.hyperparameters()
-    post = spec.posterior(spec.region_evidence(snap.evidence), alpha, beta)
-    return MapState(spec, snap.region.region_id, snap.region.version, post, frozenset(snap.tiles))
-
-
-def write_posterior(
+def posterior_evidence(
     info: RegionInfo, increments: dict[TileKey, Increment], replace: bool
-) -> Posterior | None:
-    """The posterior a write computes before it commits, or None: a fit's (``replace``),
-    and, with "auto" hyperparameters, the region's first data's, since either sets them
-    (:func:`fitted`). A precision that cannot be factored raises ``ValueError`` here,
-    before anything is stored."""
+) -> SectorEvidence | None:
+    """The evidence whose posterior a write computes before it commits, or None: a fit's
+    (``replace``), and, with "auto" hyperparameters, the region's first data's, since either
+    sets them (:func:`fitted`). A precision that cannot be factored raises ``ValueError``
+    then, before anything is stored."""
     spec = info.spec
     if not increments or not (replace or (spec.auto and info.hyper is None)):
         return None
-    return spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
+    return spec.region_evidence({k: i.evidence for k, i in increments.items()})
 
 
 def fitted(post: Posterior) -> dict | None:
