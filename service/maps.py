@@ -18,6 +18,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numpy as np
@@ -103,9 +104,7 @@ class RegionMaps:
         holds the GIL while it factors, seconds on a city's lattice, and in this process
         that would stall every request its other threads serve."""
         self.store = store
-        self._pool = (
-            ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) if isolate else None
-        )
+        self._pool = _posterior_process() if isolate else None
         self.cache = PosteriorCache(cache_mb)
         self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
         self._lock = threading.Lock()
@@ -130,7 +129,17 @@ class RegionMaps:
         """``spec.posterior(evidence, alpha, beta)``, in the child process if isolated."""
         if self._pool is None:
             return spec.posterior(evidence, alpha, beta)
-        return self._pool.submit(spec.posterior, evidence, alpha, beta).result()
+        for attempt in range(2):
+            pool = self._pool
+            try:
+                return pool.submit(spec.posterior, evidence, alpha, beta).result()
+            except BrokenProcessPool:  # the child died (killed, out of memory): start another
+                if attempt:
+                    raise
+                log.warning("the posterior process died; starting another")
+                with self._lock:
+                    if self._pool is pool:
+                        self._pool = _posterior_process()
 
     def upload(
         self,
@@ -300,6 +309,11 @@ class RegionMaps:
                 )
             except Exception:  # the previous version keeps answering
                 log.exception("refreshing region %s failed; its previous version keeps answering", region)
+
+
+def _posterior_process() -> ProcessPoolExecutor:
+    """One child process for posteriors (spawned: this process runs threads)."""
+    return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
 
 
 def posterior_evidence(

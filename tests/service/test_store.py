@@ -264,6 +264,12 @@ def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(st
     store.create_region(bad)
     with pytest.raises(ValueError, match="increase alpha or decrease beta"):
         there.upload(bad.name, "f", X, V, replace=True)
+    # a child killed (out of memory, say) is replaced at the next posterior
+    (child,) = there._pool._processes
+    os.kill(child, signal.SIGKILL)
+    there.upload(name, "again", *data(6, n=100))
+    assert there.predict(name, Q, min_version=3).version == 3
+    assert list(there._pool._processes) != [child]
     there.close()
 
 
