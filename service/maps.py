@@ -104,7 +104,7 @@ class RegionMaps:
         holds the GIL while it factors, seconds on a city's lattice, and in this process
         that would stall every request its other threads serve."""
         self.store = store
-        self._pool = _posterior_process() if isolate else None
+        self._isolate, self._pool = isolate, None  # the child starts with the first posterior
         self.cache = PosteriorCache(cache_mb)
         self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
         self._lock = threading.Lock()
@@ -122,15 +122,20 @@ class RegionMaps:
         if worker is not None and worker.is_alive():
             self._queue.put(None)
             worker.join(timeout=120)
-        if self._pool is not None:
-            self._pool.shutdown(cancel_futures=True)
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
 
     def _posterior(self, spec: RegionSpec, evidence, alpha=None, beta=None) -> Posterior | Mixture:
         """``spec.posterior(evidence, alpha, beta)``, in the child process if isolated."""
-        if self._pool is None:
+        if not self._isolate:
             return spec.posterior(evidence, alpha, beta)
         for attempt in range(2):
-            pool = self._pool
+            with self._lock:
+                if self._pool is None:
+                    self._pool = _posterior_process()
+                pool = self._pool
             try:
                 return pool.submit(spec.posterior, evidence, alpha, beta).result()
             except BrokenProcessPool:  # the child died (killed, out of memory): start another
@@ -139,7 +144,7 @@ class RegionMaps:
                 log.warning("the posterior process died; starting another")
                 with self._lock:
                     if self._pool is pool:
-                        self._pool = _posterior_process()
+                        self._pool = None
 
     def upload(
         self,
