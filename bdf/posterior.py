@@ -280,22 +280,29 @@ class Mixture:
         )
         return at, var
 
+    def _gather_grid(self, axes) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_gather` on the grid ``axes``, the grid's shape first (separable)."""
+        weights, densities, _ = self._gather_tables()
+        at = features.gather_grid(self.grid, axes, weights, self.gamma, cutoff=self.cutoff)
+        var = features.gather_grid(
+            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
+        )
+        return at, var
+
     def _moments(self, at, var, noise_of) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance (n, 3) from the tables gathered at n points
         (:meth:`_gather`), without the modes' (n, C, 3) arrays (:func:`_mixture_moments`);
         ``noise_of(mode, mean)``: a mode's local noise variance where its mean is ``mean``
         (n, 3), or None for none."""
         C = len(self.modes)
-        noise = [
-            np.zeros((1, 3))
-            if noise_of is None
-            else 1.0 / m.beta[None]
-            if m._moments is None
-            else noise_of(m, at[:, 3 * c : 3 * c + 3]).reshape(-1, 3)
-            for c, m in enumerate(self.modes)
-        ]
-        rows = max(len(v) for v in noise)
-        noise = np.stack([np.broadcast_to(v, (rows, 3)) for v in noise])
+        if noise_of is None:
+            noise = np.zeros((C, 1, 3))
+        elif all(m._moments is None for m in self.modes):  # global noise: 1 / beta each
+            noise = 1.0 / np.stack([m.beta for m in self.modes])[:, None]
+        else:
+            noise = np.stack(
+                [noise_of(m, at[:, 3 * c : 3 * c + 3]).reshape(-1, 3) for c, m in enumerate(self.modes)]
+            )
         columns = np.array(self._gather_tables()[2][:C])
         inverse_beta = 1.0 / np.stack([m.beta for m in self.modes])
         mean, variance = np.empty((len(at), 3)), np.empty((len(at), 3))
@@ -325,11 +332,7 @@ class Mixture:
 
     def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance on the grid ``axes`` (see :meth:`Posterior.predict_grid`)."""
-        weights, densities, _ = self._gather_tables()
-        at = features.gather_grid(self.grid, axes, weights, self.gamma, cutoff=self.cutoff)
-        var = features.gather_grid(
-            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
-        )
+        at, var = self._gather_grid(axes)
         n = at.shape[:3]
         local = (lambda m, mean: m.noise_variance_grid(axes, mean.reshape(*n, 3))) if include_noise else None
         mean, var = self._moments(at.reshape(-1, at.shape[-1]), var.reshape(-1, var.shape[-1]), local)
@@ -338,12 +341,9 @@ class Mixture:
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """:class:`Modes` on the grid ``axes``, each array with the grid's shape first: like
         :meth:`predict_modes`, each lattice's tables gathered once for every class."""
-        weights, densities, columns = self._gather_tables()
+        columns = self._gather_tables()[2]
         C = len(self.modes)
-        at = features.gather_grid(self.grid, axes, weights, self.gamma, cutoff=self.cutoff)
-        var = features.gather_grid(
-            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
-        )
+        at, var = self._gather_grid(axes)
         n = at.shape[:3]
         mean = at[..., : 3 * C].reshape(*n, C, 3)
         std = var[..., np.array(columns[:C])]  # (nx, ny, nz, C, 3), then in place
