@@ -1,11 +1,20 @@
 """The two gather paths (compiled point by point, and BLAS by blocks) against each other
 and against the dense sum."""
 
+from unittest import mock
+
+import numba
 import numpy as np
 import pytest
 
 from bdf import features
 from bdf.grid import Lattice
+
+#: The compiled kernels' source with bounds checks: an index that leaves its arrays raises.
+BOUNDS_CHECKED = {
+    name: numba.njit(boundscheck=True)(getattr(features, name).py_func)
+    for name in ("_gather_rows", "_gather_short_rows")
+}
 
 
 def dense_gather(lattice, X, T, k, cutoff):
@@ -25,13 +34,14 @@ def dense_gather(lattice, X, T, k, cutoff):
 @pytest.mark.parametrize("cutoff", [1e-12, 1e-6])
 @pytest.mark.parametrize("per_point_k", [False, True])
 @pytest.mark.parametrize("channels", [1, 3, 10])
-def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, per_point_k, channels):
+@pytest.mark.parametrize("layers", [9, 2])  # 2: rows (z and channels) shorter than the kernel's chunk
+def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, per_point_k, channels, layers):
     rng = np.random.default_rng(channels)
-    lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (23, 17, 9))
+    lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (23, 17, layers))
     T = rng.standard_normal((*lattice.shape, channels))
     lo, hi = lattice.origin, lattice.origin + lattice.step * (np.array(lattice.shape) - 1)
     X = rng.uniform(lo - 60, hi + 60, (300, 3))  # some points outside the lattice
-    X[:5] = lattice.points()[[0, 7, 100, 1000, -1]]  # some exactly on lattice points
+    X[:5] = lattice.points()[[0, 7, 100, 700, -1]]  # some exactly on lattice points
     X[5:8] = [[-1e4, 100, 50], [200, 1e5, 50], [200, 100, -1e3]]  # beyond every lattice point's reach
     k = (1.0 / lattice.step**2) * (rng.uniform(0.5, 2.0, (len(X), 3)) if per_point_k else 1.0)
     pointwise = features.gather_pointwise(lattice, X, T, k, cutoff=cutoff)
@@ -39,6 +49,8 @@ def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, pe
     scale = np.abs(blocked).max()
     assert np.abs(pointwise - blocked).max() <= 1e-12 * scale
     assert np.abs(pointwise - dense_gather(lattice, X, T, k, cutoff)).max() <= 1e-12 * scale
+    with mock.patch.multiple(features, **BOUNDS_CHECKED):
+        np.testing.assert_array_equal(features.gather_pointwise(lattice, X, T, k, cutoff=cutoff), pointwise)
 
 
 def test_gather_takes_the_pointwise_path_for_queries_and_blocks_above():
