@@ -32,9 +32,13 @@ DEFAULT_CUTOFF = 1e-12
 #: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
 MIN_POINTS_PER_BLOCK = 32
 #: Gathers of at most this many points run point by point, compiled; more share BLAS
-#: products by blocks (bench_service.py's library rows, Paris map: the compiled path is
-#: 1.6x faster at 1,000 points, the blocked one 1.3x at 10,000 and 1.7x at 100,000)
+#: products by blocks, unless the window's rows are short (:data:`SHORT_ROWS`), where the
+#: compiled path is faster at any size (bench_service.py's library rows, Paris map)
 POINTWISE_MAX_POINTS = 2048
+#: Rows of a window (its z values and channels, contiguous in a table) of at most this many
+#: values are summed in registers, :data:`LANES` at a time (two AVX2 vectors); longer ones
+#: (directional maps: every class side by side) stream through memory.
+SHORT_ROWS, LANES = 32, 8
 #: Points per BLAS call at most: its temporaries stay in cache (bench/RESULTS.md, builds).
 CHUNK_POINTS = 2048
 
@@ -225,11 +229,12 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
 def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
     """``out[n, c] = sum_g T[g, c] prod_d exp(-k_d (x_nd - g_d)^2)``, shape (N, C).
 
-    Up to :data:`POINTWISE_MAX_POINTS` points (a query) each point is summed over its own
-    window by a compiled kernel (:func:`gather_pointwise`); above, blocks of points share
-    windows and BLAS products (:func:`gather_blocked`), which reuse the table's values
-    across points (bench/RESULTS.md, "Query throughput")."""
-    if len(X) <= POINTWISE_MAX_POINTS:
+    Each point is summed over its own window by a compiled kernel (:func:`gather_pointwise`)
+    when the window's rows are short (:data:`SHORT_ROWS`: maps of one class) or the points
+    few (:data:`POINTWISE_MAX_POINTS`); else blocks of points share windows and BLAS
+    products (:func:`gather_blocked`), which reuse the table's values across points
+    (bench/RESULTS.md, "Query throughput")."""
+    if len(X) <= POINTWISE_MAX_POINTS or _row_values(lattice, T, k, cutoff) <= SHORT_ROWS:
         return gather_pointwise(lattice, X, T, k, cutoff=cutoff)
     return gather_blocked(lattice, X, T, k, cutoff=cutoff, block=block)
 
@@ -311,12 +316,6 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
     return out
 
 
-#: Rows of a window (its z values and channels, contiguous in a table) of at most this many
-#: values are summed in registers, :data:`LANES` at a time (two AVX2 vectors); longer ones
-#: (directional maps: every class side by side) stream through memory.
-SHORT_ROWS, LANES = 32, 8
-
-
 @numba.njit(cache=True, nogil=True)
 def _window(t, scale, cutoff, shape, lo, width, factors, one, s1):  # pragma: no cover (compiled)
     """The lattice points within reach of the point ``t`` (lattice steps) for ``scale`` (3,):
@@ -383,10 +382,12 @@ def _gather_short_rows(t, scale, cutoff, table, out):  # pragma: no cover (compi
     """:func:`_gather_rows` for windows whose rows hold at most :data:`SHORT_ROWS` values
     (``table``'s rows at least :data:`LANES`): each row is summed :data:`LANES` values at a
     time over y, then x, in scalar accumulators that LLVM's SLP vectoriser keeps in vector
-    registers (no store per row, 1.7x faster on the demo's map). A last chunk that would
-    pass the row's end is moved back to end there (it recomputes values, identically). Each
-    value is summed in the same order as in :func:`_gather_rows`: the same rounding."""
+    registers (no store per row; unsigned flat indices, so no negative-index wraparound
+    between the loads). A last chunk that would pass the row's end is moved back to end
+    there (it recomputes values, identically). Each value is summed in the same order as
+    in :func:`_gather_rows`: the same rounding."""
     nx, ny, nzc = table.shape
+    flat, row_step = table.reshape(-1), np.uint64(nzc)
     C = out.shape[1]
     shape = (nx, ny, nzc // C)
     one, s1, factors = np.empty(1), np.empty(1), np.zeros((3, max(shape), 1))
@@ -403,17 +404,18 @@ def _gather_short_rows(t, scale, cutoff, table, out):  # pragma: no cover (compi
             for i in range(width[0]):
                 fi = factors[0, i, 0]
                 a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
+                at = np.uint64(((lo[0] + i) * ny + lo[1]) * nzc + q)  # row (i, 0), value q
                 for j in range(width[1]):
                     fj = factors[1, j, 0]
-                    v = table[lo[0] + i, lo[1] + j, q : q + LANES]
-                    a0 += fj * v[0]
-                    a1 += fj * v[1]
-                    a2 += fj * v[2]
-                    a3 += fj * v[3]
-                    a4 += fj * v[4]
-                    a5 += fj * v[5]
-                    a6 += fj * v[6]
-                    a7 += fj * v[7]
+                    a0 += fj * flat[at]
+                    a1 += fj * flat[at + np.uint64(1)]
+                    a2 += fj * flat[at + np.uint64(2)]
+                    a3 += fj * flat[at + np.uint64(3)]
+                    a4 += fj * flat[at + np.uint64(4)]
+                    a5 += fj * flat[at + np.uint64(5)]
+                    a6 += fj * flat[at + np.uint64(6)]
+                    a7 += fj * flat[at + np.uint64(7)]
+                    at += row_step
                 b0 += fi * a0
                 b1 += fi * a1
                 b2 += fi * a2
@@ -446,6 +448,13 @@ with _slp_vectorised():  # compiled (or loaded from numba's cache) now, in one t
     )(_gather_short_rows)
 
 
+def _row_values(lattice: Lattice, T, k, cutoff) -> int:
+    """The most values a row of a window can hold: its z extent (the widest reach, the
+    lattice's layers at most) times the table's channels."""
+    k_z = float(np.min(np.asarray(k, float).reshape(-1, 3)[:, 2])) * lattice.step[2] ** 2
+    return T.shape[-1] * min(lattice.shape[2], int(2 * np.sqrt(np.log(1.0 / cutoff) / k_z)) + 1)
+
+
 def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
     """:func:`gather` compiled point by point (each point's own window, no sorting, no
     temporaries): the fast path of queries. Equal to :func:`gather_blocked` to rounding
@@ -458,9 +467,7 @@ def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.
     scale = np.ascontiguousarray(np.asarray(k, float).reshape(-1, 3)) * lattice.step**2
     t = np.ascontiguousarray((X - lattice.origin) / lattice.step)
     table = T.reshape(T.shape[0], T.shape[1], -1)
-    C, nz = out.shape[1], lattice.shape[2]
-    widest = min(nz, int(2 * np.sqrt(np.log(1.0 / cutoff) / scale[:, 2].min())) + 1)  # z window
-    if C * widest > SHORT_ROWS:
+    if _row_values(lattice, T, k, cutoff) > SHORT_ROWS:
         return _gather_rows(t, scale, float(cutoff), table, out)
     if table.shape[2] < LANES:  # rows shorter than a chunk (lattices of a few layers): pad them
         table = np.concatenate([table, np.zeros((*table.shape[:2], LANES - table.shape[2]))], axis=2)

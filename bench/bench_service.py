@@ -225,15 +225,18 @@ def library_rows(spec, obs, test, X) -> list[dict]:
     increments = spec.increments(train.X, train.V)
     post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
     keys = frozenset(increments)
-    limit = features.POINTWISE_MAX_POINTS
-    paths = {"compiled, point by point": np.inf, "numpy + BLAS, by blocks": 0}
+    gather = features.gather
+    paths = {
+        "compiled, point by point": features.gather_pointwise,
+        "numpy + BLAS, by blocks": features.gather_blocked,
+    }
     rows = []
     try:
         for points, repeat in ((X, 50), (obs.X[test][:10_000], 10), (obs.X[:100_000], 3)):
             times = {name: [] for name in paths}
             for _ in range(repeat):
-                for name, always in paths.items():
-                    features.POINTWISE_MAX_POINTS = always
+                for name, path in paths.items():
+                    features.gather = lambda *a, block=1, path=path, **kw: path(*a, **kw)
                     t0 = time.perf_counter()
                     spec.predict(points, post, keys)
                     times[name].append(time.perf_counter() - t0)
@@ -241,7 +244,7 @@ def library_rows(spec, obs, test, X) -> list[dict]:
                 ms = 1e3 * float(np.median(t))
                 rows.append({"what": f"query {len(points):,} pts, library (no HTTP), {name}", "p50 ms": ms})
     finally:
-        features.POINTWISE_MAX_POINTS = limit
+        features.gather = gather
     axes = spec.box_axes(spec.lower, spec.upper, (spec.upper - spec.lower) / (np.array([100, 100, 30]) - 1))
     spec.predict_grid(axes, post, keys)
     times = []

@@ -53,14 +53,17 @@ def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, pe
         np.testing.assert_array_equal(features.gather_pointwise(lattice, X, T, k, cutoff=cutoff), pointwise)
 
 
-def test_gather_takes_the_pointwise_path_for_queries_and_blocks_above():
+@pytest.mark.parametrize("channels", [2, 10])  # rows of 12 values (short), of 60 (long)
+def test_gather_takes_the_pointwise_path_for_queries_and_short_rows_and_blocks_above(channels):
     rng = np.random.default_rng(0)
     lattice = Lattice(np.zeros(3), np.ones(3), (12, 12, 6))
-    T = rng.standard_normal((*lattice.shape, 2))
+    T = rng.standard_normal((*lattice.shape, channels))
     k = np.ones(3)
+    short = channels * lattice.shape[2] <= features.SHORT_ROWS
     for n in (features.POINTWISE_MAX_POINTS, features.POINTWISE_MAX_POINTS + 1):
         X = rng.uniform(0, 11, (n, 3))
         got = features.gather(lattice, X, T, k)
-        path = features.gather_pointwise if n <= features.POINTWISE_MAX_POINTS else features.gather_blocked
+        pointwise = n <= features.POINTWISE_MAX_POINTS or short
+        path = features.gather_pointwise if pointwise else features.gather_blocked
         np.testing.assert_array_equal(got, path(lattice, X, T, k))
-    assert features.gather(lattice, np.empty((0, 3)), T, k).shape == (0, 2)
+    assert features.gather(lattice, np.empty((0, 3)), T, k).shape == (0, channels)
