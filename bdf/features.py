@@ -65,40 +65,46 @@ def _cut(factor: np.ndarray, cutoff: float) -> np.ndarray:
 @numba.njit(cache=True)
 def _axis_factors(t, scale, cutoff, out):  # pragma: no cover (compiled)
     """``out[j, n] = exp(-scale_n (t_n - j)^2)`` for j = 0 .. width-1, zero below ``cutoff``;
-    ``scale`` has n values or one for all; ``out`` is (width, n).
-
-    Two exponentials per point instead of ``width``: from the lattice point nearest
-    ``t_n`` outwards, each value is the previous times a ratio <= 1, and each ratio the
-    previous one times ``exp(-2 scale_n)`` (no overflow; relative error ~ width x eps).
-    """
-    width, n = out.shape
+    ``scale`` has n values or one for all; ``out`` is (width, n) (:func:`_point_factors`)."""
     out[:] = 0.0
     s, c = -1.0, 0.0
-    for i in range(n):
+    for i in range(out.shape[1]):
         if scale[min(i, scale.shape[0] - 1)] != s:
             s = scale[min(i, scale.shape[0] - 1)]
             c = np.exp(-2.0 * s)
-        ti = t[i]
-        j0 = min(max(int(np.floor(ti + 0.5)), 0), width - 1)
-        f0 = np.exp(-s * (ti - j0) ** 2)
-        up = np.exp(-s * (2.0 * (j0 - ti) + 1.0))  # f(j+1) = f(j) up, j >= j0
-        # f(j-1) = f(j) down, j <= j0; up * down = c
-        down = c / up if up > 1e-300 else np.exp(-s * (2.0 * (ti - j0) + 1.0))
-        f, r = f0, up
-        for j in range(j0, width):
-            if f < cutoff:
-                break
-            out[j, i] = f
-            f *= r
-            r *= c
-        f, r = f0, down
-        for j in range(j0 - 1, -1, -1):
-            f *= r
-            r *= c
-            if f < cutoff:
-                break
-            out[j, i] = f
+        _point_factors(t[i], s, c, cutoff, out[:, i])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _point_factors(ti, s, c, cutoff, out):  # pragma: no cover (compiled)
+    """``out[j] = exp(-s (ti - j)^2)`` for the j >= cutoff, into ``out`` (width,) of zeros;
+    ``c = exp(-2 s)``.
+
+    Two exponentials instead of ``width``: from the lattice point nearest ``ti``
+    outwards, each value is the previous times a ratio <= 1, and each ratio the previous
+    one times ``c`` (no overflow; relative error ~ width x eps).
+    """
+    width = len(out)
+    j0 = min(max(int(np.floor(ti + 0.5)), 0), width - 1)
+    f0 = np.exp(-s * (ti - j0) ** 2)
+    up = np.exp(-s * (2.0 * (j0 - ti) + 1.0))  # f(j+1) = f(j) up, j >= j0
+    # f(j-1) = f(j) down, j <= j0; up * down = c
+    down = c / up if up > 1e-300 else np.exp(-s * (2.0 * (ti - j0) + 1.0))
+    f, r = f0, up
+    for j in range(j0, width):
+        if f < cutoff:
+            break
+        out[j] = f
+        f *= r
+        r *= c
+    f, r = f0, down
+    for j in range(j0 - 1, -1, -1):
+        f *= r
+        r *= c
+        if f < cutoff:
+            break
+        out[j] = f
 
 
 def sort_key(key: np.ndarray) -> np.ndarray:
@@ -317,20 +323,20 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
 
 
 @numba.njit(cache=True, nogil=True)
-def _window(t, scale, cutoff, shape, lo, width, factors, one, s1):  # pragma: no cover (compiled)
-    """The lattice points within reach of the point ``t`` (lattice steps) for ``scale`` (3,):
-    first ``lo`` and count ``width`` per axis, and their factors (``_axis_factors``) in
-    ``factors[d, :width[d], 0]``. False if no lattice point is within reach."""
+def _window(t, scale, reach, ratio, cutoff, shape, lo, width, factors):  # pragma: no cover (compiled)
+    """The lattice points within ``reach`` of the point ``t`` (lattice steps) for ``scale``
+    (``ratio = exp(-2 scale)``; each (3,)): first ``lo`` and count ``width`` per axis, and
+    their factors (:func:`_point_factors`) in ``factors[d, :width[d]]``. False if no
+    lattice point is within reach."""
     for d in range(3):
-        reach = np.sqrt(np.log(1.0 / cutoff) / scale[d])
-        a = max(int(np.ceil(t[d] - reach)), 0)
-        b = min(int(np.floor(t[d] + reach)), shape[d] - 1)
+        a = max(int(np.ceil(t[d] - reach[d])), 0)
+        b = min(int(np.floor(t[d] + reach[d])), shape[d] - 1)
         lo[d], width[d] = a, max(b - a + 1, 0)
     if width.min() == 0:
         return False
     for d in range(3):
-        one[0], s1[0] = t[d] - lo[d], scale[d]
-        _axis_factors(one, s1, cutoff, factors[d, : width[d]])
+        factors[d, : width[d]] = 0.0
+        _point_factors(t[d] - lo[d], scale[d], ratio[d], cutoff, factors[d, : width[d]])
     return True
 
 
@@ -341,34 +347,36 @@ def _sum_z(factors, width, row, first, out):  # pragma: no cover (compiled)
     for c in range(C):
         total = 0.0
         for k in range(width[2]):
-            total += factors[2, k, 0] * row[first + k * C + c]
+            total += factors[2, k] * row[first + k * C + c]
         out[c] = total
 
 
 @numba.njit(cache=True, nogil=True)  # queries in other threads run meanwhile
-def _gather_rows(t, scale, cutoff, table, out):  # pragma: no cover (compiled)
+def _gather_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: no cover (compiled)
     """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz table[i, j, k, c]`` over
     each point's own window (:func:`_window`). ``t`` (n, 3) positions in lattice steps,
-    ``scale`` (1 or n, 3) k in steps^-2, ``table`` (nx, ny, nz * C). Each row of the window
+    ``scale`` (1 or n, 3) k in steps^-2 (``reach``: the window's half-width for it,
+    ``ratio``: ``exp(-2 scale)``), ``table`` (nx, ny, nz * C). Each row of the window
     (z and the channels, contiguous) is added into one running sum per value over y, then
     x: the innermost loop vectorises whatever C is."""
     nx, ny, nzc = table.shape
     C = out.shape[1]
     shape = (nx, ny, nzc // C)
-    one, s1, factors = np.empty(1), np.empty(1), np.zeros((3, max(shape), 1))
+    factors = np.zeros((3, max(shape)))
     lo, width = np.empty(3, np.int64), np.empty(3, np.int64)
     acc, acc_i = np.empty(nzc), np.empty(nzc)
     for p in range(t.shape[0]):
-        if not _window(t[p], scale[min(p, scale.shape[0] - 1)], cutoff, shape, lo, width, factors, one, s1):
+        row = min(p, scale.shape[0] - 1)
+        if not _window(t[p], scale[row], reach[row], ratio[row], cutoff, shape, lo, width, factors):
             out[p] = 0.0
             continue
         first, span = lo[2] * C, width[2] * C
         acc[:span] = 0.0
         for i in range(width[0]):
-            fi = factors[0, i, 0]
+            fi = factors[0, i]
             acc_i[:span] = 0.0
             for j in range(width[1]):
-                fj = factors[1, j, 0]
+                fj = factors[1, j]
                 values = table[lo[0] + i, lo[1] + j, first : first + span]
                 for q in range(span):
                     acc_i[q] += fj * values[q]
@@ -378,7 +386,7 @@ def _gather_rows(t, scale, cutoff, table, out):  # pragma: no cover (compiled)
     return out
 
 
-def _gather_short_rows(t, scale, cutoff, table, out):  # pragma: no cover (compiled)
+def _gather_short_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: no cover (compiled)
     """:func:`_gather_rows` for windows whose rows hold at most :data:`SHORT_ROWS` values
     (``table``'s rows at least :data:`LANES`): each row is summed :data:`LANES` values at a
     time over y, then x, in scalar accumulators that LLVM's SLP vectoriser keeps in vector
@@ -390,11 +398,12 @@ def _gather_short_rows(t, scale, cutoff, table, out):  # pragma: no cover (compi
     flat, row_step = table.reshape(-1), np.uint64(nzc)
     C = out.shape[1]
     shape = (nx, ny, nzc // C)
-    one, s1, factors = np.empty(1), np.empty(1), np.zeros((3, max(shape), 1))
+    factors = np.zeros((3, max(shape)))
     lo, width = np.empty(3, np.int64), np.empty(3, np.int64)
     acc = np.zeros(nzc)  # by position in the row
     for p in range(t.shape[0]):
-        if not _window(t[p], scale[min(p, scale.shape[0] - 1)], cutoff, shape, lo, width, factors, one, s1):
+        row = min(p, scale.shape[0] - 1)
+        if not _window(t[p], scale[row], reach[row], ratio[row], cutoff, shape, lo, width, factors):
             out[p] = 0.0
             continue
         first = lo[2] * C
@@ -402,11 +411,11 @@ def _gather_short_rows(t, scale, cutoff, table, out):  # pragma: no cover (compi
             q = min(chunk, nzc - LANES)
             b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = 0.0
             for i in range(width[0]):
-                fi = factors[0, i, 0]
+                fi = factors[0, i]
                 a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
                 at = np.uint64(((lo[0] + i) * ny + lo[1]) * nzc + q)  # row (i, 0), value q
                 for j in range(width[1]):
-                    fj = factors[1, j, 0]
+                    fj = factors[1, j]
                     a0 += fj * flat[at]
                     a1 += fj * flat[at + np.uint64(1)]
                     a2 += fj * flat[at + np.uint64(2)]
@@ -444,7 +453,9 @@ def _slp_vectorised():
 
 with _slp_vectorised():  # compiled (or loaded from numba's cache) now, in one thread
     _gather_short_rows = numba.njit(
-        "f8[:, ::1](f8[:, ::1], f8[:, ::1], f8, f8[:, :, ::1], f8[:, ::1])", cache=True, nogil=True
+        "f8[:, ::1](f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8, f8[:, :, ::1], f8[:, ::1])",
+        cache=True,
+        nogil=True,
     )(_gather_short_rows)
 
 
@@ -467,8 +478,9 @@ def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.
     scale = np.ascontiguousarray(np.asarray(k, float).reshape(-1, 3)) * lattice.step**2
     t = np.ascontiguousarray((X - lattice.origin) / lattice.step)
     table = T.reshape(T.shape[0], T.shape[1], -1)
+    per_scale = (scale, np.sqrt(np.log(1.0 / cutoff) / scale), np.exp(-2.0 * scale), float(cutoff))
     if _row_values(lattice, T, k, cutoff) > SHORT_ROWS:
-        return _gather_rows(t, scale, float(cutoff), table, out)
+        return _gather_rows(t, *per_scale, table, out)
     if table.shape[2] < LANES:  # rows shorter than a chunk (lattices of a few layers): pad them
         table = np.concatenate([table, np.zeros((*table.shape[:2], LANES - table.shape[2]))], axis=2)
-    return _gather_short_rows(t, scale, float(cutoff), table, out)
+    return _gather_short_rows(t, *per_scale, table, out)
