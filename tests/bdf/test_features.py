@@ -67,3 +67,17 @@ def test_gather_takes_the_pointwise_path_for_queries_and_short_rows_and_blocks_a
         path = features.gather_pointwise if pointwise else features.gather_blocked
         np.testing.assert_array_equal(got, path(lattice, X, T, k))
     assert features.gather(lattice, np.empty((0, 3)), T, k).shape == (0, channels)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 36])
+def test_grid_gather_equals_the_dense_sum_voxel_major(channels):
+    rng = np.random.default_rng(channels)
+    lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (9, 7, 5))
+    T = rng.standard_normal((*lattice.shape, channels))
+    axes = [np.linspace(-150, 300, 11), np.linspace(20, 260, 6), np.linspace(-10, 120, 4)]
+    k = 1.0 / lattice.step**2
+    got = features.gather_grid(lattice, axes, T, k, cutoff=1e-6)
+    mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    want = dense_gather(lattice, mesh, T, k, 1e-6).reshape(got.shape)
+    assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+    assert got.flags.c_contiguous  # each voxel's channels side by side
