@@ -258,8 +258,14 @@ def arrow_bytes(columns: dict[str, np.ndarray], metadata: dict[str, str] | None 
 
 
 def npz_bytes(**arrays: np.ndarray) -> bytes:
+    """``np.savez`` into a buffer sized once: grown write by write, a 14 MB grid spent half
+    its encoding in reallocations (bench/RESULTS.md, issue 20)."""
     buf = io.BytesIO()
+    buf.seek(sum(np.asarray(a).nbytes for a in arrays.values()) + 4096 * (len(arrays) + 1))
+    buf.write(b"\0")  # members and headers usually fit before this byte (if not, it grows)
+    buf.seek(0)
     np.savez(buf, **arrays)
+    buf.truncate(buf.tell())
     return buf.getvalue()
 
 

@@ -14,7 +14,7 @@ import pytest
 
 from bdf.tiles import RegionSpec
 from service.app import create_app
-from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_bytes
+from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_bytes, npz_bytes
 from service.settings import Settings
 from tests.service.test_store import SPEC, data
 
@@ -671,3 +671,14 @@ def test_graceful_shutdown_finishes_an_upload_in_flight(live_server):
     restarted = live_server()
     info = httpx.get(f"{restarted.url}/v1/regions/{NAME}").json()
     assert (info["version"], info["observations"]) == (1, 100_000)
+
+
+def test_npz_bytes_are_what_numpy_writes():
+    rng = np.random.default_rng(0)
+    for arrays in (
+        {"mean": rng.standard_normal((20, 10, 5, 3)), "known": rng.random((20, 10, 5)) > 0.5},
+        {"x": np.arange(3.0)},  # far smaller than the headers' allowance: the buffer is cut back
+    ):
+        plain = io.BytesIO()
+        np.savez(plain, **arrays)
+        assert npz_bytes(**arrays) == plain.getvalue()
