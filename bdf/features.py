@@ -78,8 +78,8 @@ def _axis_factors(t, scale, cutoff, out):  # pragma: no cover (compiled)
 
 @numba.njit(cache=True, nogil=True)
 def _point_factors(ti, s, c, cutoff, out):  # pragma: no cover (compiled)
-    """``out[j] = exp(-s (ti - j)^2)`` for the j >= cutoff, into ``out`` (width,) of zeros;
-    ``c = exp(-2 s)``.
+    """``out[j] = exp(-s (ti - j)^2)`` where that is at least ``cutoff`` (``out`` (width,)
+    holds zeros, which stay elsewhere); ``c = exp(-2 s)``.
 
     Two exponentials instead of ``width``: from the lattice point nearest ``ti``
     outwards, each value is the previous times a ratio <= 1, and each ratio the previous
@@ -239,7 +239,7 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
     when the window's rows are short (:data:`SHORT_ROWS`: maps of one class) or the points
     few (:data:`POINTWISE_MAX_POINTS`); else blocks of points share windows and BLAS
     products (:func:`gather_blocked`), which reuse the table's values across points
-    (bench/RESULTS.md, "Query throughput")."""
+    (bench/RESULTS.md, "Reading the query-throughput tables")."""
     if len(X) <= POINTWISE_MAX_POINTS or _row_values(lattice, T, k, cutoff) <= SHORT_ROWS:
         return gather_pointwise(lattice, X, T, k, cutoff=cutoff)
     return gather_blocked(lattice, X, T, k, cutoff=cutoff, block=block)

@@ -20,7 +20,8 @@ HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
 * library: the same 1,000-point query through ``RegionSpec.predict`` in this process
   (median of 50): the compute inside one request, by the compiled gather queries use and
   by the blocked numpy/BLAS reference path; the same at 10,000 and 100,000 points (where
-  the gathers switch paths), and the 100 x 100 x 30 grid (with directions, also with modes).
+  directional tables switch to blocks; short rows stay point by point), and the
+  100 x 100 x 30 grid (with directions, also with modes).
 
 ``make bench`` installs wrk with apt-get where it may (root); elsewhere install the
 Debian/Ubuntu package ``wrk`` (or build it from github.com/wg/wrk).
@@ -218,7 +219,7 @@ async def upload_load(url, obs, uploaders, per_uploader, key="load") -> dict:
 def library_rows(spec, obs, test, X) -> list[dict]:
     """The compute inside requests, in this process on the same map (no HTTP, no store):
     the 1,000-point query ``X`` the load sends, the same query at 10,000 and 100,000 test
-    points (where the gathers switch path), each by the compiled point-by-point gather and
+    points (where directional tables switch to blocks), each by the compiled point-by-point gather and
     by the blocked BLAS one, interleaved so both see the same machine; and the warm
     100 x 100 x 30 grid. Medians."""
     train = obs.subset(~test)
