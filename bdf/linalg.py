@@ -13,7 +13,9 @@ the factor gives the log-determinant (evidence) and the solves (posterior mean).
 hinges the data touch are factored (:class:`Support`): a hinge whose Gram diagonal is zero
 has a zero row (``G`` is positive semi-definite), so ``G + shift I`` is ``shift`` there, apart
 from the rest. Sparse traffic on a large lattice, and each heading sector of a directional
-map, touch a fraction of the hinges: the factor's work falls roughly with its cube.
+map, touch a fraction of the hinges: the factor's work falls roughly with its cube. Where
+a class touches most of the hinges its total touches, it is factored on the total's
+support instead (:data:`COVER`): one symbolic analysis serves them all.
 The variance density needs the posterior covariance only on the stencil's pairs, which
 lie in the factor's pattern: :func:`_selected_inverse` computes the inverse on that pattern
 by the Takahashi recursions, supernode by supernode (column-major dense blocks with BLAS
@@ -33,6 +35,10 @@ from scipy.linalg import blas, lapack
 from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
 from bdf.grid import Lattice
+
+#: A band is factored on a kept support with up to this many times its own hinges
+#: (:meth:`Stencil.support`): exact either way (the extra hinges are decoupled).
+COVER = 1.25
 
 
 class NotPositiveDefinite(ValueError):
@@ -90,13 +96,6 @@ class Stencil:
         m = np.arange(self.size).reshape(self.shape)[self.valid(k)].ravel()
         return m, m + (o[0] * self.shape[1] + o[1]) * self.shape[2] + o[2]
 
-    def midpoints(self, k: int) -> tuple[slice, slice, slice]:
-        """Slices of the midpoint lattice where the pairs of :meth:`valid` meet (``2 m + o_k``)."""
-        o = self.offsets[k]
-        return tuple(
-            slice(2 * s.start + o[d], 2 * (s.stop - 1) + o[d] + 1, 2) for d, s in enumerate(self.valid(k))
-        )
-
     @property
     def order(self) -> np.ndarray:
         """The hinges (flat indices) in the order the matrices use: :func:`dissection`."""
@@ -106,12 +105,24 @@ class Stencil:
             return self._order
 
     def support(self, active: np.ndarray) -> Support:
-        """The :class:`Support` of the hinges ``active`` (M,) bool; the last
-        :attr:`SUPPORTS` are kept (a search factors one support many times)."""
-        key = np.packbits(active).tobytes()
+        """A :class:`Support` holding the hinges ``active`` (M,) bool: a kept one (the last
+        :attr:`SUPPORTS`: a search factors one support many times) that holds them and at
+        most :data:`COVER` times as many (the classes of a map within their total's: one
+        analysis serves them all), else their own."""
+        active = np.asarray(active, bool)
         order = self.order
         with self._lock:
-            found = self._supports.pop(key, None) or Support(self, active, order)
+            count = int(active.sum())
+            found = next(
+                (
+                    s
+                    for s in reversed(self._supports.values())
+                    if len(s.order) <= COVER * count and not np.any(active & ~s.active)
+                ),
+                None,
+            ) or Support(self, active, order)
+            key = np.packbits(found.active).tobytes()
+            self._supports.pop(key, None)
             self._supports[key] = found  # the most recent last
             while len(self._supports) > self.SUPPORTS:
                 self._supports.pop(next(iter(self._supports)))
@@ -262,11 +273,45 @@ def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.n
     """``S(g) = sum over hinge pairs (m, m') with midpoint g of band[m, m'] c(h_m - h_m')``
     on the midpoint lattice: pair (m, m + o) meets at index ``2 idx(m) + o``; the half
     offsets count twice (the pair and its mirror), the diagonal once."""
+    weights = stencil.factor * np.where(np.arange(len(stencil.factor)) == 0, 1.0, 2.0)
     out = np.zeros(midpoints.shape)
-    for k in range(len(stencil.offsets)):
-        weight = stencil.factor[k] * (1.0 if k == 0 else 2.0)
-        out[stencil.midpoints(k)] += weight * band[k].reshape(stencil.shape)[stencil.valid(k)]
+    _pairs_to_midpoints(np.array(stencil.shape), stencil.offsets, weights, np.asarray(band, float), out)
     return out
+
+
+def midpoint_band(stencil: Stencil, values: np.ndarray) -> np.ndarray:
+    """The band (K, M) with ``band[k, m] = c(o_k) values[2 idx(m) + o_k]``: a function on
+    the midpoint lattice read at every stencil pair's midpoint (zero where ``m + o_k``
+    leaves the lattice)."""
+    out = np.zeros((len(stencil.offsets), stencil.size))
+    _midpoints_to_pairs(
+        np.array(stencil.shape), stencil.offsets, stencil.factor, np.asarray(values, float), out
+    )
+    return out
+
+
+@numba.njit(cache=True)
+def _pairs_to_midpoints(shape, offsets, weights, band, out):  # pragma: no cover - compiled
+    """``out[2 idx(m) + o_k] += weights[k] band[k, m]`` over the pairs on the lattice."""
+    for k in range(len(offsets)):
+        o = offsets[k]
+        for i in range(max(0, -o[0]), shape[0] - max(0, o[0])):
+            for j in range(max(0, -o[1]), shape[1] - max(0, o[1])):
+                for l in range(max(0, -o[2]), shape[2] - max(0, o[2])):
+                    m = (i * shape[1] + j) * shape[2] + l
+                    out[2 * i + o[0], 2 * j + o[1], 2 * l + o[2]] += weights[k] * band[k, m]
+
+
+@numba.njit(cache=True)
+def _midpoints_to_pairs(shape, offsets, factor, values, out):  # pragma: no cover - compiled
+    """``out[k, m] = factor[k] values[2 idx(m) + o_k]`` over the pairs on the lattice."""
+    for k in range(len(offsets)):
+        o = offsets[k]
+        for i in range(max(0, -o[0]), shape[0] - max(0, o[0])):
+            for j in range(max(0, -o[1]), shape[1] - max(0, o[1])):
+                for l in range(max(0, -o[2]), shape[2] - max(0, o[2])):
+                    m = (i * shape[1] + j) * shape[2] + l
+                    out[k, m] = factor[k] * values[2 * i + o[0], 2 * j + o[1], 2 * l + o[2]]
 
 
 def dissection(shape, reach) -> np.ndarray:

@@ -170,11 +170,7 @@ class Evidence:
     def gram_band(self, stencil: linalg.Stencil) -> np.ndarray:
         """``Phi^T Phi`` on the stencil, as a band (K, M): ``c(o) D(midpoint)`` per pair
         (the midpoint of hinges m and m + o is at index ``2 idx(m) + o``), plus the noisy part."""
-        out = np.zeros((len(stencil.offsets), stencil.size))
-        for k in range(len(stencil.offsets)):
-            out[k].reshape(stencil.shape)[stencil.valid(k)] = (
-                stencil.factor[k] * self.density[stencil.midpoints(k)]
-            )
+        out = linalg.midpoint_band(stencil, self.density)
         if self.gram_noisy is not None:
             out += self.gram_noisy
         return out
