@@ -79,20 +79,32 @@ def _axis_factors(t, scale, cutoff, out):  # pragma: no cover (compiled)
 @numba.njit(cache=True, nogil=True)
 def _point_factors(ti, s, c, cutoff, out):  # pragma: no cover (compiled)
     """``out[j] = exp(-s (ti - j)^2)`` where that is at least ``cutoff`` (``out`` (width,)
-    holds zeros, which stay elsewhere); ``c = exp(-2 s)``.
+    holds zeros, which stay elsewhere); ``c = exp(-2 s)``: :func:`_recurrence` from its
+    two exponentials (:func:`_start`)."""
+    j0 = min(max(int(np.floor(ti + 0.5)), 0), len(out) - 1)
+    f0, up, down = _start(ti, j0, s, c)
+    _recurrence(j0, f0, up, down, c, cutoff, out)
 
-    Two exponentials instead of ``width``: from the lattice point nearest ``ti``
-    outwards, each value is the previous times a ratio <= 1, and each ratio the previous
-    one times ``c`` (no overflow; relative error ~ width x eps).
-    """
-    width = len(out)
-    j0 = min(max(int(np.floor(ti + 0.5)), 0), width - 1)
+
+@numba.njit(cache=True, nogil=True)
+def _start(ti, j0, s, c):  # pragma: no cover (compiled)
+    """:func:`_recurrence`'s start at lattice point ``j0`` (the nearest to ``ti`` inside
+    the window): its value and the first ratios up and down."""
     f0 = np.exp(-s * (ti - j0) ** 2)
     up = np.exp(-s * (2.0 * (j0 - ti) + 1.0))  # f(j+1) = f(j) up, j >= j0
     # f(j-1) = f(j) down, j <= j0; up * down = c
     down = c / up if up > 1e-300 else np.exp(-s * (2.0 * (ti - j0) + 1.0))
+    return f0, up, down
+
+
+@numba.njit(cache=True, nogil=True)
+def _recurrence(j0, f0, up, down, c, cutoff, out):  # pragma: no cover (compiled)
+    """``exp(-s (ti - j)^2)`` for every j of ``out`` where it is at least ``cutoff``, with
+    two exponentials instead of ``width``: from ``j0`` outwards, each value is the
+    previous times a ratio <= 1, and each ratio the previous one times ``c = exp(-2 s)``
+    (no overflow; relative error ~ width x eps)."""
     f, r = f0, up
-    for j in range(j0, width):
+    for j in range(j0, len(out)):
         if f < cutoff:
             break
         out[j] = f
@@ -153,25 +165,14 @@ class _Blocks:
             self._positions(lattice, X, k)
             return
         cells = np.floor((X - lattice.origin) / lattice.step).astype(np.int64)
-        cells = np.clip(cells, -1, shape - 1)
-        # grow blocks until they hold enough points to amortise a BLAS call each
-        while True:
-            edge = np.minimum(block, shape)
-            blocks = np.floor_divide(cells, edge)
-            low = blocks.min(axis=0)
-            key = np.ravel_multi_index(tuple((blocks - low).T), tuple(blocks.max(axis=0) - low + 1))
-            self.order = np.argsort(sort_key(key), kind="stable")
-            key = key[self.order]
-            edges = np.flatnonzero(np.diff(key)) + 1
-            if len(X) >= MIN_POINTS_PER_BLOCK * (len(edges) + 1) or block >= shape.max():
-                break
-            block *= 2
-        self.bounds = np.concatenate([[0], edges, [len(key)]])
+        cells = np.minimum(np.maximum(cells, -1), shape - 1)
+        self.order, self.bounds, corner, edge = _sort_blocks(cells, shape, block, MIN_POINTS_PER_BLOCK)
         # A block's window holds every lattice point within reach of its cells. Shifted to
         # lie inside the lattice, a window of the same width still holds all of those that
         # exist, so no padding is needed and no window is wider than the lattice.
         self.width = np.minimum(edge + 2 * reach + 1, shape)
-        self.start = np.clip(blocks[self.order] * edge - reach, 0, shape - self.width)
+        starts = np.clip(corner - reach, 0, shape - self.width)
+        self.start = np.repeat(starts, np.diff(self.bounds), axis=0)
         self._positions(lattice, X[self.order], k if len(k) == 1 else k[self.order])
 
     def _positions(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
@@ -188,18 +189,73 @@ class _Blocks:
             for d, w in enumerate(self.width)
         ]
 
-    def __iter__(self):
-        """Yield (rows into the sorted points, window slices into the lattice array, and the
-        chunk's factors fx, fy, fz, each (width[d], chunk))."""
-        # one buffer per axis for all chunks: allocations of this size would each page-fault
-        # where malloc returns freed memory to the system at once (Dask workers set that)
-        self._scratch = [np.empty(int(w) * CHUNK_POINTS) for w in self.width]
+    def starts(self) -> tuple[np.ndarray, ...]:
+        """Per point and axis (n, 3 each), where :func:`_recurrence` starts its window's
+        factors: ``j0``, the lattice point nearest the point inside the window, ``f0``,
+        ``up``, ``down`` (:func:`_start`, vectorised here) and ``c = exp(-2 scale)``."""
+        t, s = self.t, np.broadcast_to(self.scale, self.t.shape)
+        j0 = np.clip(np.floor(t + 0.5), 0, self.width - 1)
+        c = np.exp(-2.0 * s)
+        up = np.exp(-s * (2.0 * (j0 - t) + 1.0))
+        with np.errstate(divide="ignore"):
+            down = np.where(up > 1e-300, c / up, np.exp(-s * (2.0 * (t - j0) + 1.0)))
+        return j0.astype(np.int64), np.exp(-s * (t - j0) ** 2), up, down, np.ascontiguousarray(c)
+
+    def chunks(self):
+        """Yield (rows into the sorted points, window slices into the lattice array)."""
         for a, b in zip(self.bounds[:-1], self.bounds[1:], strict=True):
             s = self.start[a]
             window = tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
             for c in range(a, b, CHUNK_POINTS):
-                rows = slice(c, min(c + CHUNK_POINTS, b))
-                yield rows, window, *self._factors(rows)
+                yield slice(c, min(c + CHUNK_POINTS, b)), window
+
+    def __iter__(self):
+        """Yield :meth:`chunks` with the chunk's factors fx, fy, fz, each (width[d], chunk)."""
+        # one buffer per axis for all chunks: allocations of this size would each page-fault
+        # where malloc returns freed memory to the system at once (Dask workers set that)
+        self._scratch = [np.empty(int(w) * CHUNK_POINTS) for w in self.width]
+        for rows, window in self.chunks():
+            yield rows, window, *self._factors(rows)
+
+
+@numba.njit(cache=True)
+def _sort_blocks(cells, shape, block, min_points):  # pragma: no cover (compiled)
+    """The points (their lattice cells (n, 3), -1 .. shape - 1) sorted by block of
+    ``edge`` cells (a stable counting sort, blocks in C order): ``order``, the ``bounds``
+    of each block's run, its first cell (blocks, 3) and ``edge``. The edge starts at
+    ``block`` and doubles until the blocks average ``min_points`` points or it spans the
+    lattice."""
+    n = cells.shape[0]
+    while True:
+        edge = np.minimum(block, shape)
+        count = (shape - 1) // edge + 2  # blocks of cells -1 .. shape - 1, from -1
+        counts = np.zeros(count[0] * count[1] * count[2] + 1, np.int64)
+        key = np.empty(n, np.int64)
+        for p in range(n):
+            bx, by, bz = cells[p, 0] // edge[0] + 1, cells[p, 1] // edge[1] + 1, cells[p, 2] // edge[2] + 1
+            key[p] = (bx * count[1] + by) * count[2] + bz
+            counts[key[p] + 1] += 1
+        used = np.count_nonzero(counts)
+        if n >= min_points * used or block >= shape.max():
+            break
+        block *= 2
+    first = np.cumsum(counts)  # first[b]: where block b's run starts
+    order = np.empty(n, np.int64)
+    fill = first[:-1].copy()
+    for p in range(n):
+        order[fill[key[p]]] = p
+        fill[key[p]] += 1
+    runs = np.flatnonzero(counts[1:])
+    bounds = np.empty(len(runs) + 1, np.int64)
+    corner = np.empty((len(runs), 3), np.int64)
+    for r in range(len(runs)):
+        b = runs[r]
+        bounds[r] = first[b]
+        corner[r, 0] = (b // (count[1] * count[2]) - 1) * edge[0]
+        corner[r, 1] = (b // count[2] % count[1] - 1) * edge[1]
+        corner[r, 2] = (b % count[2] - 1) * edge[2]
+    bounds[-1] = n
+    return order, bounds, corner, edge
 
 
 def scratch(buffer: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -213,23 +269,44 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     n_out = W.shape[1]
     nx, ny, nz = lattice.shape
     # layout (x, c, y, z): the channels ride on the small x factor, so each chunk is
-    # one GEMM (Lx*C x n) @ (n x Ly*Lz) and two outer products
+    # one GEMM (Lx*C x n) @ (n x Ly*Lz) of two matrices made point by point
     out = np.zeros((nx, n_out, ny, nz))
     if len(X):
         blocks = _Blocks(lattice, X, k, cutoff, block)
-        WT = np.ascontiguousarray(np.asarray(W, float)[blocks.order].T)
+        W = np.ascontiguousarray(np.asarray(W, float)[blocks.order])
+        starts = blocks.starts()
         Lx, Ly, Lz = (int(w) for w in blocks.width)
         xc, yz = np.empty(Lx * n_out * CHUNK_POINTS), np.empty(Ly * Lz * CHUNK_POINTS)
         product = np.empty((Lx * n_out, Ly * Lz))
-        for rows, (wx, wy, wz), fx, fy, fz in blocks:
+        for rows, (wx, wy, wz) in blocks.chunks():
             n = rows.stop - rows.start
-            np.matmul(
-                _outer(fx, WT[:, rows], scratch(xc, Lx * n_out, n)),
-                _outer(fy, fz, scratch(yz, Ly * Lz, n)).T,
-                out=product,
-            )
+            a, b = scratch(xc, n, Lx * n_out), scratch(yz, n, Ly * Lz)
+            _splat_rows(*(part[rows] for part in starts), cutoff, W[rows], blocks.width, a, b)
+            np.matmul(a.T, b, out=product)
             out[wx, :, wy, wz] += product.reshape(Lx, n_out, Ly, Lz)
     return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
+
+
+@numba.njit(cache=True, nogil=True)
+def _splat_rows(j0, f0, up, down, c, cutoff, W, width, xc, yz):  # pragma: no cover (compiled)
+    """Per point ``p`` of a chunk: ``xc[p, i C + c] = fx_i W[p, c]`` and
+    ``yz[p, j Lz + k] = fy_j fz_k``, from its window factors' starts (n, 3 each:
+    :meth:`_Blocks.starts`) by :func:`_recurrence`; ``width`` the window's (Lx, Ly, Lz)."""
+    C = W.shape[1]
+    Lx, Ly, Lz = width[0], width[1], width[2]
+    fx, fy, fz = np.empty(Lx), np.empty(Ly), np.empty(Lz)
+    for p in range(j0.shape[0]):
+        fx[:], fy[:], fz[:] = 0.0, 0.0, 0.0
+        _recurrence(j0[p, 0], f0[p, 0], up[p, 0], down[p, 0], c[p, 0], cutoff, fx)
+        _recurrence(j0[p, 1], f0[p, 1], up[p, 1], down[p, 1], c[p, 1], cutoff, fy)
+        _recurrence(j0[p, 2], f0[p, 2], up[p, 2], down[p, 2], c[p, 2], cutoff, fz)
+        for i in range(Lx):
+            for ch in range(C):
+                xc[p, i * C + ch] = fx[i] * W[p, ch]
+        for j in range(Ly):
+            for k in range(Lz):
+                yz[p, j * Lz + k] = fy[j] * fz[k]
+    return xc, yz
 
 
 def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:

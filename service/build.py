@@ -66,12 +66,13 @@ _NUMERIC_COLUMNS = (
 )
 
 
-#: Dask starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``, which also pins glibc's
-#: mmap threshold at 128 kB: every larger temporary of the evidence kernels is then a
-#: fresh mapping that page-faults (a slice measured slower in a worker). A worker's memory is
-#: bounded by its batch, so builds start workers with this instead (give it to
-#: ``dask worker`` on a cluster too).
-WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(128 * 2**20)}
+#: Dask starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``. Setting either threshold
+#: turns off glibc's adaptive mmap threshold, which then stays at 128 kB: every larger
+#: temporary of the evidence kernels is a fresh mapping that page-faults (a slice took
+#: 1.65 s with the trim threshold alone, 1.33 s with both, 1.37 s in a plain process;
+#: bench/RESULTS.md). A worker's memory is bounded by its batch, so builds start workers
+#: with these instead (give them to ``dask worker`` on a cluster too).
+WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(128 * 2**20), "MALLOC_MMAP_THRESHOLD_": str(32 * 2**20)}
 
 
 def local_cluster(workers: int, memory_limit: str = "auto"):

@@ -1,5 +1,5 @@
 """The two gather paths (compiled point by point, and BLAS by blocks) against each other
-and against the dense sum."""
+and against the dense sum; the splat against the dense sum."""
 
 from unittest import mock
 
@@ -13,7 +13,7 @@ from bdf.grid import Lattice
 #: The compiled kernels' source with bounds checks: an index that leaves its arrays raises.
 BOUNDS_CHECKED = {
     name: numba.njit(boundscheck=True)(getattr(features, name).py_func)
-    for name in ("_gather_rows", "_gather_short_rows")
+    for name in ("_gather_rows", "_gather_short_rows", "_sort_blocks", "_splat_rows", "_recurrence")
 }
 
 
@@ -51,6 +51,41 @@ def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, pe
     assert np.abs(pointwise - dense_gather(lattice, X, T, k, cutoff)).max() <= 1e-12 * scale
     with mock.patch.multiple(features, **BOUNDS_CHECKED):
         np.testing.assert_array_equal(features.gather_pointwise(lattice, X, T, k, cutoff=cutoff), pointwise)
+
+
+def dense_splat(lattice, X, W, k, cutoff):
+    """``T[g, c] = sum_n W[n, c] w(x_n, g)`` written out (per-axis factors below the cutoff zeroed)."""
+    out = np.zeros((*lattice.shape, W.shape[1]))
+    k = np.broadcast_to(np.asarray(k, float).reshape(-1, 3), (len(X), 3))
+    for n, x in enumerate(X):
+        f = []
+        for d in range(3):
+            fd = np.exp(-k[n, d] * (x[d] - lattice.axis(d)) ** 2)
+            f.append(np.where(fd < cutoff, 0.0, fd))
+        out += np.einsum("i,j,k,c->ijkc", *f, W[n])
+    return out
+
+
+@pytest.mark.parametrize("cutoff", [1e-12, 1e-6])
+@pytest.mark.parametrize("per_point_k", [False, True])
+@pytest.mark.parametrize(("points", "block"), [(3000, 1), (300, 1), (300, 2), (40, 1)])
+def test_splat_equals_the_dense_sum(cutoff, per_point_k, points, block):
+    """Many blocks of one cell, blocks that grow (300 points are too few for blocks of one
+    cell), blocks of two, one window (too few points to sort): every path of the blocking,
+    also with bounds checks on the compiled kernels."""
+    rng = np.random.default_rng(points)
+    lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (23, 17, 9))
+    lo, hi = lattice.origin, lattice.origin + lattice.step * (np.array(lattice.shape) - 1)
+    X = rng.uniform(lo - 60, hi + 60, (points, 3))  # some points outside the lattice
+    X[:5] = lattice.points()[[0, 7, 100, 700, -1]]  # some exactly on lattice points
+    W = rng.standard_normal((points, 4))
+    k = (1.0 / lattice.step**2) * (rng.uniform(0.5, 2.0, (points, 3)) if per_point_k else 1.0)
+    splat = features.splat(lattice, X, W, k, cutoff=cutoff, block=block)
+    dense = dense_splat(lattice, X, W, k, cutoff)
+    assert np.abs(splat - dense).max() <= 1e-12 * np.abs(dense).max()
+    with mock.patch.multiple(features, **BOUNDS_CHECKED):
+        checked = features.splat(lattice, X, W, k, cutoff=cutoff, block=block)
+    np.testing.assert_allclose(checked, splat, rtol=0, atol=1e-13 * np.abs(dense).max())
 
 
 @pytest.mark.parametrize("channels", [2, 10])  # rows of 12 values (short), of 60 (long)
