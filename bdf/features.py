@@ -543,21 +543,42 @@ def _row_values(lattice: Lattice, T, k, cutoff) -> int:
     return T.shape[-1] * min(lattice.shape[2], int(2 * np.sqrt(np.log(1.0 / cutoff) / k_z)) + 1)
 
 
+@numba.njit(cache=True, nogil=True)
+def _cell_order(t, shape):  # pragma: no cover (compiled)
+    """The points ``t`` (n, 3, lattice steps) by lattice cell, in C order (outside: the
+    nearest cell)."""
+    key = np.empty(t.shape[0], np.int64)
+    for p in range(t.shape[0]):
+        c = 0
+        for d in range(3):
+            c = c * shape[d] + min(max(int(np.floor(t[p, d])), 0), shape[d] - 1)
+        key[p] = c
+    return np.argsort(key)
+
+
 def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
-    """:func:`gather` compiled point by point (each point's own window, no sorting, no
-    temporaries): the fast path of queries. Equal to :func:`gather_blocked` to rounding
-    (tests/bdf/test_features.py)."""
+    """:func:`gather` compiled point by point (each point's own window, no temporaries): the
+    fast path of queries. Equal to :func:`gather_blocked` to rounding
+    (tests/bdf/test_features.py). Long rows (directional maps: tables of megabytes) are
+    visited by lattice cell, so neighbours find most of their window in cache (a
+    1,000-point query of the demo's 8-sector map 10.8 -> 8.9 ms; one class's tables stay
+    in cache anyway, and sorting cost more than it saved)."""
     X = np.asarray(X, float)
     T = np.ascontiguousarray(T, dtype=float)  # a view where it is already (the posteriors' tables)
     out = np.empty((len(X), T.shape[-1]))
     if len(X) == 0:
         return out
-    scale = np.ascontiguousarray(np.asarray(k, float).reshape(-1, 3)) * lattice.step**2
-    t = np.ascontiguousarray((X - lattice.origin) / lattice.step)
+    scale = np.asarray(k, float).reshape(-1, 3) * lattice.step**2
+    t = (X - lattice.origin) / lattice.step
     table = T.reshape(T.shape[0], T.shape[1], -1)
-    per_scale = (scale, np.sqrt(np.log(1.0 / cutoff) / scale), np.exp(-2.0 * scale), float(cutoff))
     if _row_values(lattice, T, k, cutoff) > SHORT_ROWS:
-        return _gather_rows(t, *per_scale, table, out)
-    if table.shape[2] < LANES:  # rows shorter than a chunk (lattices of a few layers): pad them
-        table = np.concatenate([table, np.zeros((*table.shape[:2], LANES - table.shape[2]))], axis=2)
-    return _gather_short_rows(t, *per_scale, table, out)
+        kernel, order = _gather_rows, _cell_order(t, np.array(lattice.shape))
+        t, scale = t[order], scale[order] if len(scale) > 1 else scale
+    else:
+        kernel, order = _gather_short_rows, slice(None)
+        if table.shape[2] < LANES:  # rows shorter than a chunk (lattices of a few layers): pad them
+            table = np.concatenate([table, np.zeros((*table.shape[:2], LANES - table.shape[2]))], axis=2)
+    scale = np.ascontiguousarray(scale)
+    per_scale = (scale, np.sqrt(np.log(1.0 / cutoff) / scale), np.exp(-2.0 * scale), float(cutoff))
+    out[order] = kernel(np.ascontiguousarray(t), *per_scale, table, np.empty_like(out))
+    return out
