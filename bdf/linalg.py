@@ -279,6 +279,33 @@ def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.n
     return out
 
 
+def band_product(stencil: Stencil, band: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``A x`` for the symmetric matrix of ``band`` (K, M) and ``x`` (M, C)."""
+    out = np.zeros((stencil.size, x.shape[1]))
+    _band_product(
+        np.array(stencil.shape), stencil.offsets, np.asarray(band, float), np.asarray(x, float), out
+    )
+    return out
+
+
+@numba.njit(cache=True)
+def _band_product(shape, offsets, band, x, out):  # pragma: no cover - compiled
+    """``out += A x``: each pair (m, m + o_k) of the lattice adds ``band[k, m]`` both ways
+    (once on the diagonal, ``k = 0``)."""
+    for k in range(len(offsets)):
+        o = offsets[k]
+        step = (o[0] * shape[1] + o[1]) * shape[2] + o[2]
+        for i in range(max(0, -o[0]), shape[0] - max(0, o[0])):
+            for j in range(max(0, -o[1]), shape[1] - max(0, o[1])):
+                for l in range(max(0, -o[2]), shape[2] - max(0, o[2])):
+                    m = (i * shape[1] + j) * shape[2] + l
+                    a = band[k, m]
+                    for c in range(x.shape[1]):
+                        out[m, c] += a * x[m + step, c]
+                        if k > 0:
+                            out[m + step, c] += a * x[m, c]
+
+
 def midpoint_band(stencil: Stencil, values: np.ndarray) -> np.ndarray:
     """The band (K, M) with ``band[k, m] = c(o_k) values[2 idx(m) + o_k]``: a function on
     the midpoint lattice read at every stencil pair's midpoint (zero where ``m + o_k``

@@ -52,26 +52,30 @@ class Posterior:
         noise_lattice=None,
         noise_prior=None,
         start=None,
+        prior_weights=None,
     ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
         self.stencil = stencil_of(grid, gamma, cutoff)
         #: alpha or beta came from evidence maximisation ("auto" and some data)
         self.fitted = (isinstance(alpha, str) or isinstance(beta, str)) and evidence.count > 0
+        # The prior N(w0, alpha^-1 I) of the weights (w0 = ``prior_weights``, zero unless
+        # given: a mode of a directional map, :class:`Mixture`): the search and the solves
+        # see the observations less the prior's field, v - Phi w0, whose statistics are
+        # b - G w0 and v^T v - 2 w0^T b + w0^T G w0; the weights are w0 plus their solution.
+        band = evidence.gram_band(self.stencil)
+        w0 = np.zeros((grid.size, 3)) if prior_weights is None else prior_weights
+        G_w0 = linalg.band_product(self.stencil, band, w0)
+        v_sq = (
+            evidence.v_sq - 2.0 * np.einsum("mc,mc->c", w0, evidence.proj) + np.einsum("mc,mc->c", w0, G_w0)
+        )
         self.alpha, self.beta, sols = tuning.fit_evidence(
-            self.stencil,
-            evidence.gram_band(self.stencil),
-            evidence.proj,
-            evidence.v_sq,
-            evidence.count,
-            alpha,
-            beta,
-            start,
+            self.stencil, band, evidence.proj - G_w0, v_sq, evidence.count, alpha, beta, start
         )
         self.log_evidence = np.array(
             [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
         )
-        self.weights = np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
+        self.weights = w0 + np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
         self._solutions = sols
         self._variance = None
 
@@ -179,6 +183,22 @@ class Posterior:
         return np.stack(list(densities.values()), axis=-1), columns
 
 
+def _layer_prior(evidence: Evidence, grid: HingeGrid, gamma) -> np.ndarray:
+    """A mode's prior mean weights (M, 3): on each layer of hinges, the class's mean
+    velocity near that altitude over the features' sum (``Phi w0`` is then that mean, away
+    from the lattice's edges), so that away from its data a heading sector's mode reverts
+    to how that class flies at that altitude, not to standing still. The layer's mean is
+    its hinges' ``Phi^T v`` over their ``Phi^T 1`` (the class's mean where no observation
+    reaches the layer; zero for a class without data)."""
+    overall = evidence.v_sum / evidence.count if evidence.count > 0 else np.zeros(3)
+    proj = evidence.proj.reshape(*grid.shape, 3).sum(axis=(0, 1))
+    mass = evidence.mass.reshape(grid.shape).sum(axis=(0, 1))
+    layer = np.where(mass[:, None] > 0, proj / np.where(mass > 0, mass, 1.0)[:, None], overall)
+    # the sum of a point's features inside the lattice: sqrt(pi / (gamma step^2)) per axis
+    features_sum = float(np.prod(np.sqrt(np.pi / (np.asarray(gamma, float) * grid.step**2))))
+    return np.broadcast_to(layer / features_sum, (*grid.shape, 3)).reshape(-1, 3).copy()
+
+
 def _per_row(hyper, rows: int) -> list:
     """A hyperparameter for each of ``rows`` posteriors: "auto" for all, or the row of a
     (3,) value broadcast, or of a (rows, 3) one."""
@@ -195,6 +215,10 @@ class Mixture:
     to 1 exactly; negative values (the linear smoother undershoots next to sharp edges) are
     cut to 0 and the rest renormalised. Their epistemic std is
     ``sqrt(phi^T (G + lam I)^-1 phi / beta_share)``, ``beta_share`` at its evidence maximum.
+
+    Each mode's prior mean is its class's mean velocity at each altitude
+    (:func:`_layer_prior`), as the shares' is the overall share: away from a class's data
+    its mode reverts to how that class flies there, not to standing still.
 
     Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
     shares use) and each mode at its own evidence maximum: traffic classes differ in how
@@ -215,7 +239,16 @@ class Mixture:
         self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest)
         start = float(np.mean(self.total.alpha / self.total.beta))  # each mode's search starts there
         self.modes = [
-            Posterior(grid, gamma, e, alphas[1 + c], betas[1 + c], *rest, start=start)
+            Posterior(
+                grid,
+                gamma,
+                e,
+                alphas[1 + c],
+                betas[1 + c],
+                *rest,
+                start=start,
+                prior_weights=_layer_prior(e, grid, gamma),
+            )
             for c, e in enumerate(evidence.classes)
         ]
         self.fitted = self.total.fitted

@@ -6,7 +6,7 @@ import pytest
 from bdf import BayesianDynamicField, tuning
 from bdf.directions import Sectors, mixture_moments
 from bdf.tiles import RegionSpec
-from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER
+from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER, dense_features
 from tests.bdf.test_field import assert_close
 from tests.bdf.test_tiles import SMALL
 
@@ -66,11 +66,22 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
     Q = np.random.default_rng(1).uniform(LOWER, UPPER, (300, 3))
     modes = mix.predict_modes(Q)
     np.testing.assert_array_equal(modes.mean[:, [2, 3]], 0.0)  # no traffic south or west: the prior
+    hinges = mix.hinges
+    features_sum = np.prod(np.sqrt(np.pi / (GAMMA * SPACING**2)))
+    Q_phi = dense_features(Q, hinges, GAMMA)
     for c in (0, 1, 4):
+        # the prior weights: per layer of hinges, the class's Phi^T v over Phi^T 1 there,
+        # over the features' sum (written out densely here)
+        Xc, Vc, wc = X[label == c], V[label == c], w[label == c]
+        P = dense_features(Xc, hinges, GAMMA)
+        layers = np.unique(hinges[:, 2], return_inverse=True)[1]
+        proj = np.stack([np.bincount(layers, (P.T @ (wc[:, None] * Vc))[:, d]) for d in range(3)], axis=1)
+        w0 = (proj / np.bincount(layers, P.T @ wc)[:, None])[layers] / features_sum
+        # the mode is a field of the class's observations less the prior's field, plus it
         alone = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, post.alpha[1 + c], post.beta[1 + c])
-        alone.fit(X[label == c], V[label == c], sample_weight=w[label == c])
+        alone.fit(Xc, Vc - P @ w0, sample_weight=wc)
         mean, std = alone.predict(Q, return_std=True)
-        assert_close(modes.mean[:, c], mean, 1e-9, f"mode {c} mean")
+        assert_close(modes.mean[:, c], mean + Q_phi @ w0, 1e-9, f"mode {c} mean")
         assert_close(modes.std[:, c], std, 1e-9, f"mode {c} std")
         # each mode at its own evidence maximum (to the search's tolerance in nats)
         best = alone.log_evidence_.sum()
@@ -78,8 +89,12 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
             moved = BayesianDynamicField(
                 LOWER, UPPER, SPACING, GAMMA, post.alpha[1 + c] * f, post.beta[1 + c]
             )
-            moved.fit(X[label == c], V[label == c], sample_weight=w[label == c])
+            moved.fit(Xc, Vc - P @ w0, sample_weight=wc)
             assert moved.log_evidence_.sum() < best + tuning.EVIDENCE_TOLERANCE
+    # where no northbound traffic flies, its mode is still northbound (its prior), at about
+    # the class's speed (15 m/s; a zero prior gave it ~0 here)
+    south = (Q[:, 1] < 2.5) & (np.abs(Q[:, 0] - 5) < 2) & (np.abs(Q[:, 2] - 3) < 1.5)
+    assert south.sum() > 5 and (modes.mean[south, 0, 1] > 10).all()
     # the classes with traffic differ from the map with one class and from each other
     ratio = post.alpha[:, 0] / post.beta[:, 0]
     assert len(np.unique(np.round(np.log(ratio[[0, 1, 2]]), 3))) == 3
