@@ -100,6 +100,7 @@ def plot_modes(grid: Grid, alt_m: float, path, title: str = "", min_share: float
         max_std_mps=1.0,
         title=title,
         share=grid.share[:, :, k],
+        share_std=grid.share_std[:, :, k],
         mode_mean=grid.mode_mean[:, :, k],
         min_share=min_share,
     )

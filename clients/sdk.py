@@ -90,7 +90,7 @@ class Prediction:
 class Grid:
     """A voxel grid: axes x (nx,), y (ny,), z (nz,); mean and std (nx, ny, nz, 3). With
     ``modes``: each traffic class's ``share`` (nx, ny, nz, C), ``mode_mean`` and ``mode_std``
-    (nx, ny, nz, C, 3)."""
+    (nx, ny, nz, C, 3), and the shares' std ``share_std`` (nx, ny, nz)."""
 
     x: np.ndarray
     y: np.ndarray
@@ -102,6 +102,7 @@ class Grid:
     share: np.ndarray | None = None
     mode_mean: np.ndarray | None = None
     mode_std: np.ndarray | None = None
+    share_std: np.ndarray | None = None
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -559,7 +560,7 @@ class _Endpoints:
         params = self._read_params(name, _grid_params(step, bbox) | ({"modes": "true"} if modes else {}))
         response = yield _Request("GET", f"/v1/regions/{name}/grid", accept=NPZ, params=params)
         a = _npz(response.content)
-        per_class = (a["share"], a["mode_mean"], a["mode_std"]) if modes else (None, None, None)
+        per_class = (a["share"], a["mode_mean"], a["mode_std"], a["share_std"]) if modes else (None,) * 4
         return Grid(a["x"], a["y"], a["z"], a["mean"], a["std"], a["known"], _version(response), *per_class)
 
     def _tubes(self, name, max_std_mps, step, bbox, component, media) -> Call:

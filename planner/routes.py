@@ -59,6 +59,7 @@ class LocalGrid:
     share: np.ndarray | None = None
     mode_mean: np.ndarray | None = None
     mode_std: np.ndarray | None = None
+    share_std: np.ndarray | None = None
 
     @property
     def x(self) -> np.ndarray:
@@ -109,7 +110,7 @@ class LocalMap:
         mean, std, known = self.spec.predict_grid(axes, self.posterior, self.data_tiles, m)
         if m is None:
             return LocalGrid(axes, mean, std, known)
-        return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std)
+        return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std, m.share_std)
 
     def query(self, name: str, X, *, heading_deg=None) -> LocalPrediction:
         self._check(name)

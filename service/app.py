@@ -589,7 +589,10 @@ def slice_png(
     per_class = {}
     if with_modes:
         per_class = dict(
-            share=pred.modes.share[:, :, 0], mode_mean=pred.modes.mean[:, :, 0], min_share=min_share
+            share=pred.modes.share[:, :, 0],
+            share_std=pred.modes.share_std[:, :, 0],
+            mode_mean=pred.modes.mean[:, :, 0],
+            min_share=min_share,
         )
     png = slices.render_slice(
         x,

@@ -64,18 +64,22 @@ def render_slice(
     max_std_mps: float,
     title: str,
     share: np.ndarray | None = None,
+    share_std: np.ndarray | None = None,
     mode_mean: np.ndarray | None = None,
     min_share: float = MIN_SHARE,
 ) -> bytes:
     """PNG of one slice. ``mean``, ``std``: (nx, ny, 3) m/s; ``known``: (nx, ny);
-    ``share`` (nx, ny, C) and ``mode_mean`` (nx, ny, C, 3): each traffic class's.
+    ``share`` (nx, ny, C), ``share_std`` (nx, ny) and ``mode_mean`` (nx, ny, C, 3): each
+    traffic class's.
 
     ``mean``: the mean of ``component``, grey where no tile has data (the prior);
     ``std``: its predictive std; ``tube``: the mean where every component's std is below
     ``max_std_mps`` and there is data, grey elsewhere; ``share``: the largest class's share
     (1: one direction; low: mixed traffic); ``modes``: an arrow per class with at least
-    ``min_share`` of the traffic, along its horizontal mean, as wide as its share, on the
-    horizontal speed of the mixture.
+    ``min_share`` of the traffic, along its horizontal mean, as wide as its share, faint
+    where that share is less than one std above ``min_share`` (where data is thin the shares
+    and modes are their priors: the region's overall shares, each class's mean velocity at
+    that altitude), on the horizontal speed of the mixture.
     """
     c = COMPONENTS.index(component)
     if layer in ("modes", "share") and share is None:
@@ -104,7 +108,7 @@ def render_slice(
     extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
     im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
     fig.colorbar(im, ax=ax, label=label, shrink=0.9, extend="max" if layer == "std" else "both")
-    if layer == "modes" and (arrows := _mode_arrows(ax, x, y, share, mode_mean, known, min_share)):
+    if layer == "modes" and (arrows := _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share)):
         bar = fig.colorbar(arrows, ax=ax, location="bottom", shrink=0.6, aspect=40)
         bar.set_label("heading of the mode [degrees from north]")
         bar.set_ticks([0, 90, 180, 270, 360])
@@ -121,11 +125,12 @@ def render_slice(
     return buf.getvalue()
 
 
-def _mode_arrows(ax, x, y, share, mode_mean, known, min_share):
+def _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share):
     """An arrow per class and cell (every k-th cell) with at least ``min_share`` of the
     traffic: along the mode's horizontal mean, coloured by heading, wider as its share
-    grows (three widths: below 0.2, to 0.5, above). Returns the last arrows drawn (for the
-    heading colour bar), or None."""
+    grows (three widths: below 0.2, to 0.5, above), faint unless the share is at least one
+    std above ``min_share``. Returns the last arrows drawn (for the heading colour bar), or
+    None."""
     drawn = None
     k = max(1, int(np.ceil(max(len(x), len(y)) / ARROWS_PER_SIDE)))
     xs, ys = np.meshgrid(x[::k] / 1e3, y[::k] / 1e3, indexing="ij")
@@ -135,23 +140,26 @@ def _mode_arrows(ax, x, y, share, mode_mean, known, min_share):
     scale = max(float(np.max(speed[seen[..., None] & (s >= min_share)], initial=0.0)), 1e-9) / (0.9 * cell_km)
     show = seen[..., None] & (s >= min_share) & (speed > 0)
     heading = np.degrees(np.arctan2(m[..., 0], m[..., 1])) % 360.0
+    sure = s - share_std[::k, ::k, None] >= min_share
     for low, high, width in ((min_share, 0.2, 0.002), (0.2, 0.5, 0.004), (0.5, 1.01, 0.007)):
-        pick = show & (s >= low) & (s < high)
-        if pick.any():
-            cells = np.nonzero(pick)
-            drawn = ax.quiver(
-                xs[cells[:2]],
-                ys[cells[:2]],
-                m[..., 0][pick],
-                m[..., 1][pick],
-                heading[pick],
-                cmap="hsv",
-                clim=(0, 360),
-                angles="xy",
-                scale_units="xy",
-                scale=scale,
-                width=width,
-            )
+        for established, alpha in ((False, 0.25), (True, 1.0)):
+            pick = show & (s >= low) & (s < high) & (sure == established)
+            if pick.any():
+                cells = np.nonzero(pick)
+                drawn = ax.quiver(
+                    xs[cells[:2]],
+                    ys[cells[:2]],
+                    m[..., 0][pick],
+                    m[..., 1][pick],
+                    heading[pick],
+                    cmap="hsv",
+                    clim=(0, 360),
+                    angles="xy",
+                    scale_units="xy",
+                    scale=scale,
+                    width=width,
+                    alpha=alpha,
+                )
     return drawn
 
 

@@ -24,6 +24,12 @@ def coloured_pixels(png: bytes) -> int:
     return int((np.ptp(rgb, axis=-1) > 0.05).sum())
 
 
+def saturation(png: bytes) -> float:
+    """The sum over pixels of how far from grey each is: paler colours count less."""
+    rgb = imread(io.BytesIO(png))[..., :3]
+    return float(np.ptp(rgb, axis=-1).sum())
+
+
 def create_town(c: httpx.Client) -> None:
     """The region ``town`` with 900 observations, version 1."""
     assert c.post("/v1/regions", json=SPEC).status_code == 201
@@ -78,7 +84,7 @@ def test_render_slice_draws_the_modes_of_the_classes_with_enough_share():
     mode_mean = np.zeros((48, 40, 3, 3))
     mode_mean[..., 0, 0], mode_mean[..., 1, 1] = 20.0, -10.0  # east, and south
 
-    def draw(layer, share=share, min_share=0.05):
+    def draw(layer, share=share, min_share=0.05, share_std=0.0, measure=None):
         png = render_slice(
             x,
             y,
@@ -91,13 +97,18 @@ def test_render_slice_draws_the_modes_of_the_classes_with_enough_share():
             max_std_mps=1.0,
             title="t",
             share=share,
+            share_std=np.full((48, 40), share_std),
             mode_mean=mode_mean,
             min_share=min_share,
         )
-        return coloured_pixels(png)
+        return (measure or coloured_pixels)(png)
 
     both, one = draw("modes"), draw("modes", min_share=0.5)  # the 0.3 class's arrows go
     assert both > one + 1_000 > 2_000
+    # a share less than one std above min_share is drawn faint (its colours paler)
+    solid, faint = draw("modes", measure=saturation), draw("modes", share_std=0.68, measure=saturation)
+    half = draw("modes", share_std=0.3, measure=saturation)  # the 0.7 class stays solid
+    assert solid > half + 0.05 * solid and half > faint + 0.5 * solid
     assert draw("share") > 50_000
     with pytest.raises(ValueError, match="needs the modes"):
         render_slice(x, y, mean, std, known, alt_m=1, layer="modes", component="e", max_std_mps=1, title="t")
