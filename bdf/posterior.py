@@ -64,13 +64,14 @@ class Posterior:
         # see the observations less the prior's field, v - Phi w0, whose statistics are
         # b - G w0 and v^T v - 2 w0^T b + w0^T G w0; the weights are w0 plus their solution.
         band = evidence.gram_band(self.stencil)
-        w0 = np.zeros((grid.size, 3)) if prior_weights is None else prior_weights
-        G_w0 = linalg.band_product(self.stencil, band, w0)
-        v_sq = (
-            evidence.v_sq - 2.0 * np.einsum("mc,mc->c", w0, evidence.proj) + np.einsum("mc,mc->c", w0, G_w0)
-        )
+        proj, v_sq, w0 = evidence.proj, evidence.v_sq, 0.0
+        if prior_weights is not None:
+            w0 = prior_weights
+            G_w0 = linalg.band_product(self.stencil, band, w0)
+            v_sq = v_sq - 2.0 * np.einsum("mc,mc->c", w0, proj) + np.einsum("mc,mc->c", w0, G_w0)
+            proj = proj - G_w0
         self.alpha, self.beta, sols = tuning.fit_evidence(
-            self.stencil, band, evidence.proj - G_w0, v_sq, evidence.count, alpha, beta, start
+            self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start
         )
         self.log_evidence = np.array(
             [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
