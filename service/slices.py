@@ -10,6 +10,7 @@ import io
 from typing import Literal
 
 import numpy as np
+from matplotlib.cm import ScalarMappable
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
@@ -108,8 +109,9 @@ def render_slice(
     extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
     im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
     fig.colorbar(im, ax=ax, label=label, shrink=0.9, extend="max" if layer == "std" else "both")
-    if layer == "modes" and (arrows := _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share)):
-        bar = fig.colorbar(arrows, ax=ax, location="bottom", shrink=0.6, aspect=40)
+    if layer == "modes" and _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share):
+        headings = ScalarMappable(Normalize(0, 360), "hsv")  # opaque, whichever arrows were drawn
+        bar = fig.colorbar(headings, ax=ax, location="bottom", shrink=0.6, aspect=40)
         bar.set_label("heading of the mode [degrees from north]")
         bar.set_ticks([0, 90, 180, 270, 360])
     what = {
@@ -129,9 +131,8 @@ def _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share):
     """An arrow per class and cell (every k-th cell) with at least ``min_share`` of the
     traffic: along the mode's horizontal mean, coloured by heading, wider as its share
     grows (three widths: below 0.2, to 0.5, above), faint unless the share is at least one
-    std above ``min_share``. Returns the last arrows drawn (for the heading colour bar), or
-    None."""
-    drawn = None
+    std above ``min_share``. Returns whether any was drawn."""
+    drawn = False
     k = max(1, int(np.ceil(max(len(x), len(y)) / ARROWS_PER_SIDE)))
     xs, ys = np.meshgrid(x[::k] / 1e3, y[::k] / 1e3, indexing="ij")
     s, m, seen = share[::k, ::k], mode_mean[::k, ::k], known[::k, ::k]
@@ -146,7 +147,8 @@ def _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share):
             pick = show & (s >= low) & (s < high) & (sure == established)
             if pick.any():
                 cells = np.nonzero(pick)
-                drawn = ax.quiver(
+                drawn = True
+                ax.quiver(
                     xs[cells[:2]],
                     ys[cells[:2]],
                     m[..., 0][pick],
