@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from bdf import linalg
+from bdf.grid import Lattice
 
 
 @pytest.mark.parametrize(
@@ -55,3 +56,29 @@ def assert_dense_algebra(stencil, band, factor, rng):
         np.testing.assert_allclose(got[k, m], inverse[m, partner], rtol=1e-10, atol=1e-14)
         untouched = np.setdiff1d(np.arange(stencil.size), m)
         assert np.all(got[k, untouched] == 0.0)  # partners off the lattice stay zero
+
+
+def test_band_product_and_midpoint_maps_equal_dense_algebra():
+    """``band_product`` (a mode's prior through G) is the dense symmetric product; the
+    midpoint maps (G from the data density, the variance density from a band) put each
+    pair at its midpoint ``2 idx(m) + o``."""
+    stencil = linalg.stencil((7, 6, 4), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 1e-3)
+    rng = np.random.default_rng(5)
+    band = rng.standard_normal((len(stencil.offsets), stencil.size))
+    dense = np.zeros((stencil.size, stencil.size))
+    mid_shape = tuple(2 * n - 1 for n in stencil.shape)
+    density = rng.standard_normal(mid_shape)
+    expected_band, expected_density = np.zeros_like(band), np.zeros(mid_shape)
+    for k, o in enumerate(stencil.offsets):
+        m, partner = stencil.pairs(k)
+        dense[m, partner] += band[k, m]
+        dense[partner, m] += band[k, m] if k else 0.0
+        idx = np.stack(np.unravel_index(m, stencil.shape), axis=1)
+        at = tuple((2 * idx + o).T)
+        expected_band[k, m] = stencil.factor[k] * density[at]
+        np.add.at(expected_density, at, stencil.factor[k] * (2.0 if k else 1.0) * band[k, m])
+    x = rng.standard_normal((stencil.size, 3))
+    np.testing.assert_allclose(linalg.band_product(stencil, band, x), dense @ x, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(linalg.midpoint_band(stencil, density), expected_band)
+    midpoints = Lattice(np.zeros(3), np.full(3, 0.5), mid_shape)
+    np.testing.assert_allclose(linalg.band_density(stencil, band, midpoints), expected_density, atol=1e-12)
