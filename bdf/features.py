@@ -79,32 +79,20 @@ def _axis_factors(t, scale, cutoff, out):  # pragma: no cover (compiled)
 @numba.njit(cache=True, nogil=True)
 def _point_factors(ti, s, c, cutoff, out):  # pragma: no cover (compiled)
     """``out[j] = exp(-s (ti - j)^2)`` where that is at least ``cutoff`` (``out`` (width,)
-    holds zeros, which stay elsewhere); ``c = exp(-2 s)``: :func:`_recurrence` from its
-    two exponentials (:func:`_start`)."""
-    j0 = min(max(int(np.floor(ti + 0.5)), 0), len(out) - 1)
-    f0, up, down = _start(ti, j0, s, c)
-    _recurrence(j0, f0, up, down, c, cutoff, out)
+    holds zeros, which stay elsewhere); ``c = exp(-2 s)``.
 
-
-@numba.njit(cache=True, nogil=True)
-def _start(ti, j0, s, c):  # pragma: no cover (compiled)
-    """:func:`_recurrence`'s start at lattice point ``j0`` (the nearest to ``ti`` inside
-    the window): its value and the first ratios up and down."""
+    Two exponentials instead of ``width``: from the lattice point nearest ``ti``
+    outwards, each value is the previous times a ratio <= 1, and each ratio the previous
+    one times ``c`` (no overflow; relative error ~ width x eps).
+    """
+    width = len(out)
+    j0 = min(max(int(np.floor(ti + 0.5)), 0), width - 1)
     f0 = np.exp(-s * (ti - j0) ** 2)
     up = np.exp(-s * (2.0 * (j0 - ti) + 1.0))  # f(j+1) = f(j) up, j >= j0
     # f(j-1) = f(j) down, j <= j0; up * down = c
     down = c / up if up > 1e-300 else np.exp(-s * (2.0 * (ti - j0) + 1.0))
-    return f0, up, down
-
-
-@numba.njit(cache=True, nogil=True)
-def _recurrence(j0, f0, up, down, c, cutoff, out):  # pragma: no cover (compiled)
-    """``exp(-s (ti - j)^2)`` for every j of ``out`` where it is at least ``cutoff``, with
-    two exponentials instead of ``width``: from ``j0`` outwards, each value is the
-    previous times a ratio <= 1, and each ratio the previous one times ``c = exp(-2 s)``
-    (no overflow; relative error ~ width x eps)."""
     f, r = f0, up
-    for j in range(j0, len(out)):
+    for j in range(j0, width):
         if f < cutoff:
             break
         out[j] = f
@@ -189,18 +177,6 @@ class _Blocks:
             for d, w in enumerate(self.width)
         ]
 
-    def starts(self) -> tuple[np.ndarray, ...]:
-        """Per point and axis (n, 3 each), where :func:`_recurrence` starts its window's
-        factors: ``j0``, the lattice point nearest the point inside the window, ``f0``,
-        ``up``, ``down`` (:func:`_start`, vectorised here) and ``c = exp(-2 scale)``."""
-        t, s = self.t, np.broadcast_to(self.scale, self.t.shape)
-        j0 = np.clip(np.floor(t + 0.5), 0, self.width - 1)
-        c = np.exp(-2.0 * s)
-        up = np.exp(-s * (2.0 * (j0 - t) + 1.0))
-        with np.errstate(divide="ignore"):
-            down = np.where(up > 1e-300, c / up, np.exp(-s * (2.0 * (t - j0) + 1.0)))
-        return j0.astype(np.int64), np.exp(-s * (t - j0) ** 2), up, down, np.ascontiguousarray(c)
-
     def chunks(self):
         """Yield (rows into the sorted points, window slices into the lattice array)."""
         for a, b in zip(self.bounds[:-1], self.bounds[1:], strict=True):
@@ -274,32 +250,37 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     if len(X):
         blocks = _Blocks(lattice, X, k, cutoff, block)
         W = np.ascontiguousarray(np.asarray(W, float)[blocks.order])
-        starts = blocks.starts()
+        ratio = np.exp(-2.0 * blocks.scale)
         Lx, Ly, Lz = (int(w) for w in blocks.width)
         xc, yz = np.empty(Lx * n_out * CHUNK_POINTS), np.empty(Ly * Lz * CHUNK_POINTS)
         product = np.empty((Lx * n_out, Ly * Lz))
         for rows, (wx, wy, wz) in blocks.chunks():
             n = rows.stop - rows.start
             a, b = scratch(xc, n, Lx * n_out), scratch(yz, n, Ly * Lz)
-            _splat_rows(*(part[rows] for part in starts), cutoff, W[rows], blocks.width, a, b)
+            per_point = rows if len(blocks.scale) > 1 else slice(None)
+            _splat_rows(
+                blocks.t[rows], blocks.scale[per_point], ratio[per_point], cutoff, W[rows], blocks.width, a, b
+            )
             np.matmul(a.T, b, out=product)
             out[wx, :, wy, wz] += product.reshape(Lx, n_out, Ly, Lz)
     return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_rows(j0, f0, up, down, c, cutoff, W, width, xc, yz):  # pragma: no cover (compiled)
+def _splat_rows(t, scale, ratio, cutoff, W, width, xc, yz):  # pragma: no cover (compiled)
     """Per point ``p`` of a chunk: ``xc[p, i C + c] = fx_i W[p, c]`` and
-    ``yz[p, j Lz + k] = fy_j fz_k``, from its window factors' starts (n, 3 each:
-    :meth:`_Blocks.starts`) by :func:`_recurrence`; ``width`` the window's (Lx, Ly, Lz)."""
+    ``yz[p, j Lz + k] = fy_j fz_k``, its window factors (:func:`_point_factors`; ``t``
+    (n, 3) in steps from the window's start, ``scale`` and ``ratio = exp(-2 scale)`` (1 or
+    n, 3), ``width`` the window's (Lx, Ly, Lz))."""
     C = W.shape[1]
     Lx, Ly, Lz = width[0], width[1], width[2]
     fx, fy, fz = np.empty(Lx), np.empty(Ly), np.empty(Lz)
-    for p in range(j0.shape[0]):
+    for p in range(t.shape[0]):
+        row = min(p, scale.shape[0] - 1)
         fx[:], fy[:], fz[:] = 0.0, 0.0, 0.0
-        _recurrence(j0[p, 0], f0[p, 0], up[p, 0], down[p, 0], c[p, 0], cutoff, fx)
-        _recurrence(j0[p, 1], f0[p, 1], up[p, 1], down[p, 1], c[p, 1], cutoff, fy)
-        _recurrence(j0[p, 2], f0[p, 2], up[p, 2], down[p, 2], c[p, 2], cutoff, fz)
+        _point_factors(t[p, 0], scale[row, 0], ratio[row, 0], cutoff, fx)
+        _point_factors(t[p, 1], scale[row, 1], ratio[row, 1], cutoff, fy)
+        _point_factors(t[p, 2], scale[row, 2], ratio[row, 2], cutoff, fz)
         for i in range(Lx):
             for ch in range(C):
                 xc[p, i * C + ch] = fx[i] * W[p, ch]
@@ -572,13 +553,17 @@ def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.
     t = (X - lattice.origin) / lattice.step
     table = T.reshape(T.shape[0], T.shape[1], -1)
     if _row_values(lattice, T, k, cutoff) > SHORT_ROWS:
-        kernel, order = _gather_rows, _cell_order(t, np.array(lattice.shape))
-        t, scale = t[order], scale[order] if len(scale) > 1 else scale
-    else:
-        kernel, order = _gather_short_rows, slice(None)
-        if table.shape[2] < LANES:  # rows shorter than a chunk (lattices of a few layers): pad them
-            table = np.concatenate([table, np.zeros((*table.shape[:2], LANES - table.shape[2]))], axis=2)
+        order = _cell_order(t, np.array(lattice.shape))
+        scale = scale[order] if len(scale) > 1 else scale
+        out[order] = _gather_rows(t[order], *_per_scale(scale, cutoff), table, np.empty_like(out))
+        return out
+    if table.shape[2] < LANES:  # rows shorter than a chunk (lattices of a few layers): pad them
+        table = np.concatenate([table, np.zeros((*table.shape[:2], LANES - table.shape[2]))], axis=2)
+    return _gather_short_rows(np.ascontiguousarray(t), *_per_scale(scale, cutoff), table, out)
+
+
+def _per_scale(scale, cutoff) -> tuple:
+    """What the point-by-point kernels take per ``scale`` (1 or n, 3): it, the window's
+    half-width ``reach``, ``ratio = exp(-2 scale)``, and the cutoff."""
     scale = np.ascontiguousarray(scale)
-    per_scale = (scale, np.sqrt(np.log(1.0 / cutoff) / scale), np.exp(-2.0 * scale), float(cutoff))
-    out[order] = kernel(np.ascontiguousarray(t), *per_scale, table, np.empty_like(out))
-    return out
+    return scale, np.sqrt(np.log(1.0 / cutoff) / scale), np.exp(-2.0 * scale), float(cutoff)

@@ -275,7 +275,7 @@ def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.n
     offsets count twice (the pair and its mirror), the diagonal once."""
     weights = stencil.factor * np.where(np.arange(len(stencil.factor)) == 0, 1.0, 2.0)
     out = np.zeros(midpoints.shape)
-    _pairs_to_midpoints(np.array(stencil.shape), stencil.offsets, weights, np.asarray(band, float), out)
+    _midpoint_pairs(np.array(stencil.shape), stencil.offsets, weights, np.asarray(band, float), out, True)
     return out
 
 
@@ -311,34 +311,28 @@ def midpoint_band(stencil: Stencil, values: np.ndarray) -> np.ndarray:
     the midpoint lattice read at every stencil pair's midpoint (zero where ``m + o_k``
     leaves the lattice)."""
     out = np.zeros((len(stencil.offsets), stencil.size))
-    _midpoints_to_pairs(
-        np.array(stencil.shape), stencil.offsets, stencil.factor, np.asarray(values, float), out
+    _midpoint_pairs(
+        np.array(stencil.shape), stencil.offsets, stencil.factor, out, np.asarray(values, float), False
     )
     return out
 
 
 @numba.njit(cache=True)
-def _pairs_to_midpoints(shape, offsets, weights, band, out):  # pragma: no cover - compiled
-    """``out[2 idx(m) + o_k] += weights[k] band[k, m]`` over the pairs on the lattice."""
+def _midpoint_pairs(shape, offsets, weights, band, midpoints, to_midpoints):  # pragma: no cover - compiled
+    """Over the pairs (m, m + o_k) on the lattice, which meet at ``2 idx(m) + o_k`` of the
+    midpoint lattice: ``midpoints[2 idx(m) + o_k] += weights[k] band[k, m]`` if
+    ``to_midpoints``, else ``band[k, m] = weights[k] midpoints[2 idx(m) + o_k]``."""
     for k in range(len(offsets)):
         o = offsets[k]
         for i in range(max(0, -o[0]), shape[0] - max(0, o[0])):
             for j in range(max(0, -o[1]), shape[1] - max(0, o[1])):
                 for l in range(max(0, -o[2]), shape[2] - max(0, o[2])):
                     m = (i * shape[1] + j) * shape[2] + l
-                    out[2 * i + o[0], 2 * j + o[1], 2 * l + o[2]] += weights[k] * band[k, m]
-
-
-@numba.njit(cache=True)
-def _midpoints_to_pairs(shape, offsets, factor, values, out):  # pragma: no cover - compiled
-    """``out[k, m] = factor[k] values[2 idx(m) + o_k]`` over the pairs on the lattice."""
-    for k in range(len(offsets)):
-        o = offsets[k]
-        for i in range(max(0, -o[0]), shape[0] - max(0, o[0])):
-            for j in range(max(0, -o[1]), shape[1] - max(0, o[1])):
-                for l in range(max(0, -o[2]), shape[2] - max(0, o[2])):
-                    m = (i * shape[1] + j) * shape[2] + l
-                    out[k, m] = factor[k] * values[2 * i + o[0], 2 * j + o[1], 2 * l + o[2]]
+                    g = (2 * i + o[0], 2 * j + o[1], 2 * l + o[2])
+                    if to_midpoints:
+                        midpoints[g] += weights[k] * band[k, m]
+                    else:
+                        band[k, m] = weights[k] * midpoints[g]
 
 
 def dissection(shape, reach) -> np.ndarray:

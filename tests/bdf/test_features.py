@@ -13,21 +13,23 @@ from bdf.grid import Lattice
 #: The compiled kernels' source with bounds checks: an index that leaves its arrays raises.
 BOUNDS_CHECKED = {
     name: numba.njit(boundscheck=True)(getattr(features, name).py_func)
-    for name in ("_gather_rows", "_gather_short_rows", "_sort_blocks", "_splat_rows", "_recurrence")
+    for name in ("_gather_rows", "_gather_short_rows", "_sort_blocks", "_splat_rows", "_point_factors")
 }
+
+
+def dense_factors(lattice, X, k, cutoff):
+    """Per point, its factor at every lattice point of each axis, below the cutoff zeroed."""
+    k = np.broadcast_to(np.asarray(k, float).reshape(-1, 3), (len(X), 3))
+    for n, x in enumerate(X):
+        f = [np.exp(-k[n, d] * (x[d] - lattice.axis(d)) ** 2) for d in range(3)]
+        yield [np.where(fd < cutoff, 0.0, fd) for fd in f]
 
 
 def dense_gather(lattice, X, T, k, cutoff):
     """The sum written out: every lattice point, per-axis factors below the cutoff zeroed."""
     out = np.zeros((len(X), T.shape[-1]))
-    k = np.broadcast_to(np.asarray(k, float).reshape(-1, 3), (len(X), 3))
-    for n, x in enumerate(X):
-        f = []
-        for d in range(3):
-            fd = np.exp(-k[n, d] * (x[d] - lattice.axis(d)) ** 2)
-            f.append(np.where(fd < cutoff, 0.0, fd))
-        w = f[0][:, None, None] * f[1][None, :, None] * f[2][None, None, :]
-        out[n] = np.tensordot(w, T, axes=3)
+    for n, f in enumerate(dense_factors(lattice, X, k, cutoff)):
+        out[n] = np.einsum("i,j,k,ijkc->c", *f, T)
     return out
 
 
@@ -56,12 +58,7 @@ def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, pe
 def dense_splat(lattice, X, W, k, cutoff):
     """``T[g, c] = sum_n W[n, c] w(x_n, g)`` written out (per-axis factors below the cutoff zeroed)."""
     out = np.zeros((*lattice.shape, W.shape[1]))
-    k = np.broadcast_to(np.asarray(k, float).reshape(-1, 3), (len(X), 3))
-    for n, x in enumerate(X):
-        f = []
-        for d in range(3):
-            fd = np.exp(-k[n, d] * (x[d] - lattice.axis(d)) ** 2)
-            f.append(np.where(fd < cutoff, 0.0, fd))
+    for n, f in enumerate(dense_factors(lattice, X, k, cutoff)):
         out += np.einsum("i,j,k,c->ijkc", *f, W[n])
     return out
 
