@@ -41,6 +41,8 @@ POINTWISE_MAX_POINTS = 2048
 SHORT_ROWS, LANES = 32, 8
 #: Points per BLAS call at most: its temporaries stay in cache (bench/RESULTS.md, builds).
 CHUNK_POINTS = 2048
+#: The same in a splat, whose operands are wider (one million points, measured).
+SPLAT_CHUNK = 256
 
 
 def expected_kernel(gamma: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,17 +64,34 @@ def _cut(factor: np.ndarray, cutoff: float) -> np.ndarray:
     return factor
 
 
-@numba.njit(cache=True)
-def _axis_factors(t, scale, cutoff, out):  # pragma: no cover (compiled)
-    """``out[j, n] = exp(-scale_n (t_n - j)^2)`` for j = 0 .. width-1, zero below ``cutoff``;
-    ``scale`` has n values or one for all; ``out`` is (width, n) (:func:`_point_factors`)."""
-    out[:] = 0.0
-    s, c = -1.0, 0.0
-    for i in range(out.shape[1]):
-        if scale[min(i, scale.shape[0] - 1)] != s:
-            s = scale[min(i, scale.shape[0] - 1)]
-            c = np.exp(-2.0 * s)
-        _point_factors(t[i], s, c, cutoff, out[:, i])
+@numba.njit(cache=True, nogil=True)
+def _axis_factors(t, scale, reach, ratio, cutoff, d, out):  # pragma: no cover (compiled)
+    """``out[j, p] = exp(-s_p (t_pd - j)^2)`` on axis ``d``, zero below ``cutoff`` or beyond
+    ``reach``; ``t`` is (n, 3) in lattice steps, ``scale``, ``reach`` and
+    ``ratio = exp(-2 scale)`` (1 or n, 3) as :func:`_per_scale` gives them, ``out`` (width, n).
+
+    The blocked form of :func:`_point_factors`: points side by side, so the recurrence
+    runs in SIMD lanes, each from its first lattice point within reach (a value >=
+    ``cutoff``: no underflow; within reach a ratio is at most 1 / ``cutoff``: no overflow).
+    """
+    n = t.shape[0]
+    # local arrays: the compiler then knows they do not overlap ``out``, and vectorises
+    f, r, c, lo, hi = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    for p in range(n):
+        q = min(p, scale.shape[0] - 1)
+        s, ti = scale[q, d], t[p, d]
+        a = max(np.ceil(ti - reach[q, d]), 0.0)
+        lo[p], hi[p] = a, np.floor(ti + reach[q, d])
+        f[p] = np.exp(-s * (ti - a) ** 2)
+        r[p] = np.exp(-s * (2.0 * (a - ti) + 1.0))  # f(j + 1) = f(j) r(j), r(j + 1) = r(j) c
+        c[p] = ratio[q, d]
+    for j in range(out.shape[0]):
+        row, at = out[j], float(j)
+        for p in range(n):  # no branches
+            v, on = f[p], at >= lo[p]
+            row[p] = v if on & (at <= hi[p]) & (v >= cutoff) else 0.0
+            f[p] = v * r[p] if on else v
+            r[p] = r[p] * c[p] if on else r[p]
     return out
 
 
@@ -167,12 +186,14 @@ class _Blocks:
         """Positions in lattice steps from each point's window start, and ``k`` in steps."""
         self.t = (X - lattice.origin) / lattice.step - self.start
         self.scale = k * lattice.step**2
+        self.per_scale = _per_scale(self.scale, self.cutoff)
 
     def _factors(self, rows: slice) -> list[np.ndarray]:
-        t, scale = self.t[rows], self.scale if len(self.scale) == 1 else self.scale[rows]
+        t, (scale, reach, ratio, cutoff) = self.t[rows], self.per_scale
+        per = slice(None) if len(scale) == 1 else rows
         return [
             _axis_factors(
-                t[:, d], np.ascontiguousarray(scale[:, d]), self.cutoff, scratch(self._scratch[d], w, len(t))
+                t, scale[per], reach[per], ratio[per], cutoff, d, scratch(self._scratch[d], w, len(t))
             )
             for d, w in enumerate(self.width)
         ]
@@ -250,43 +271,60 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     if len(X):
         blocks = _Blocks(lattice, X, k, cutoff, block)
         W = np.ascontiguousarray(np.asarray(W, float)[blocks.order])
-        ratio = np.exp(-2.0 * blocks.scale)
-        Lx, Ly, Lz = (int(w) for w in blocks.width)
-        xc, yz = np.empty(Lx * n_out * CHUNK_POINTS), np.empty(Ly * Lz * CHUNK_POINTS)
-        product = np.empty((Lx * n_out, Ly * Lz))
-        for rows, (wx, wy, wz) in blocks.chunks():
-            n = rows.stop - rows.start
-            a, b = scratch(xc, n, Lx * n_out), scratch(yz, n, Ly * Lz)
-            per_point = rows if len(blocks.scale) > 1 else slice(None)
-            _splat_rows(
-                blocks.t[rows], blocks.scale[per_point], ratio[per_point], cutoff, W[rows], blocks.width, a, b
-            )
-            np.matmul(a.T, b, out=product)
-            out[wx, :, wy, wz] += product.reshape(Lx, n_out, Ly, Lz)
+        _splat_blocks(
+            blocks.t, *blocks.per_scale, W, np.asarray(blocks.bounds), blocks.start, blocks.width, out
+        )
     return np.ascontiguousarray(out.transpose(0, 2, 3, 1))
 
 
 @numba.njit(cache=True, nogil=True)
-def _splat_rows(t, scale, ratio, cutoff, W, width, xc, yz):  # pragma: no cover (compiled)
-    """Per point ``p`` of a chunk: ``xc[p, i C + c] = fx_i W[p, c]`` and
-    ``yz[p, j Lz + k] = fy_j fz_k``, its window factors (:func:`_point_factors`; ``t``
-    (n, 3) in steps from the window's start, ``scale`` and ``ratio = exp(-2 scale)`` (1 or
-    n, 3), ``width`` the window's (Lx, Ly, Lz))."""
+def _splat_blocks(
+    t, scale, reach, ratio, cutoff, W, bounds, start, width, out
+):  # pragma: no cover (compiled)
+    """``out`` (nx, C, ny, nz) += every block's sum: per chunk of at most
+    :data:`SPLAT_CHUNK` points one GEMM (Lx C x n) @ (n x Ly Lz) of two matrices made point
+    by point (:func:`_splat_rows`), added into the block's window. ``t`` (n, 3) are the
+    points' positions from their window's start (``start`` (n or 1, 3)), sorted by block
+    (``bounds``); the rest as :func:`_splat_rows` takes it."""
     C = W.shape[1]
     Lx, Ly, Lz = width[0], width[1], width[2]
-    fx, fy, fz = np.empty(Lx), np.empty(Ly), np.empty(Lz)
-    for p in range(t.shape[0]):
-        row = min(p, scale.shape[0] - 1)
-        fx[:], fy[:], fz[:] = 0.0, 0.0, 0.0
-        _point_factors(t[p, 0], scale[row, 0], ratio[row, 0], cutoff, fx)
-        _point_factors(t[p, 1], scale[row, 1], ratio[row, 1], cutoff, fy)
-        _point_factors(t[p, 2], scale[row, 2], ratio[row, 2], cutoff, fz)
+    xc, yz = np.empty((SPLAT_CHUNK, Lx * C)), np.empty((SPLAT_CHUNK, Ly * Lz))
+    product = np.empty((Lx * C, Ly * Lz))
+    for b in range(len(bounds) - 1):
+        x0, y0, z0 = start[bounds[b], 0], start[bounds[b], 1], start[bounds[b], 2]
+        for first in range(bounds[b], bounds[b + 1], SPLAT_CHUNK):
+            last = min(first + SPLAT_CHUNK, bounds[b + 1])
+            per = slice(first, last) if scale.shape[0] > 1 else slice(0, 1)
+            a, m = xc[: last - first], yz[: last - first]
+            _splat_rows(t[first:last], scale[per], reach[per], ratio[per], cutoff, W[first:last], width, a, m)
+            np.dot(a.T, m, product)
+            for i in range(Lx):
+                for ch in range(C):
+                    for j in range(Ly):
+                        for k in range(Lz):
+                            out[x0 + i, ch, y0 + j, z0 + k] += product[i * C + ch, j * Lz + k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _splat_rows(t, scale, reach, ratio, cutoff, W, width, xc, yz):  # pragma: no cover (compiled)
+    """Per point ``p`` of a chunk: ``xc[p, i C + c] = fx_i W[p, c]`` and
+    ``yz[p, j Lz + k] = fy_j fz_k``, its window factors (:func:`_axis_factors`; ``t`` (n, 3)
+    in steps from the window's start, ``scale``, ``reach`` and ``ratio`` (1 or n, 3) as
+    :func:`_per_scale` gives them, ``width`` the window's (Lx, Ly, Lz))."""
+    n, C = W.shape
+    Lx, Ly, Lz = width[0], width[1], width[2]
+    fx = _axis_factors(t, scale, reach, ratio, cutoff, 0, np.empty((Lx, n)))
+    fy = _axis_factors(t, scale, reach, ratio, cutoff, 1, np.empty((Ly, n)))
+    fz = _axis_factors(t, scale, reach, ratio, cutoff, 2, np.empty((Lz, n)))
+    z = np.empty(Lz)
+    for p in range(n):
         for i in range(Lx):
             for ch in range(C):
-                xc[p, i * C + ch] = fx[i] * W[p, ch]
+                xc[p, i * C + ch] = fx[i, p] * W[p, ch]
+        z[:] = fz[:, p]
         for j in range(Ly):
             for k in range(Lz):
-                yz[p, j * Lz + k] = fy[j] * fz[k]
+                yz[p, j * Lz + k] = fy[j, p] * z[k]
     return xc, yz
 
 

@@ -13,7 +13,15 @@ from bdf.grid import Lattice
 #: The compiled kernels' source with bounds checks: an index that leaves its arrays raises.
 BOUNDS_CHECKED = {
     name: numba.njit(boundscheck=True)(getattr(features, name).py_func)
-    for name in ("_gather_rows", "_gather_short_rows", "_sort_blocks", "_splat_rows", "_point_factors")
+    for name in (
+        "_gather_rows",
+        "_gather_short_rows",
+        "_sort_blocks",
+        "_splat_blocks",
+        "_splat_rows",
+        "_axis_factors",
+        "_point_factors",
+    )
 }
 
 
@@ -65,11 +73,12 @@ def dense_splat(lattice, X, W, k, cutoff):
 
 @pytest.mark.parametrize("cutoff", [1e-12, 1e-6])
 @pytest.mark.parametrize("per_point_k", [False, True])
-@pytest.mark.parametrize(("points", "block"), [(3000, 1), (300, 1), (300, 2), (40, 1)])
+@pytest.mark.parametrize(("points", "block"), [(3000, 1), (300, 1), (300, 2), (40, 1), (3000, 32)])
 def test_splat_equals_the_dense_sum(cutoff, per_point_k, points, block):
     """Many blocks of one cell, blocks that grow (300 points are too few for blocks of one
-    cell), blocks of two, one window (too few points to sort): every path of the blocking,
-    also with bounds checks on the compiled kernels."""
+    cell), blocks of two, one window (too few points to sort), one block of many chunks
+    (:data:`~bdf.features.SPLAT_CHUNK`): every path of the blocking, also with bounds checks
+    on the compiled kernels."""
     rng = np.random.default_rng(points)
     lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (23, 17, 9))
     lo, hi = lattice.origin, lattice.origin + lattice.step * (np.array(lattice.shape) - 1)
