@@ -161,30 +161,22 @@ class _Blocks:
         narrowest = k.min(axis=0)
         shape = np.array(lattice.shape)
         self.cutoff = cutoff
-        # a lattice point g can weigh >= cutoff for x in cells [c, c + e) only if
-        # c - r <= g <= c + e - 1 + r, r the reach in steps: a window of e + 2 floor(r) + 1
         reach = np.floor(np.sqrt(np.log(1.0 / cutoff) / narrowest) / lattice.step).astype(int)
         if len(X) < 2 * MIN_POINTS_PER_BLOCK or np.all(2 * reach + 1 >= shape):
             # too few points to split, or every window would span the lattice (small tiles,
             # radar scans): one window over the whole lattice
             self.order, self.bounds, self.width = slice(None), [0, len(X)], shape
             self.start = np.zeros((1, 3), np.int64)
-            self._positions(lattice, X, k)
+            self.t = (X - lattice.origin) / lattice.step
+            self._scales(lattice, k)
             return
-        cells = np.floor((X - lattice.origin) / lattice.step).astype(np.int64)
-        cells = np.minimum(np.maximum(cells, -1), shape - 1)
-        self.order, self.bounds, corner, edge = _sort_blocks(cells, shape, block, MIN_POINTS_PER_BLOCK)
-        # A block's window holds every lattice point within reach of its cells. Shifted to
-        # lie inside the lattice, a window of the same width still holds all of those that
-        # exist, so no padding is needed and no window is wider than the lattice.
-        self.width = np.minimum(edge + 2 * reach + 1, shape)
-        starts = np.clip(corner - reach, 0, shape - self.width)
-        self.start = np.repeat(starts, np.diff(self.bounds), axis=0)
-        self._positions(lattice, X[self.order], k if len(k) == 1 else k[self.order])
+        self.order, self.bounds, self.start, self.width, self.t = _sort_blocks(
+            X, lattice.origin, lattice.step, shape, reach, block, MIN_POINTS_PER_BLOCK
+        )
+        self._scales(lattice, k if len(k) == 1 else k[self.order])
 
-    def _positions(self, lattice: Lattice, X: np.ndarray, k: np.ndarray) -> None:
-        """Positions in lattice steps from each point's window start, and ``k`` in steps."""
-        self.t = (X - lattice.origin) / lattice.step - self.start
+    def _scales(self, lattice: Lattice, k: np.ndarray) -> None:
+        """``k`` in lattice steps, and what the kernels take with it (:func:`_per_scale`)."""
         self.scale = k * lattice.step**2
         self.per_scale = _per_scale(self.scale, self.cutoff)
 
@@ -200,8 +192,7 @@ class _Blocks:
 
     def chunks(self):
         """Yield (rows into the sorted points, window slices into the lattice array)."""
-        for a, b in zip(self.bounds[:-1], self.bounds[1:], strict=True):
-            s = self.start[a]
+        for s, a, b in zip(self.start, self.bounds[:-1], self.bounds[1:], strict=True):
             window = tuple(slice(s[d], s[d] + self.width[d]) for d in range(3))
             for c in range(a, b, CHUNK_POINTS):
                 yield slice(c, min(c + CHUNK_POINTS, b)), window
@@ -216,12 +207,26 @@ class _Blocks:
 
 
 @numba.njit(cache=True)
-def _sort_blocks(cells, shape, block, min_points):  # pragma: no cover (compiled)
-    """The points (their lattice cells (n, 3), -1 .. shape - 1) sorted by block of
-    ``edge`` cells (a stable counting sort, blocks in C order): ``order``, the ``bounds``
-    of each block's run, its first cell (blocks, 3) and ``edge``. The edge starts at
-    ``block`` and doubles until the blocks average ``min_points`` points or it spans the
-    lattice."""
+def _sort_blocks(X, origin, step, shape, reach, block, min_points):  # pragma: no cover (compiled)
+    """The points ``X`` (n, 3) sorted by block of ``edge`` lattice cells (a stable counting
+    sort, blocks in C order; points outside the lattice in the nearest cell or one beyond).
+    The edge starts at ``block`` and doubles until the blocks average ``min_points`` points
+    or it spans the lattice.
+
+    Returns ``order``, the ``bounds`` of each block's run, each block's window ``start``
+    (blocks, 3), the windows' ``width`` (3,) and the sorted points' positions ``t`` (n, 3)
+    in lattice steps from their window's start. A block's window holds every lattice point
+    within ``reach`` (steps, per axis) of its cells: a lattice point g can weigh >= cutoff
+    for x in cells [c, c + e) only if c - r <= g <= c + e - 1 + r, a window of
+    e + 2 r + 1. Shifted to lie inside the lattice, a window of the same width still holds
+    all of those that exist, so no padding is needed and no window is wider than the
+    lattice.
+    """
+    n = X.shape[0]
+    cells = np.empty((n, 3), np.int64)
+    for p in range(n):
+        for d in range(3):
+            cells[p, d] = int(min(max(np.floor((X[p, d] - origin[d]) / step[d]), -1.0), shape[d] - 1.0))
     n = cells.shape[0]
     while True:
         edge = np.minimum(block, shape)
@@ -243,16 +248,24 @@ def _sort_blocks(cells, shape, block, min_points):  # pragma: no cover (compiled
         order[fill[key[p]]] = p
         fill[key[p]] += 1
     runs = np.flatnonzero(counts[1:])
+    width = np.minimum(edge + 2 * reach + 1, shape)
     bounds = np.empty(len(runs) + 1, np.int64)
-    corner = np.empty((len(runs), 3), np.int64)
+    start = np.empty((len(runs), 3), np.int64)
     for r in range(len(runs)):
         b = runs[r]
         bounds[r] = first[b]
-        corner[r, 0] = (b // (count[1] * count[2]) - 1) * edge[0]
-        corner[r, 1] = (b // count[2] % count[1] - 1) * edge[1]
-        corner[r, 2] = (b % count[2] - 1) * edge[2]
+        start[r, 0] = (b // (count[1] * count[2]) - 1) * edge[0]
+        start[r, 1] = (b // count[2] % count[1] - 1) * edge[1]
+        start[r, 2] = (b % count[2] - 1) * edge[2]
+        for d in range(3):
+            start[r, d] = min(max(start[r, d] - reach[d], 0), shape[d] - width[d])
     bounds[-1] = n
-    return order, bounds, corner, edge
+    t = np.empty((n, 3))
+    for r in range(len(runs)):
+        for q in range(bounds[r], bounds[r + 1]):
+            for d in range(3):
+                t[q, d] = (X[order[q], d] - origin[d]) / step[d] - start[r, d]
+    return order, bounds, start, width, t
 
 
 def scratch(buffer: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -284,14 +297,14 @@ def _splat_blocks(
     """``out`` (nx, C, ny, nz) += every block's sum: per chunk of at most
     :data:`SPLAT_CHUNK` points one GEMM (Lx C x n) @ (n x Ly Lz) of two matrices made point
     by point (:func:`_splat_rows`), added into the block's window. ``t`` (n, 3) are the
-    points' positions from their window's start (``start`` (n or 1, 3)), sorted by block
+    points' positions from their window's start (``start`` (blocks, 3)), sorted by block
     (``bounds``); the rest as :func:`_splat_rows` takes it."""
     C = W.shape[1]
     Lx, Ly, Lz = width[0], width[1], width[2]
     xc, yz = np.empty((SPLAT_CHUNK, Lx * C)), np.empty((SPLAT_CHUNK, Ly * Lz))
     product = np.empty((Lx * C, Ly * Lz))
     for b in range(len(bounds) - 1):
-        x0, y0, z0 = start[bounds[b], 0], start[bounds[b], 1], start[bounds[b], 2]
+        x0, y0, z0 = start[b, 0], start[b, 1], start[b, 2]
         for first in range(bounds[b], bounds[b + 1], SPLAT_CHUNK):
             last = min(first + SPLAT_CHUNK, bounds[b + 1])
             per = slice(first, last) if scale.shape[0] > 1 else slice(0, 1)

@@ -42,6 +42,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from bdf import features, linalg, noise
+from bdf._validate import take_rows
 from bdf.directions import Sectors
 from bdf.grid import HingeGrid, Lattice
 
@@ -98,8 +99,10 @@ class Evidence:
         local-noise moments are kept too (at the given positions, input noise or not).
         """
         w = np.ones(len(X)) if sample_weight is None else sample_weight
-        noisy = np.zeros(len(X), bool) if input_noise_std is None else np.any(input_noise_std > 0, 1)
-        plain = ~noisy
+        noisy = None if input_noise_std is None else np.any(input_noise_std > 0, 1)
+        if noisy is not None and not noisy.any():
+            noisy = None
+        plain = slice(None) if noisy is None else ~noisy  # a view when no point is noisy
         density = features.splat(
             grid.midpoints(), X[plain], w[plain, None], 2.0 * gamma, cutoff=cutoff, block=MIDPOINT_BLOCK
         )[..., 0]
@@ -107,7 +110,7 @@ class Evidence:
         wV1 = np.concatenate([wV, w[:, None]], axis=1)  # Phi^T V and Phi^T 1 in one pass
         proj = features.splat(grid, X[plain], wV1[plain], gamma, cutoff=cutoff).reshape(-1, 4)
         gram_noisy = None
-        if noisy.any():
+        if noisy is not None:
             k, amplitude = features.expected_kernel(gamma, input_noise_std[noisy])
             weighted = wV1[noisy] * amplitude[:, None]
             proj += features.splat(grid, X[noisy], weighted, k, cutoff=cutoff).reshape(-1, 4)
@@ -292,21 +295,11 @@ class SectorEvidence:
     ) -> SectorEvidence:
         """The increment of ``(X, V)``: each observation in the class of its velocity."""
         label = sectors.classify(V)
+        rows = (X, V, input_noise_std, sample_weight)
         parts = []
         for c in range(sectors.classes):
-            idx = slice(None) if sectors.classes == 1 else np.flatnonzero(label == c)
-            parts.append(
-                Evidence.from_points(
-                    grid,
-                    gamma,
-                    X[idx],
-                    V[idx],
-                    None if input_noise_std is None else input_noise_std[idx],
-                    None if sample_weight is None else sample_weight[idx],
-                    cutoff=cutoff,
-                    noise_lattice=noise_lattice,
-                )
-            )
+            part = rows if sectors.classes == 1 else take_rows(rows, np.flatnonzero(label == c))
+            parts.append(Evidence.from_points(grid, gamma, *part, cutoff=cutoff, noise_lattice=noise_lattice))
         return cls(tuple(parts))
 
     @property

@@ -47,6 +47,7 @@ from bdf._validate import (
     as_points,
     as_sample_weight,
     rows_all,
+    take_rows,
 )
 from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
@@ -260,10 +261,7 @@ class RegionSpec(BaseModel):
             evidence = SectorEvidence.from_points(
                 self.tile_grid(key),
                 gamma,
-                X[idx],
-                V[idx],
-                None if input_noise is None else input_noise[idx],
-                None if weight is None else weight[idx],
+                *take_rows((X, V, input_noise, weight), idx),
                 sectors=self.sectors,
                 noise_lattice=self.tile_noise_lattice(key),
                 cutoff=self.cutoff,

@@ -374,17 +374,21 @@ def _evidence(spec: RegionSpec, X, V, noise, weight, progress):
         finite &= rows_all(np.isfinite(noise) & (noise >= 0))
     if weight is not None:
         finite &= np.isfinite(weight) & (weight >= 0)
-    inside = np.zeros(len(X), bool)
-    inside[finite] = spec.inside(X[finite])
+    inside = spec.inside(X)  # never true for a row that is not finite
     keep = finite & inside
+    every = keep.all()
+
+    def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
+        return a if a is None or every else np.compress(keep, a, axis=0)
+
     increments = (
         {}
         if not keep.any()
         else spec.increments(
-            X[keep],
-            V[keep],
-            input_noise_std=None if noise is None else noise[keep],
-            sample_weight=None if weight is None else weight[keep],
+            kept(X),
+            kept(V),
+            input_noise_std=kept(noise),
+            sample_weight=kept(weight),
             progress=None if progress is None else (lambda f: progress(0.9 * f)),
         )
     )
