@@ -50,7 +50,7 @@ FORMAT_VERSION = 3
 #: Blob formats this code reads.
 READABLE_FORMATS = (2, 3)
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
-MIDPOINT_BLOCK = 2
+MIDPOINT_BLOCK = 1
 
 
 @dataclass
@@ -127,8 +127,8 @@ class Evidence:
             proj=np.ascontiguousarray(proj[:, :3]),
             mass=np.ascontiguousarray(proj[:, 3]),
             count=float(w.sum()),
-            v_sum=wV.sum(axis=0),
-            v_sq=(wV * V).sum(axis=0),
+            v_sum=V.T @ w,  # BLAS: numpy's sums down a column are several times slower
+            v_sq=(V * V).T @ w,
             gram_noisy=gram_noisy,
             moments=None if noise_lattice is None else noise.moments(noise_lattice, X, V, w),
         )

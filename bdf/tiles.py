@@ -30,7 +30,6 @@ the cutoff are dropped (below ``cutoff^(1 / (1 + 2 gamma nu^2))``).
 from __future__ import annotations
 
 import functools
-import itertools
 from collections.abc import Callable, Mapping
 from typing import Annotated, Literal, NamedTuple
 
@@ -224,10 +223,16 @@ class RegionSpec(BaseModel):
     def home_tiles(self, X) -> dict[TileKey, np.ndarray]:
         """Row indices of ``X`` per tile whose core holds them (each row in one tile)."""
         X = self._inside_points(X)
+        if not len(X):
+            return {}
         n = np.array(self.tile_counts)
         home = np.clip(np.floor((X - self.lower) / np.array(self.tile_size_m)).astype(np.int64), 0, n - 1)
-        order = np.argsort(features.sort_key(np.ravel_multi_index(home.T, tuple(n))), kind="stable")
-        return {key: order[a:b] for a, b, key in _runs(home[order])}
+        flat = features.sort_key(np.ravel_multi_index(home.T, tuple(n)))
+        order = np.argsort(flat, kind="stable")
+        flat = flat[order]
+        bounds = [0, *(np.flatnonzero(flat[1:] != flat[:-1]) + 1).tolist(), len(flat)]
+        keys = np.stack(np.unravel_index(flat[bounds[:-1]], tuple(n)), axis=1).tolist()
+        return {tuple(k): order[a:b] for a, b, k in zip(bounds[:-1], bounds[1:], keys, strict=True)}
 
     def _inside_points(self, X) -> np.ndarray:
         X = as_points(X, "X", allow_empty=True)
@@ -480,11 +485,3 @@ def parse_key(text: str) -> TileKey:
     if len(parts) != 3 or not all(p.lstrip("-").isdigit() for p in parts):
         raise ValueError(f"a tile key is three integers joined by '_', got {text!r}")
     return tuple(int(p) for p in parts)
-
-
-def _runs(keys: np.ndarray) -> list[tuple[int, int, TileKey]]:
-    """Runs of equal rows of the sorted ``keys`` (n, 3): (start, stop, key) each."""
-    starts = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
-    bounds = [0, *starts.tolist(), len(keys)] if len(keys) else []
-    firsts = keys[bounds[:-1]].tolist()  # Python ints, one conversion for all runs
-    return [(a, b, tuple(k)) for (a, b), k in zip(itertools.pairwise(bounds), firsts, strict=True)]
