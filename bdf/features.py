@@ -295,49 +295,52 @@ def _splat_blocks(
     t, scale, reach, ratio, cutoff, W, bounds, start, width, out
 ):  # pragma: no cover (compiled)
     """``out`` (nx, C, ny, nz) += every block's sum: per chunk of at most
-    :data:`SPLAT_CHUNK` points one GEMM (Lx C x n) @ (n x Ly Lz) of two matrices made point
-    by point (:func:`_splat_rows`), added into the block's window. ``t`` (n, 3) are the
-    points' positions from their window's start (``start`` (blocks, 3)), sorted by block
-    (``bounds``); the rest as :func:`_splat_rows` takes it."""
+    :data:`SPLAT_CHUNK` points one GEMM (Ly Lz x n) @ (n x Lx C) of two matrices made from
+    the points' window factors (:func:`_splat_rows`), added into the block's window. ``t``
+    (n, 3) are the points' positions from their window's start (``start`` (blocks, 3)),
+    sorted by block (``bounds``); the rest as :func:`_splat_rows` takes it."""
     C = W.shape[1]
     Lx, Ly, Lz = width[0], width[1], width[2]
-    xc, yz = np.empty((SPLAT_CHUNK, Lx * C)), np.empty((SPLAT_CHUNK, Ly * Lz))
-    product = np.empty((Lx * C, Ly * Lz))
+    xc, yz = np.empty(SPLAT_CHUNK * Lx * C), np.empty(SPLAT_CHUNK * Ly * Lz)
+    product = np.empty((Ly * Lz, Lx * C))
     for b in range(len(bounds) - 1):
         x0, y0, z0 = start[b, 0], start[b, 1], start[b, 2]
         for first in range(bounds[b], bounds[b + 1], SPLAT_CHUNK):
             last = min(first + SPLAT_CHUNK, bounds[b + 1])
+            n = last - first
             per = slice(first, last) if scale.shape[0] > 1 else slice(0, 1)
-            a, m = xc[: last - first], yz[: last - first]
+            a, m = xc[: n * Lx * C].reshape((n, Lx * C)), yz[: n * Ly * Lz].reshape((Ly * Lz, n))
             _splat_rows(t[first:last], scale[per], reach[per], ratio[per], cutoff, W[first:last], width, a, m)
-            np.dot(a.T, m, product)
+            np.dot(m, a, product)
             for i in range(Lx):
                 for ch in range(C):
                     for j in range(Ly):
                         for k in range(Lz):
-                            out[x0 + i, ch, y0 + j, z0 + k] += product[i * C + ch, j * Lz + k]
+                            out[x0 + i, ch, y0 + j, z0 + k] += product[j * Lz + k, i * C + ch]
 
 
 @numba.njit(cache=True, nogil=True)
 def _splat_rows(t, scale, reach, ratio, cutoff, W, width, xc, yz):  # pragma: no cover (compiled)
-    """Per point ``p`` of a chunk: ``xc[p, i C + c] = fx_i W[p, c]`` and
-    ``yz[p, j Lz + k] = fy_j fz_k``, its window factors (:func:`_axis_factors`; ``t`` (n, 3)
-    in steps from the window's start, ``scale``, ``reach`` and ``ratio`` (1 or n, 3) as
-    :func:`_per_scale` gives them, ``width`` the window's (Lx, Ly, Lz))."""
+    """The GEMM operands of a chunk of points ``p``: ``xc[p, i C + c] = fx_i W[p, c]``, and
+    ``yz[j Lz + k, p] = fy_j fz_k`` points last (vectorised over the points; this layout of
+    the larger operand, and its product, measured fastest), from the window factors
+    (:func:`_axis_factors`; ``t`` (n, 3) in steps from the window's start, ``scale``,
+    ``reach`` and ``ratio`` (1 or n, 3) as :func:`_per_scale` gives them, ``width`` the
+    window's (Lx, Ly, Lz))."""
     n, C = W.shape
     Lx, Ly, Lz = width[0], width[1], width[2]
     fx = _axis_factors(t, scale, reach, ratio, cutoff, 0, np.empty((Lx, n)))
     fy = _axis_factors(t, scale, reach, ratio, cutoff, 1, np.empty((Ly, n)))
     fz = _axis_factors(t, scale, reach, ratio, cutoff, 2, np.empty((Lz, n)))
-    z = np.empty(Lz)
     for p in range(n):
         for i in range(Lx):
             for ch in range(C):
                 xc[p, i * C + ch] = fx[i, p] * W[p, ch]
-        z[:] = fz[:, p]
-        for j in range(Ly):
-            for k in range(Lz):
-                yz[p, j * Lz + k] = fy[j, p] * z[k]
+    for j in range(Ly):
+        for k in range(Lz):
+            row, a, b = yz[j * Lz + k], fy[j], fz[k]
+            for p in range(n):
+                row[p] = a[p] * b[p]
     return xc, yz
 
 
