@@ -103,9 +103,11 @@ def dask_build(spec: RegionSpec, files, workers: int, memory: str, batch_rows: i
 
 
 def _warm(spec_json: str) -> None:
+    """Compile (or load) every kernel a slice uses: points spread over the region, so
+    tiles sort their points into blocks, as the city's do."""
     spec = RegionSpec.model_validate_json(spec_json)
-    X = (spec.lower + spec.upper) / 2 + np.zeros((200, 3))
-    spec.increments(X, np.ones_like(X))
+    X, V, _ = make_city.sample(20_000, np.random.default_rng(1))
+    spec.increments(X[spec.inside(X)], V[spec.inside(X)])
 
 
 def score(store, spec: RegionSpec, seed: int = 99, n: int = 50_000) -> dict:
