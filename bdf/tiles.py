@@ -226,8 +226,7 @@ class RegionSpec(BaseModel):
         if not len(X):
             return {}
         n = np.array(self.tile_counts)
-        home = np.clip(np.floor((X - self.lower) / np.array(self.tile_size_m)).astype(np.int64), 0, n - 1)
-        flat = features.sort_key(np.ravel_multi_index(home.T, tuple(n)))
+        flat = features.sort_key(features.cell_keys(X, self.lower, np.array(self.tile_size_m), n))
         order = np.argsort(flat, kind="stable")
         flat = flat[order]
         bounds = [0, *(np.flatnonzero(flat[1:] != flat[:-1]) + 1).tolist(), len(flat)]
