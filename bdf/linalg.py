@@ -61,7 +61,7 @@ class Stencil:
 
     def __init__(self, shape, step, gamma, cutoff):
         self._key = (tuple(shape), tuple(step.tolist()), tuple(gamma.tolist()), float(cutoff))
-        self.shape = tuple(shape)
+        self.shape, self.cutoff = tuple(shape), float(cutoff)
         steps = gamma * step**2 / 2.0  # exponent per squared hinge step, per axis
         limit = np.log(1.0 / cutoff)
         self.reach = np.minimum(np.floor(np.sqrt(limit / steps)).astype(int), np.array(shape) - 1)

@@ -43,9 +43,16 @@ EMPTY_ALPHA, EMPTY_BETA = 1e-2, 1e2
 #: "auto" beta stays below this (noise std >= 1 mm/s): a component observed as exactly
 #: constant (vertical speed 0 everywhere) would otherwise get beta -> inf and std -> 0.
 MAX_AUTO_BETA = 1e6
-#: The search range of ``log(lam / mean(diag G))``: any data; and its resolution (5 % in
-#: lam: the evidence is flat there).
-LOG_RANGE, LOG_TOLERANCE = (np.log(1e-10), np.log(1e4)), 0.05
+#: The search range of ``log(lam / mean(diag G))``: its top, and its resolution (5 % in
+#: lam: the evidence is flat there). Its bottom is :data:`FLOOR_PER_CUTOFF` times the
+#: kernel cutoff: ``G`` drops the pairs and tails below the cutoff, so its smallest
+#: eigenvalues are truncation noise (down to -1e-10 mean(diag G) at cutoff 1e-12, measured
+#: on a class of the synthetic city), and so is the evidence of a ratio near them. That
+#: class at 1e-10: 24,000 nats above its optimum (1e-3) by the factorisation, 3,100 below it
+#: by a dense eigendecomposition, and a mode of 10^6 m/s between its lanes
+#: (bench/RESULTS.md, 2026-11-25).
+LOG_TOP, LOG_TOLERANCE = np.log(1e4), 0.05
+FLOOR_PER_CUTOFF = 1e4
 #: The search also stops where its next step would gain less evidence than this (nats, by
 #: the local quadratic): below one nat two hyperparameters are not told apart (Kass and
 #: Raftery's "not worth more than a bare mention"), and the traces' estimate is about
@@ -159,8 +166,8 @@ def _derivatives(sol: Solution, a, b, count, comps, tied, profiled, probes) -> t
     return -0.5 * float(np.sum(rise)), -0.5 * float(np.sum(drise)), float(np.log(max(fixed, 1e-300)))
 
 
-def _search(evaluate, x: float) -> int:
-    """Find the optimum of ``x = ln lam`` from ``x``.
+def _search(evaluate, x: float, bounds: tuple[float, float]) -> int:
+    """Find the optimum of ``x = ln lam`` from ``x``, within ``bounds``.
 
     ``evaluate(x)`` returns the cost's slope (NaN where the factorisation fails) and
     curvature, and MacKay's fixed point. Newton's step where the curvature is positive, or
@@ -176,7 +183,7 @@ def _search(evaluate, x: float) -> int:
         log.debug("x=%.4f slope %.4g curvature %.4g fixed point %.4f", x, slope, curvature, fixed_point)
         if not np.isfinite(slope):  # not positive definite: more regularisation
             lo = x
-            x = min(x + MAX_STEP, (x + min(hi, LOG_RANGE[1])) / 2)
+            x = min(x + MAX_STEP, (x + min(hi, bounds[1])) / 2)
             continue
         if slope < 0:
             lo = max(lo, x)
@@ -188,7 +195,7 @@ def _search(evaluate, x: float) -> int:
         proposal = float(np.clip(proposal, x - MAX_STEP, x + MAX_STEP))
         if not lo < proposal < hi:
             proposal = (lo + hi) / 2 if np.isfinite(lo + hi) else x - np.sign(slope) * MAX_STEP
-        proposal = float(np.clip(proposal, *LOG_RANGE))
+        proposal = float(np.clip(proposal, *bounds))
         newton = curvature > 0 and proposal == x - slope / curvature
         if abs(proposal - x) < LOG_TOLERANCE or (newton and slope**2 / (2 * curvature) < EVIDENCE_TOLERANCE):
             return evaluations
@@ -219,6 +226,7 @@ def fit_evidence(
         return alpha_v.copy(), beta_v.copy(), _at_ratios(stencil, band, proj, v_sq, alpha_v / beta_v)
 
     scale = max(float(np.mean(band[0])), 1e-300)
+    bounds = (np.log(FLOOR_PER_CUTOFF * stencil.cutoff), LOG_TOP)
     groups = [[0], [1], [2]] if (auto_b and not auto_a) else [[0, 1, 2]]
     tied = not auto_a  # beta follows lam with alpha fixed
     probes = _probes(len(proj))
@@ -240,7 +248,7 @@ def fit_evidence(
             return slope, curvature, fixed_point - np.log(scale)
 
         x0 = 0.0 if start is None else float(np.log(start / scale))
-        evaluations = _search(evaluate, float(np.clip(x0, *LOG_RANGE)))
+        evaluations = _search(evaluate, float(np.clip(x0, *bounds)), bounds)
         sol = best[1]
         a, b = _hyper_for(sol, alpha, beta, count)
         alpha_v[comps], beta_v[comps] = a[comps], b[comps]

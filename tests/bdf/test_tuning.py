@@ -1,3 +1,5 @@
+from unittest import mock
+
 import numpy as np
 import pytest
 
@@ -120,3 +122,35 @@ def test_cross_validation_of_directional_maps_scores_the_mixture():
     }
     assert rows[4]["directions"] == 4 and rows[1]["directions"] == 1
     assert rows[4]["msll"] < rows[1]["msll"] - 0.3
+
+
+def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
+    """Below ``FLOOR_PER_CUTOFF x cutoff x mean(diag G)`` the smallest eigenvalues of ``G``
+    are truncation noise and so is the evidence: a search started far below (as a mode's
+    starts at its map's ratio) never factors there, and ends inside the bounds."""
+    from bdf import tuning
+
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 100, (400, 3))
+    V = np.stack([np.sin(X[:, 0] / 20), np.cos(X[:, 1] / 20), X[:, 2] / 100], axis=1)
+    f = BayesianDynamicField([0, 0, 0], [100, 100, 100], 20, 1 / 400, cutoff=1e-12).fit(X, V)
+    evidence, stencil = f.evidence_.total(), f.posterior_.stencil
+    band = evidence.gram_band(stencil)
+    floor = tuning.FLOOR_PER_CUTOFF * 1e-12 * np.mean(band[0])
+    seen = []
+    with mock.patch.object(tuning, "solve", wraps=tuning.solve) as solve:
+        alpha, beta, _ = tuning.fit_evidence(
+            stencil, band, evidence.proj, evidence.v_sq, evidence.count, "auto", "auto", start=1e-20
+        )
+        seen = [call.args[4] for call in solve.call_args_list]
+    assert min(seen) >= floor * (1 - 1e-12)
+    assert np.all(alpha / beta >= floor * (1 - 1e-12))
+    # a slope that always points down: the search stops at the floor, never below
+    xs = []
+
+    def falling(x):
+        xs.append(x)
+        return 1.0, 1.0, x - 10.0
+
+    tuning._search(falling, -5.0, (-8.0, 3.0))
+    assert min(xs) == -8.0 and all(-8.0 <= x <= 3.0 for x in xs)
