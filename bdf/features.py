@@ -292,8 +292,7 @@ def splat(lattice: Lattice, X, W, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.nd
     """``T[g, c] = sum_n W[n, c] prod_d exp(-k_nd (x_nd - g_d)^2)``, shape lattice + (C,)."""
     n_out = W.shape[1]
     nx, ny, nz = lattice.shape
-    # layout (x, c, y, z): the channels ride on the small x factor, so each chunk is
-    # one GEMM (Lx*C x n) @ (n x Ly*Lz) of two matrices made point by point
+    # layout (x, c, y, z): the channels ride on the small x factor (_splat_blocks)
     out = np.zeros((nx, n_out, ny, nz))
     if len(X):
         blocks = _Blocks(lattice, X, k, cutoff, block)

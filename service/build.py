@@ -250,12 +250,10 @@ def slice_evidence(spec_json: str, piece: Slice, batch_rows: int = BATCH_ROWS) -
 
 
 def file_digest(path: str) -> str:
-    """SHA-256 of a file's bytes, read in blocks (runs on a worker)."""
-    h = hashlib.sha256()
+    """SHA-256 of a file's bytes (runs on a worker): ``hashlib.file_digest`` reads into one
+    reused buffer, twice as fast as fresh 16 MB blocks (bench/RESULTS.md, builds)."""
     with open(path, "rb") as fh:
-        while block := fh.read(1 << 24):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def merge(a: Part, b: Part) -> Part:
