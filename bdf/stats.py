@@ -18,6 +18,7 @@ Stored format (version 3), all float64:
                                          band: [k, m] is the pair (m, m + o_k) of the stencil
     proj        (M, 3)                   Phi^T V
     mass        (M,)                     Phi^T 1 (weighted): the share field's right-hand side
+                                         (zeros in a map of one class, which has none)
     count       ()                       sum of sample weights (decayed when forgetting)
     v_sum       (3,)                     sum of V per component
     v_sq        (3,)                     sum of V^2 per component
@@ -90,6 +91,7 @@ class Evidence:
         *,
         cutoff: float = features.DEFAULT_CUTOFF,
         noise_lattice: Lattice | None = None,
+        mass: bool = True,
     ) -> Evidence:
         """The statistics increment of observations ``(X, V)``: everything that learns calls this.
 
@@ -97,6 +99,8 @@ class Evidence:
         ``sample_weight`` is None or (N,) >= 0: each point's log-likelihood counts that many
         times (a weight of 2 equals the point given twice). With ``noise_lattice``, the
         local-noise moments are kept too (at the given positions, input noise or not).
+        ``mass=False`` leaves ``mass`` zero: only the share field of a directional map reads
+        it, and a map of one class saves a quarter of ``Phi^T V``'s splat.
         """
         w = np.ones(len(X)) if sample_weight is None else sample_weight
         noisy = None if input_noise_std is None else np.any(input_noise_std > 0, 1)
@@ -107,13 +111,14 @@ class Evidence:
             grid.midpoints(), X[plain], w[plain, None], 2.0 * gamma, cutoff=cutoff, block=MIDPOINT_BLOCK
         )[..., 0]
         wV = V * w[:, None]
-        wV1 = np.concatenate([wV, w[:, None]], axis=1)  # Phi^T V and Phi^T 1 in one pass
-        proj = features.splat(grid, X[plain], wV1[plain], gamma, cutoff=cutoff).reshape(-1, 4)
+        wV1 = np.concatenate([wV, w[:, None]], axis=1) if mass else wV  # Phi^T V and Phi^T 1 in one pass
+        C = wV1.shape[1]
+        proj = features.splat(grid, X[plain], wV1[plain], gamma, cutoff=cutoff).reshape(-1, C)
         gram_noisy = None
         if noisy is not None:
             k, amplitude = features.expected_kernel(gamma, input_noise_std[noisy])
             weighted = wV1[noisy] * amplitude[:, None]
-            proj += features.splat(grid, X[noisy], weighted, k, cutoff=cutoff).reshape(-1, 4)
+            proj += features.splat(grid, X[noisy], weighted, k, cutoff=cutoff).reshape(-1, C)
             gram_noisy = features.gram_band(
                 grid,
                 X[noisy],
@@ -125,7 +130,7 @@ class Evidence:
         return cls(
             density=density,
             proj=np.ascontiguousarray(proj[:, :3]),
-            mass=np.ascontiguousarray(proj[:, 3]),
+            mass=np.ascontiguousarray(proj[:, 3]) if mass else np.zeros(grid.size),
             count=float(w.sum()),
             v_sum=V.T @ w,  # BLAS: numpy's sums down a column are several times slower
             v_sq=(V * V).T @ w,
@@ -299,7 +304,11 @@ class SectorEvidence:
         parts = []
         for c in range(sectors.classes):
             part = rows if sectors.classes == 1 else take_rows(rows, np.flatnonzero(label == c))
-            parts.append(Evidence.from_points(grid, gamma, *part, cutoff=cutoff, noise_lattice=noise_lattice))
+            parts.append(
+                Evidence.from_points(
+                    grid, gamma, *part, cutoff=cutoff, noise_lattice=noise_lattice, mass=sectors.classes > 1
+                )
+            )
         return cls(tuple(parts))
 
     @property
