@@ -30,7 +30,7 @@ from bdf.grid import Lattice
 
 DEFAULT_CUTOFF = 1e-12
 #: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
-MIN_POINTS_PER_BLOCK = 8
+MIN_POINTS_PER_BLOCK = 32
 #: Gathers of at most this many points run point by point, compiled; more share BLAS
 #: products by blocks, unless the window's rows are short (:data:`SHORT_ROWS`), where the
 #: compiled path is faster at any size (bench_service.py's library rows, Paris map)

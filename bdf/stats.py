@@ -51,7 +51,7 @@ FORMAT_VERSION = 3
 #: Blob formats this code reads.
 READABLE_FORMATS = (2, 3)
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
-MIDPOINT_BLOCK = 1
+MIDPOINT_BLOCK = 2
 
 
 @dataclass
