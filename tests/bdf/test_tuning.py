@@ -137,7 +137,6 @@ def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
     evidence, stencil = f.evidence_.total(), f.posterior_.stencil
     band = evidence.gram_band(stencil)
     floor = tuning.FLOOR_PER_CUTOFF * 1e-12 * np.mean(band[0])
-    seen = []
     with mock.patch.object(tuning, "solve", wraps=tuning.solve) as solve:
         alpha, beta, _ = tuning.fit_evidence(
             stencil, band, evidence.proj, evidence.v_sq, evidence.count, "auto", "auto", start=1e-20
