@@ -362,7 +362,7 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
                     columns |= formats.vector_columns(f"mode{c}_v", m.mean[:, c])
                     columns |= formats.vector_columns(f"mode{c}_std_", m.std[:, c])
                 columns["share_std"] = m.share_std
-            return Response(formats.arrow_bytes(columns), media_type=ARROW, headers=headers)
+            return Response(formats.arrow_body(columns), media_type=ARROW, headers=headers)
         content = {
             "mean": pred.mean.tolist(),
             "std": pred.std.tolist(),
@@ -447,7 +447,7 @@ def grid(
             "known": pred.known.ravel(),
         }
         return Response(
-            formats.arrow_bytes(columns, {"shape": ",".join(map(str, shape))}),
+            formats.arrow_body(columns, {"shape": ",".join(map(str, shape))}),
             media_type=ARROW,
             headers=headers,
         )
@@ -532,7 +532,7 @@ def tubes(
             **formats.vector_columns("v", mean),
             **formats.vector_columns("std_", std),
         }
-        return Response(formats.arrow_bytes(columns), media_type=ARROW, headers=headers)
+        return Response(formats.arrow_body(columns), media_type=ARROW, headers=headers)
     _json_size(len(idx), request.app.state.settings)
     geo = spec.frame().to_geodetic(X)
     features = [
