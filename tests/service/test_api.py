@@ -14,7 +14,7 @@ import pytest
 
 from bdf.tiles import RegionSpec
 from service.app import create_app
-from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_bytes, npz_bytes
+from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_body, arrow_bytes, npz_bytes
 from service.settings import Settings
 from tests.service.test_store import SPEC, data
 
@@ -682,3 +682,20 @@ def test_npz_bytes_are_what_numpy_writes():
         plain = io.BytesIO()
         np.savez(plain, **arrays)
         assert npz_bytes(**arrays) == plain.getvalue()
+
+
+def test_arrow_body_is_what_pyarrow_writes():
+    """The buffer sized by a dry run holds exactly the stream pyarrow writes unsized."""
+    import pyarrow as pa
+
+    rng = np.random.default_rng(0)
+    columns = {"x": rng.standard_normal(1000), "known": rng.random(1000) > 0.5, "n": np.arange(1000)}
+    for metadata in (None, {"shape": "10,10,10"}):
+        table = pa.table(columns)
+        if metadata:
+            table = table.replace_schema_metadata(metadata)
+        sink = pa.BufferOutputStream()
+        with pa.ipc.new_stream(sink, table.schema) as writer:
+            writer.write_table(table)
+        assert bytes(arrow_body(columns, metadata)) == sink.getvalue().to_pybytes()
+        assert arrow_bytes(columns, metadata) == sink.getvalue().to_pybytes()
