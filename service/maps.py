@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import queue
 import threading
 import time
@@ -316,9 +317,31 @@ class RegionMaps:
                 log.exception("refreshing region %s failed; its previous version keeps answering", region)
 
 
+#: How often the posterior process checks that the process that started it lives (s).
+PARENT_CHECK_S = 1.0
+
+
 def _posterior_process() -> ProcessPoolExecutor:
-    """One child process for posteriors (spawned: this process runs threads)."""
-    return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    """One child process for posteriors (spawned: this process runs threads). It leaves
+    when this process dies: killed, a pool cannot tell its child, which would wait for work
+    forever, holding its memory (a quarter of a GB on the demo's map)."""
+    return ProcessPoolExecutor(
+        1,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_leave_with_parent,
+        initargs=(os.getpid(),),
+    )
+
+
+def _leave_with_parent(parent: int) -> None:
+    """In the posterior process: exit once ``parent`` is no longer its parent."""
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="leave-with-parent", daemon=True).start()
 
 
 def posterior_evidence(

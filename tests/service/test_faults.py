@@ -351,3 +351,35 @@ def test_a_schema_2_store_is_upgraded_with_checksums_and_loses_nothing(store_url
     finally:
         store.close()
     assert_stored(store_url, [1])
+
+
+def test_the_posterior_process_leaves_when_its_worker_is_killed(tmp_path):
+    """A service worker killed (SIGKILL, out of memory) cannot stop its posterior process,
+    which would wait for work forever: it exits by itself once its parent is gone."""
+    import psutil
+
+    script = f"""
+import time
+from bdf.tiles import RegionSpec
+from service.maps import RegionMaps
+from service.store import open_store
+from tests.service.test_store import SPEC
+store = open_store("sqlite:///{tmp_path}/maps.db")
+spec = RegionSpec.model_validate(SPEC)
+maps = RegionMaps(store, isolate=True)
+maps._posterior(spec, spec.region_evidence({{}}))
+print(*maps._pool._processes, flush=True)
+time.sleep(600)
+"""
+    worker = subprocess.Popen(
+        [sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=os.getcwd()
+    )
+    try:
+        child = psutil.Process(int(worker.stdout.readline()))
+        assert child.ppid() == worker.pid and child.is_running()
+    finally:
+        worker.kill()
+        worker.wait()
+        worker.stdout.close()
+    gone, alive = psutil.wait_procs([child], timeout=30)
+    assert gone and not alive
