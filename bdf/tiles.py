@@ -218,7 +218,11 @@ class RegionSpec(BaseModel):
 
     def inside(self, X: np.ndarray) -> np.ndarray:
         """Rows of ``X`` (n, 3) inside the region's box (closed)."""
-        return rows_all((X >= self.lower) & (X <= self.upper))
+        return rows_all(self._in_box(X))
+
+    def _in_box(self, X: np.ndarray) -> np.ndarray:
+        """(n, 3): each coordinate within the region's bounds (closed; never for NaN)."""
+        return (X >= self.lower) & (X <= self.upper)
 
     def home_tiles(self, X) -> dict[TileKey, np.ndarray]:
         """Row indices of ``X`` per tile whose core holds them (each row in one tile)."""
@@ -235,11 +239,9 @@ class RegionSpec(BaseModel):
 
     def _inside_points(self, X) -> np.ndarray:
         X = as_points(X, "X", allow_empty=True)
-        if np.all((X >= self.lower) & (X <= self.upper)):  # one pass; rows only for the message
-            return X
-        outside = ~self.inside(X)
-        if outside.any():
-            raise ValueError(f"points outside region {self.name!r} bounds: {_bad_rows(outside)}")
+        in_box = self._in_box(X)
+        if not in_box.all():  # rows only for the message
+            raise ValueError(f"points outside region {self.name!r} bounds: {_bad_rows(~rows_all(in_box))}")
         return X
 
     # -- learning and querying -------------------------------------------------------------

@@ -107,7 +107,8 @@ def _warm(spec_json: str) -> None:
     tiles sort their points into blocks, as the city's do."""
     spec = RegionSpec.model_validate_json(spec_json)
     X, V, _ = make_city.sample(20_000, np.random.default_rng(1))
-    spec.increments(X[spec.inside(X)], V[spec.inside(X)])
+    inside = spec.inside(X)
+    spec.increments(X[inside], V[inside])
 
 
 def score(store, spec: RegionSpec, seed: int = 99, n: int = 50_000) -> dict:

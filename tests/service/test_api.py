@@ -691,9 +691,7 @@ def test_arrow_body_is_what_pyarrow_writes():
     rng = np.random.default_rng(0)
     columns = {"x": rng.standard_normal(1000), "known": rng.random(1000) > 0.5, "n": np.arange(1000)}
     for metadata in (None, {"shape": "10,10,10"}):
-        table = pa.table(columns)
-        if metadata:
-            table = table.replace_schema_metadata(metadata)
+        table = pa.table(columns, metadata=metadata)
         sink = pa.BufferOutputStream()
         with pa.ipc.new_stream(sink, table.schema) as writer:
             writer.write_table(table)
