@@ -48,9 +48,9 @@ MAX_AUTO_BETA = 1e6
 #: kernel cutoff: ``G`` drops the pairs and tails below the cutoff, so its smallest
 #: eigenvalues are truncation noise (down to -1e-10 mean(diag G) at cutoff 1e-12, measured
 #: on a class of the synthetic city), and so is the evidence of a ratio near them. That
-#: class at 1e-10: 24,000 nats above its optimum (1e-3) by the factorisation, 3,100 below it
-#: by a dense eigendecomposition, and a mode of 10^6 m/s between its lanes
-#: (bench/RESULTS.md, 2026-11-25).
+#: class at 1e-10: 29,000 nats above its value at 1e-3 by the factorisation, 3,100 below it
+#: by a dense eigendecomposition (bench/bench_kernels.py), and a mode of 10^6 m/s between
+#: its lanes.
 LOG_TOP, LOG_TOLERANCE = np.log(1e4), 0.05
 FLOOR_PER_CUTOFF = 1e4
 #: The search also stops where its next step would gain less evidence than this (nats, by

@@ -249,8 +249,8 @@ def negotiate(accept: str | None, offered: list[str]) -> str:
 
 def arrow_body(columns: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> memoryview:
     """An Arrow IPC stream of ``columns`` in one buffer sized by a dry run, as a memoryview a
-    response sends without a copy: for a 20 MB grid, growing the stream and copying it into
-    ``bytes`` took 24 of its 29 ms of encoding (page faults on fresh memory; bench/RESULTS.md)."""
+    response sends without a copy: half the time of a growing stream copied into ``bytes``
+    for a 20 MB grid (bench/bench_kernels.py)."""
     table = pa.table(columns, metadata=metadata)
     size = pa.MockOutputStream()
     with pa.ipc.new_stream(size, table.schema) as writer:

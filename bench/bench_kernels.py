@@ -1,0 +1,179 @@
+"""In-process figures behind the build and service readings of bench/RESULTS.md (2026-11-25).
+
+    python bench/bench_kernels.py            # evidence, digests, Arrow bodies, the search's floor
+
+* evidence: ``RegionSpec.increments`` of 200,000 synthetic-city points (``make_city``), in
+  microseconds a point, best of 5, with 1 and 8 heading sectors;
+* digests: SHA-256 of a city Parquet file by ``hashlib.file_digest`` and by fresh 16 MB
+  reads (the code before 2026-11-25), in nanoseconds a point;
+* Arrow bodies: a 100 x 100 x 30 grid's columns, made as the grid route makes them, encoded
+  by ``formats.arrow_body`` (one buffer sized by a dry run) and by a growing stream copied
+  into ``bytes`` (before), median of 10;
+* the evidence search's floor: one heading class of the 8-sector city (1 million points),
+  its log evidence at ``lam`` = 1e-10 and 1e-3 x mean(diag G), from the factorisation and
+  from a dense eigendecomposition, and ``G``'s smallest eigenvalue over mean(diag G).
+
+Medians or best of several runs; prints a table (not appended: the readings quote it).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import make_city
+
+from bdf import linalg, tuning
+from bdf.posterior import _layer_prior
+from bdf.tiles import RegionSpec
+from service import formats
+
+
+def best(fn, repeat=5) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def median(fn, repeat=10) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def evidence_rows() -> list[tuple[str, str]]:
+    X, V, _ = make_city.sample(200_000, np.random.default_rng(0))
+    rows = []
+    for S in (1, 8):
+        spec = RegionSpec.model_validate(make_city.region_spec(directions=S))
+        spec.increments(X[:1000], V[:1000])  # compile
+        s = best(lambda spec=spec: spec.increments(X, V))
+        rows.append((f"evidence, {S} sector(s) [us a point]", f"{s / len(X) * 1e6:.3f}"))
+    return rows
+
+
+def digest_rows() -> list[tuple[str, str]]:
+    with tempfile.TemporaryDirectory() as folder:
+        (path,) = make_city.write(Path(folder), 1_000_000, progress=False, rows_per_file=None)
+
+        def blocks():
+            h = hashlib.sha256()
+            with open(path, "rb") as fh:
+                while block := fh.read(1 << 24):
+                    h.update(block)
+            return h.hexdigest()
+
+        def file_digest():
+            with open(path, "rb") as fh:
+                return hashlib.file_digest(fh, "sha256").hexdigest()
+
+        assert blocks() == file_digest()
+        return [
+            ("digest, hashlib.file_digest [ns a point]", f"{best(file_digest) * 1e3:.1f}"),
+            ("digest, fresh 16 MB reads [ns a point]", f"{best(blocks) * 1e3:.1f}"),
+        ]
+
+
+def arrow_rows() -> list[tuple[str, str]]:
+    """As the grid route does: columns made from the prediction's arrays on each request."""
+    rng = np.random.default_rng(0)
+    axes = [np.linspace(0.0, 1.0, n) for n in (100, 100, 30)]
+    mean, std, known = (
+        rng.random((100, 100, 30, 3)),
+        rng.random((100, 100, 30, 3)),
+        rng.random((100, 100, 30)) > 0.5,
+    )
+    metadata = {"shape": "100,100,30"}
+
+    def columns():
+        mesh = np.stack([m.ravel() for m in np.meshgrid(*axes, indexing="ij")], axis=1)
+        return {
+            **formats.vector_columns("", mesh, ("x", "y", "z")),
+            **formats.vector_columns("v", mean.reshape(-1, 3)),
+            **formats.vector_columns("std_", std.reshape(-1, 3)),
+            "known": known.ravel(),
+        }
+
+    def growing():
+        table = pa.table(columns(), metadata=metadata)
+        sink = pa.BufferOutputStream()
+        with pa.ipc.new_stream(sink, table.schema) as writer:
+            writer.write_table(table)
+        return sink.getvalue().to_pybytes()
+
+    def sized():
+        return formats.arrow_body(columns(), metadata)
+
+    assert bytes(sized()) == growing()
+    return [
+        ("Arrow grid body, arrow_body [ms, median]", f"{median(sized) * 1e3:.1f}"),
+        ("Arrow grid body, growing stream into bytes [ms, median]", f"{median(growing) * 1e3:.1f}"),
+    ]
+
+
+def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
+    spec = RegionSpec.model_validate(make_city.region_spec(directions=8))
+    X, V, _ = make_city.sample(1_000_000, np.random.default_rng(0))
+    increments = spec.increments(X, V)
+    evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()}).classes[klass]
+    grid, gamma, stencil = spec.grid, np.array(spec.gamma), spec.stencil
+    band = evidence.gram_band(stencil)
+    # the statistics the search sees, with the mode's prior mean (bdf.posterior.Posterior)
+    w0 = _layer_prior(evidence, grid, gamma)
+    Gw0 = linalg.band_product(stencil, band, w0)
+    proj = evidence.proj - Gw0
+    v_sq = evidence.v_sq - 2 * np.einsum("mc,mc->c", w0, evidence.proj) + np.einsum("mc,mc->c", w0, Gw0)
+    G = np.zeros((stencil.size, stencil.size))
+    for k in range(len(stencil.offsets)):
+        a, b = stencil.pairs(k)
+        G[a, b] += band[k][a]
+        if k:
+            G[b, a] += band[k][a]
+    values, vectors = np.linalg.eigh(G)
+    scale = float(np.mean(band[0]))
+    projected = vectors.T @ proj
+    rows = [(f"class {klass}: smallest eigenvalue of G / mean(diag G)", f"{values.min() / scale:.2g}")]
+    for ratio in (1e-10, 1e-3):
+        lam = ratio * scale
+        sol = tuning.solve(stencil, band, proj, v_sq, lam)
+        beta = evidence.count / sol.residual
+        factored = tuning.log_evidence(sol, lam * beta, beta, evidence.count)[0]
+        residual = v_sq - np.einsum("mc,mc->c", projected, projected / (values + lam)[:, None])
+        beta = evidence.count / residual
+        dense = (
+            0.5 * len(values) * np.log(lam * beta)
+            + 0.5 * evidence.count * np.log(beta)
+            - 0.5 * beta * residual
+            - 0.5 * (len(values) * np.log(beta) + np.sum(np.log(values + lam)))
+            - 0.5 * evidence.count * np.log(2 * np.pi)
+        )[0]
+        rows.append(
+            (f"class {klass}, lam = {ratio:g} mean(diag G): log evidence, factorisation", f"{factored:.0f}")
+        )
+        rows.append((f"class {klass}, lam = {ratio:g} mean(diag G): log evidence, dense", f"{dense:.0f}"))
+    return rows
+
+
+def main() -> int:
+    rows = [*evidence_rows(), *digest_rows(), *arrow_rows(), *floor_rows()]
+    print("| figure | value |\n|---|---|")
+    for name, value in rows:
+        print(f"| {name} | {value} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
