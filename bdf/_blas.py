@@ -9,6 +9,8 @@ BLAS with every core, also while another thread is in a limited section.
 from __future__ import annotations
 
 import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy  # noqa: F401  (loads the BLAS libraries before the controller looks for them)
 import scipy.linalg  # noqa: F401
@@ -36,3 +38,11 @@ def single_threaded(fn):
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+def in_threads(tasks: list) -> list:
+    """The results of ``tasks`` (callables), run side by side in a thread per core with one
+    BLAS thread each: for work that releases the GIL (the factorisations and inversions of
+    :mod:`bdf.linalg`), whose BLAS gains little from a second thread (bench/RESULTS.md)."""
+    with one_thread(), ThreadPoolExecutor(min(len(tasks), os.cpu_count() or 1)) as pool:
+        return [f.result() for f in [pool.submit(task) for task in tasks]]

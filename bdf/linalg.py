@@ -31,9 +31,9 @@ from typing import NamedTuple
 import numba
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import blas, lapack
-from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
+from sksparse.cholmod import analyze
 
+from bdf import _lapack
 from bdf.grid import Lattice
 
 #: A band is factored on a kept support with up to this many times its own hinges
@@ -57,7 +57,7 @@ class Stencil:
     lattice (:func:`dissection`)."""
 
     #: Supports kept per stencil (the classes of a map, searched one after another).
-    SUPPORTS = 2
+    SUPPORTS = 4
 
     def __init__(self, shape, step, gamma, cutoff):
         self._key = (tuple(shape), tuple(step.tolist()), tuple(gamma.tolist()), float(cutoff))
@@ -134,9 +134,10 @@ class Stencil:
 
 
 class Support:
-    """The hinges a band touches (``active``) and what their factorisation needs: the lower
-    triangle of their pattern as CSC in the stencil's order restricted to them, and CHOLMOD's
-    symbolic analysis of it (done once). The other hinges are decoupled: ``shift`` alone."""
+    """The hinges a band touches (``active``) and what their factorisation needs, found once:
+    the lower triangle of their pattern as CSC in the stencil's order restricted to them,
+    CHOLMOD's symbolic analysis of it (its supernodes, postordered) and the layout of the
+    factor's blocks (:class:`_Layout`). The other hinges are decoupled: ``shift`` alone."""
 
     def __init__(self, stencil: Stencil, active: np.ndarray, order: np.ndarray):
         self.stencil, self.active = stencil, np.asarray(active, bool)
@@ -147,9 +148,7 @@ class Support:
         n = len(self.order)
         self._template = sp.csc_matrix((np.ones(len(rows)), rows, indptr), shape=(n, n))
         self._source = source
-        self._symbolic = analyze(self._template, mode="supernodal", ordering_method="natural") if n else None
-        self._lock = threading.Lock()
-        self._layout = None
+        self.layout = _layout(self._template, 2.0 * len(stencil.offsets)) if n else None
 
     def matrix(self, band: np.ndarray) -> sp.csc_matrix:
         """The lower triangle of ``band``'s matrix on the active hinges, in :attr:`order`."""
@@ -158,23 +157,68 @@ class Support:
         return out
 
     def factor_of(self, band: np.ndarray, shift: float) -> Factor:
-        """CHOLMOD's factor of ``matrix(band) + shift I`` (with ``shift`` on the rest)."""
-        if self._symbolic is None:
+        """The factor of ``band``'s matrix on the active hinges ``+ shift I`` (with ``shift``
+        on the rest): the matrix placed in the blocks, factored in place (:func:`_factor`)."""
+        if self.layout is None:
             return Factor(self, None, shift)
-        try:
-            numeric = self._symbolic.cholesky(self.matrix(band), beta=shift)
-        except CholmodNotPositiveDefiniteError as exc:
-            raise NotPositiveDefinite(str(exc)) from None
-        return Factor(self, numeric, shift)
+        lay = self.layout
+        blocks = np.zeros(lay.offsets[-1])
+        blocks[lay.position] = np.asarray(band).ravel()[self._source]
+        blocks[lay.diagonal] += shift
+        failed = _factor(lay.indptr, lay.indices, lay.starts, lay.offsets, lay.column_node, blocks)
+        if failed:
+            raise NotPositiveDefinite(f"the factorisation broke down at supernode {failed - 1}")
+        return Factor(self, blocks, shift)
+
+
+class _Layout(NamedTuple):
+    """The factor's pattern (CSC, sorted, diagonal first) and its supernodes (first columns,
+    then the column count), each one's block offset (its rows by its columns,
+    column-major, one after another), each column's supernode and diagonal entry; the
+    hinges of the support in the factor's column order; per entry of the support's
+    matrix, its place in the blocks."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    starts: np.ndarray
+    offsets: np.ndarray
+    column_node: np.ndarray
+    diagonal: np.ndarray
+    columns: np.ndarray
+    position: np.ndarray
+
+
+def _layout(template: sp.csc_matrix, dominant: float) -> _Layout:
+    """The layout of the factor of ``template``'s pattern: CHOLMOD's supernodal analysis
+    (natural order, postordered, relaxed supernodes), its pattern read off one numeric
+    factorisation of the pattern made diagonally dominant (``dominant`` on the diagonal)."""
+    L = analyze(template, mode="supernodal", ordering_method="natural")
+    P = L.P()
+    L = L.cholesky(template, beta=dominant).L().tocsc()
+    L.sort_indices()
+    indptr, indices = L.indptr.astype(np.int64), L.indices
+    starts = _supernodes(indptr, indices)
+    heights = indptr[starts[:-1] + 1] - indptr[starts[:-1]]
+    offsets = np.concatenate([[0], np.cumsum(heights * np.diff(starts))])
+    column_node = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
+    within = np.arange(len(column_node)) - starts[column_node]
+    diagonal = offsets[column_node] + within * (heights[column_node] + 1)
+    column = np.empty(len(P), np.int64)  # the template's column -> the factor's
+    column[P] = np.arange(len(P))
+    a = column[template.indices]
+    b = column[np.repeat(np.arange(template.shape[1]), np.diff(template.indptr))]
+    row, col = np.maximum(a, b), np.minimum(a, b)
+    position = _block_positions(indptr, indices, starts, offsets, column_node, row, col)
+    return _Layout(indptr, indices, starts, offsets, column_node, diagonal, P, position)
 
 
 class Factor:
-    """One numeric factorisation ``P (A + shift I) P^T = L L^T`` of a support's matrix ``A``
-    (in its order; CHOLMOD's ``P`` only postorders it); ``shift`` alone on the other hinges."""
+    """One factorisation ``P (A + shift I) P^T = L L^T`` of a support's matrix ``A`` (in its
+    order; ``P`` only postorders it), as the blocks of its supernodes (:class:`_Layout`);
+    ``shift`` alone on the other hinges."""
 
-    def __init__(self, support: Support, numeric, shift: float):
-        self.support, self._numeric, self.shift = support, numeric, float(shift)
-        self._lower = None
+    def __init__(self, support: Support, blocks, shift: float):
+        self.support, self._blocks, self.shift = support, blocks, float(shift)
 
     @property
     def stencil(self) -> Stencil:
@@ -182,41 +226,42 @@ class Factor:
 
     def logdet(self) -> float:
         idle = (self.stencil.size - len(self.support.order)) * np.log(self.shift)
-        return idle + (float(self._numeric.logdet()) if self._numeric is not None else 0.0)
+        if self._blocks is None:
+            return idle
+        return idle + 2.0 * float(np.sum(np.log(self._blocks[self.support.layout.diagonal])))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``(A + shift I)^-1 b`` for ``b`` (M, ...) in the lattice's flat order."""
         x = np.asarray(b, float) / self.shift
-        if self._numeric is not None:
-            order = self.support.order
-            x[order] = self._numeric.solve_A(b[order])
+        if self._blocks is not None:
+            lay = self.support.layout
+            hinges = self.support.order[lay.columns]
+            y = np.ascontiguousarray(np.asarray(b, float)[hinges].reshape(len(hinges), -1))
+            _solve(lay.indptr, lay.indices, lay.starts, lay.offsets, self._blocks, y)
+            x[hinges] = y.reshape(x[hinges].shape)
         return x
-
-    def lower(self) -> sp.csc_matrix:
-        """L, column-sorted CSC (CHOLMOD converts its supernodes once)."""
-        if self._lower is None:
-            self._lower = self._numeric.L().tocsc()
-            self._lower.sort_indices()
-        return self._lower
 
     @property
     def nnz(self) -> int:
         """Entries of L (what the factorisation and the selected inversion work on)."""
-        return int(self.lower().nnz) if self._numeric is not None else 0
+        return int(self.support.layout.indptr[-1]) if self._blocks is not None else 0
+
+    @property
+    def nbytes(self) -> int:
+        return self._blocks.nbytes if self._blocks is not None else 0
 
     @property
     def madds(self) -> float:
         """Multiply-adds of the factorisation: ``c (c + 1) / 2`` for a column of ``c`` entries
         (a dense Cholesky: ``M^3 / 6``)."""
-        counts = np.diff(self.lower().indptr).astype(float)
-        return float(np.sum(counts * (counts + 1) / 2))
+        return factor_madds(self.support.layout.indptr)
 
     @property
     def inverse_madds(self) -> float:
         """Multiply-adds of :meth:`inverse_band`'s dense steps, per supernode of ``w`` columns
         and ``r`` rows below them: ``S_RR Y`` (r^2 w), ``Y^T S_RJ`` (w^2 r), the inverse of
         the diagonal block (w^3 / 3) and ``Y`` (r w^2 / 2)."""
-        layout = self._layout()
+        layout = self.support.layout
         w = np.diff(layout.starts).astype(float)
         r = np.diff(layout.offsets) / w - w  # a block holds its rows by its w columns
         return float(np.sum(r * r * w + w * w * r + w**3 / 3 + r * w * w / 2))
@@ -227,46 +272,23 @@ class Factor:
         st = self.stencil
         band = np.zeros(len(st.offsets) * st.size)
         band[: st.size] = 1.0 / self.shift
-        if self._numeric is not None:
-            L = self.lower()
-            layout = self._layout()
-            blocks = _selected_inverse(L.indptr, L.indices, L.data, *layout[:3])
-            band[layout.where] = blocks[layout.source]
+        if self._blocks is not None:
+            lay = self.support.layout
+            blocks = self._blocks.copy()
+            info = _selected_inverse(
+                lay.indptr, lay.indices, lay.starts, lay.offsets, lay.column_node, blocks
+            )
+            if info != 0:
+                raise NotPositiveDefinite(f"selected inversion failed (LAPACK info {info})")
+            band[self.support._source] = blocks[lay.position]
         return band.reshape(len(st.offsets), st.size)
 
-    def _layout(self) -> _Layout:
-        """The supernodes of L and where each entry of the support's matrix (a stencil pair
-        of active hinges) sits in their blocks. Every factor of one support has the same
-        pattern, so this is computed once per support."""
-        support = self.support
-        with support._lock:
-            if support._layout is None:
-                L = self.lower()
-                starts = _supernodes(L.indptr, L.indices)
-                heights = L.indptr[starts[:-1] + 1] - L.indptr[starts[:-1]]
-                offsets = np.concatenate([[0], np.cumsum(heights * np.diff(starts))])
-                column_node = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
-                column = np.empty(len(support.order), np.int64)  # the matrix's -> L's
-                column[self._numeric.P()] = np.arange(len(support.order))
-                A = support._template
-                a = column[A.indices]
-                b = column[np.repeat(np.arange(A.shape[1]), np.diff(A.indptr))]
-                row, col = np.maximum(a, b), np.minimum(a, b)
-                found = _block_positions(L.indptr, L.indices, starts, offsets, column_node, row, col)
-                support._layout = _Layout(starts, offsets, column_node, support._source, found)
-            return support._layout
 
-
-class _Layout(NamedTuple):
-    """L's supernodes (first columns, then the column count), their blocks' offsets in the
-    selected inverse and each column's supernode; per stencil pair, its flat band index and
-    its index in the blocks."""
-
-    starts: np.ndarray
-    offsets: np.ndarray
-    column_node: np.ndarray
-    where: np.ndarray
-    source: np.ndarray
+def factor_madds(indptr: np.ndarray) -> float:
+    """Multiply-adds of a Cholesky factorisation with columns ``indptr`` (CSC): ``c (c + 1) / 2``
+    for a column of ``c`` entries (a dense one: ``M^3 / 6``)."""
+    counts = np.diff(indptr).astype(float)
+    return float(np.sum(counts * (counts + 1) / 2))
 
 
 def band_density(stencil: Stencil, band: np.ndarray, midpoints: Lattice) -> np.ndarray:
@@ -288,7 +310,7 @@ def band_product(stencil: Stencil, band: np.ndarray, x: np.ndarray) -> np.ndarra
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(nogil=True, cache=True)
 def _band_product(shape, offsets, band, x, out):  # pragma: no cover - compiled
     """``out += A x``: each pair (m, m + o_k) of the lattice adds ``band[k, m]`` both ways
     (once on the diagonal, ``k = 0``)."""
@@ -317,7 +339,7 @@ def midpoint_band(stencil: Stencil, values: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(nogil=True, cache=True)
 def _midpoint_pairs(shape, offsets, weights, band, midpoints, to_midpoints):  # pragma: no cover - compiled
     """Over the pairs (m, m + o_k) on the lattice, which meet at ``2 idx(m) + o_k`` of the
     midpoint lattice: ``midpoints[2 idx(m) + o_k] += weights[k] band[k, m]`` if
@@ -447,75 +469,142 @@ def _supernodes(indptr, indices):  # pragma: no cover - compiled
     return np.array(starts)
 
 
-def _selected_inverse(indptr, indices, data, starts, offsets, column_node) -> np.ndarray:
-    """``(L L^T)^-1`` on the supernodes of the lower factor ``L`` (CSC, sorted, diagonal
-    first): per supernode, its rows by its columns, column-major, lower triangle only in
-    the diagonal block, one after another from ``offsets``.
+@numba.njit(nogil=True, cache=True)
+def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: no cover - compiled
+    """Supernodal Cholesky in place: ``blocks`` hold the lower triangle of the matrix in the
+    layout of :class:`_Layout` and end holding L. Right-looking, by supernodes from the
+    first: for columns J with rows R below them, ``L_JJ`` by LAPACK, ``L_RJ = A_RJ L_JJ^-T``,
+    and ``L_RJ L_RJ^T`` subtracted from the supernodes holding R's columns (R is a clique
+    of the filled graph, so each of its entries is stored there), a panel of one supernode's
+    columns at a time. Returns 0, or 1 + the supernode whose diagonal block is not
+    positive definite."""
+    n = len(indptr) - 1
+    pos = np.empty(n, np.int64)
+    widest, tallest = 1, 1
+    for s in range(len(starts) - 1):
+        widest = max(widest, starts[s + 1] - starts[s])
+        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
+    update, rel = np.empty(tallest * widest), np.empty(tallest, np.int64)
+    for s in range(len(starts) - 1):
+        f, w = starts[s], starts[s + 1] - starts[s]
+        nr = indptr[f + 1] - indptr[f]
+        r = nr - w
+        blk = blocks[offsets[s] : offsets[s + 1]]
+        if _lapack.potrf(blk, w, nr) != 0:
+            return s + 1
+        if r == 0:
+            continue
+        below = blk[w:]
+        _lapack.trsm(_lapack.R, _lapack.T, r, w, 1.0, blk, nr, below, nr)
+        R = indices[indptr[f] + w : indptr[f + 1]]
+        b = 0
+        while b < r:  # the columns of R in one supernode s2: rows b.. of their panel
+            s2 = column_node[R[b]]
+            f2 = starts[s2]
+            first = indptr[f2]
+            nr2 = indptr[f2 + 1] - first
+            for t in range(nr2):
+                pos[indices[first + t]] = t
+            for a in range(b, r):
+                rel[a] = pos[R[a]]
+            b1 = b
+            while b1 < r and R[b1] < starts[s2 + 1]:
+                b1 += 1
+            h, panel = r - b, below[b:]
+            _lapack.gemm(_lapack.N, _lapack.T, h, b1 - b, w, 1.0, panel, nr, panel, nr, 0.0, update, h)
+            for bb in range(b, b1):
+                column = blocks[offsets[s2] + (R[bb] - f2) * nr2 :]
+                base = (bb - b) * h - b
+                for a in range(bb, r):
+                    column[rel[a]] -= update[base + a]
+            b = b1
+    return 0
+
+
+@numba.njit(nogil=True, cache=True)
+def _solve(indptr, indices, starts, offsets, blocks, y):  # pragma: no cover - compiled
+    """``y <- (L L^T)^-1 y`` in place for ``y`` (n, k) C-ordered (so each supernode's rows
+    are a column-major (k, w) block): forward by supernodes, then back."""
+    k = y.shape[1]
+    flat = y.ravel()
+    tallest = 1
+    for s in range(len(starts) - 1):
+        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
+    z = np.empty(tallest * k)
+    for backward in range(2):
+        for step in range(len(starts) - 1):
+            s = len(starts) - 2 - step if backward else step
+            f, w = starts[s], starts[s + 1] - starts[s]
+            nr = indptr[f + 1] - indptr[f]
+            r = nr - w
+            blk = blocks[offsets[s] : offsets[s + 1]]
+            yJ = flat[f * k : (f + w) * k]
+            R = indices[indptr[f] + w : indptr[f + 1]]
+            if backward:  # x_J^T = (y_J^T - x_R^T L_RJ) L_JJ^-1
+                if r > 0:
+                    for a in range(r):
+                        z[a * k : (a + 1) * k] = y[R[a]]
+                    _lapack.gemm(_lapack.N, _lapack.N, k, w, r, -1.0, z, k, blk[w:], nr, 1.0, yJ, k)
+                _lapack.trsm(_lapack.R, _lapack.N, k, w, 1.0, blk, nr, yJ, k)
+            else:  # x_J^T = y_J^T L_JJ^-T, then y_R^T -= x_J^T L_RJ^T
+                _lapack.trsm(_lapack.R, _lapack.T, k, w, 1.0, blk, nr, yJ, k)
+                if r > 0:
+                    _lapack.gemm(_lapack.N, _lapack.T, k, r, w, 1.0, yJ, k, blk[w:], nr, 0.0, z, k)
+                    for a in range(r):
+                        y[R[a]] -= z[a * k : (a + 1) * k]
+
+
+@numba.njit(nogil=True, cache=True)
+def _selected_inverse(indptr, indices, starts, offsets, column_node, blocks):  # pragma: no cover
+    """``(L L^T)^-1`` on the factor's pattern, in place of L in ``blocks`` (lower triangles).
 
     Takahashi, by supernodes from the last: for columns J with rows R below them,
     ``Y = L_RJ L_JJ^-1``, ``S_RJ = -S_RR Y`` and ``S_JJ = (L_JJ L_JJ^T)^-1 - Y^T S_RJ``;
     ``S_RR`` is gathered from later supernodes (R is a clique of the filled graph, so each
-    of its entries is stored there). The dense steps are LAPACK/BLAS calls on column-major
-    blocks (all cores, no copies), the gathers compiled loops.
+    of its entries is stored there). Returns LAPACK's info of the first failure, or 0.
     """
     n = len(indptr) - 1
-    ns = len(starts) - 1
-    blocks = np.empty(offsets[-1])
-    pos = np.full(n, -1, np.int64)
-    for s in range(ns - 1, -1, -1):
-        f, l = starts[s], starts[s + 1]
-        w, nr = l - f, indptr[f + 1] - indptr[f]
+    pos = np.empty(n, np.int64)
+    tallest, widest = 1, 1
+    for s in range(len(starts) - 1):
+        widest = max(widest, starts[s + 1] - starts[s])
+        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
+    srr, rel = np.empty(tallest * tallest), np.empty(tallest, np.int64)
+    Y = np.empty(tallest * widest)
+    for s in range(len(starts) - 2, -1, -1):
+        f, w = starts[s], starts[s + 1] - starts[s]
+        nr = indptr[f + 1] - indptr[f]
         r = nr - w
-        # the supernode's block, column-major (nr, w), filled with L's columns, then S's
-        blk = blocks[offsets[s] : offsets[s + 1]].reshape(w, nr).T
-        _dense_block(indptr, data, f, w, nr, blk.T)
-        SJJ, info = lapack.dpotri(blk[:w], lower=1)
-        if info != 0:
-            raise NotPositiveDefinite(f"selected inversion failed (LAPACK info {info})")
+        blk = blocks[offsets[s] : offsets[s + 1]]
         if r > 0:
-            Y = blas.dtrsm(1.0, blk[:w], blk[w:], side=1, lower=1)
-            R = indices[indptr[f] + w : indptr[f + 1]]
-            Srr = _gather(indptr, indices, starts, column_node, offsets, blocks, pos, R).T
-            SRJ = blas.dsymm(-1.0, Srr, Y, side=0, lower=1)
-            SJJ = blas.dgemm(-1.0, Y, SRJ, beta=1.0, c=SJJ, trans_a=1, overwrite_c=1)
-            blk[w:] = SRJ
-        blk[:w] = SJJ
-    return blocks
-
-
-@numba.njit(cache=True)
-def _dense_block(indptr, data, f, w, nr, out):  # pragma: no cover - compiled
-    """Columns f .. f + w - 1 of L into ``out`` (w, nr): row c is column f + c, zeros above
-    its diagonal."""
-    for c in range(w):
-        p = indptr[f + c]
-        out[c, :c] = 0.0
-        for t in range(nr - c):
-            out[c, c + t] = data[p + t]
-
-
-@numba.njit(cache=True)
-def _gather(indptr, indices, starts, column_node, offsets, blocks, pos, R):  # pragma: no cover
-    """``S[R, R]``'s lower triangle, transposed: ``out[b, a] = S[R[a], R[b]]`` for a >= b,
-    from the column-major blocks of the supernodes holding R's columns."""
-    r = len(R)
-    out = np.empty((r, r))  # the upper triangle is never read
-    b = 0
-    while b < r:
-        s2 = column_node[R[b]]
-        f2, l2 = starts[s2], starts[s2 + 1]
-        first, end = indptr[f2], indptr[f2 + 1]
-        nr2 = end - first
-        for t in range(nr2):
-            pos[indices[first + t]] = t
-        b1 = b
-        while b1 < r and R[b1] < l2:
-            b1 += 1
-        for bb in range(b, b1):
-            column = offsets[s2] + (R[bb] - f2) * nr2
-            for a in range(bb, r):
-                out[bb, a] = blocks[column + pos[R[a]]]
-        for t in range(nr2):
-            pos[indices[first + t]] = -1
-        b = b1
-    return out
+            for c in range(w):  # Y = L_RJ L_JJ^-1, column-major (r, w)
+                Y[c * r : (c + 1) * r] = blk[c * nr + w : (c + 1) * nr]
+            _lapack.trsm(_lapack.R, _lapack.N, r, w, 1.0, blk, nr, Y, r)
+        info = _lapack.potri(blk, w, nr)
+        if info != 0:
+            return info
+        if r == 0:
+            continue
+        R = indices[indptr[f] + w : indptr[f + 1]]
+        b = 0
+        while b < r:  # S_RR's lower triangle, column-major (r, r), from R's supernodes
+            s2 = column_node[R[b]]
+            f2 = starts[s2]
+            first = indptr[f2]
+            nr2 = indptr[f2 + 1] - first
+            for t in range(nr2):
+                pos[indices[first + t]] = t
+            for a in range(b, r):
+                rel[a] = pos[R[a]]
+            b1 = b
+            while b1 < r and R[b1] < starts[s2 + 1]:
+                b1 += 1
+            for bb in range(b, b1):
+                column = blocks[offsets[s2] + (R[bb] - f2) * nr2 :]
+                for a in range(bb, r):
+                    srr[bb * r + a] = column[rel[a]]
+            b = b1
+        below = blk[w:]
+        _lapack.symm(r, w, -1.0, srr, r, Y, r, 0.0, below, nr)  # S_RJ
+        _lapack.gemm(_lapack.T, _lapack.N, w, w, r, -1.0, Y, r, below, nr, 1.0, blk, nr)  # S_JJ
+    return 0

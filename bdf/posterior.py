@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numba
 import numpy as np
 
-from bdf import features, linalg, noise, tuning
+from bdf import _blas, features, linalg, noise, tuning
 from bdf.directions import Sectors, mixture_moments
 from bdf.grid import HingeGrid
 from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence, stencil_of
@@ -169,7 +170,7 @@ class Posterior:
         if self._variance is not None:
             held += self._variance[0].nbytes
         if self._solutions is not None:
-            held += sum(12 * s.factor.nnz for s in {id(s): s for s in self._solutions}.values())
+            held += sum(s.factor.nbytes for s in {id(s): s for s in self._solutions}.values())
         return held
 
     def _variance_density(self):
@@ -239,8 +240,10 @@ class Mixture:
         total = evidence.total()
         self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest)
         start = float(np.mean(self.total.alpha / self.total.beta))  # each mode's search starts there
-        self.modes = [
-            Posterior(
+
+        def mode(c):
+            e = evidence.classes[c]
+            post = Posterior(
                 grid,
                 gamma,
                 e,
@@ -250,8 +253,14 @@ class Mixture:
                 start=start,
                 prior_weights=_layer_prior(e, grid, gamma),
             )
-            for c, e in enumerate(evidence.classes)
-        ]
+            post.variance_table()
+            return post
+
+        # the modes side by side on the cores (their algebra releases the GIL), the most
+        # data first so that the threads end together; and the total's variance meanwhile
+        by_count = sorted(range(C), key=lambda c: -evidence.classes[c].count)
+        done = _blas.in_threads([self.total.variance_table, *(functools.partial(mode, c) for c in by_count)])
+        self.modes = [post for _, post in sorted(zip(by_count, done[1:], strict=True), key=lambda p: p[0])]
         self.fitted = self.total.fitted
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])

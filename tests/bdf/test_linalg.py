@@ -33,7 +33,7 @@ def test_selected_inverse_equals_the_dense_inverse_on_the_stencil(shape, cutoff,
     assert np.count_nonzero(fewer[0]) * linalg.COVER >= np.count_nonzero(band[0])
     assert stencil.factor_of(fewer, 0.5).support is factor.support
     assert_dense_algebra(stencil, fewer, stencil.factor_of(fewer, 0.5), rng)
-    starts = factor._layout().starts
+    starts = factor.support.layout.starts
     assert len(starts) > 5 and np.diff(starts).max() > 1
     assert np.array_equal(np.sort(stencil.order), np.arange(stencil.size))
 
