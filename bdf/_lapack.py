@@ -18,7 +18,7 @@ import numpy as np
 from numba import types
 from numba.extending import get_cython_function_address
 
-_ARGS = {"dpotrf": 5, "dpotri": 5, "dtrsm": 11, "dgemm": 13, "dsymm": 12}
+_ARGS = {"dpotrf": 5, "dpotri": 5, "dtrsm": 11, "dgemm": 13, "dsymm": 12, "dsyrk": 10}
 
 
 def _entry(name: str):
@@ -27,7 +27,7 @@ def _entry(name: str):
     return types.ExternalFunction(f"bdf_{name}", types.void(*([types.voidptr] * _ARGS[name])))
 
 
-_dpotrf, _dpotri, _dtrsm, _dgemm, _dsymm = (_entry(name) for name in _ARGS)
+_dpotrf, _dpotri, _dtrsm, _dgemm, _dsymm, _dsyrk = (_entry(name) for name in _ARGS)
 
 L, R, N, T = ord("L"), ord("R"), ord("N"), ord("T")
 
@@ -83,4 +83,16 @@ def symm(m, n, alpha, a, lda, b, ldb, beta, c, ldc):  # pragma: no cover - compi
     _dsymm(
         ch[0:].ctypes, ch[1:].ctypes, ints[0:].ctypes, ints[1:].ctypes, scalars[0:].ctypes, a.ctypes,
         ints[2:].ctypes, b.ctypes, ints[3:].ctypes, scalars[1:].ctypes, c.ctypes, ints[4:].ctypes,
+    )  # fmt: skip
+
+
+@numba.njit(nogil=True, cache=True)
+def syrk(n, k, alpha, a, lda, beta, c, ldc):  # pragma: no cover - compiled
+    """``c <- alpha a a^T + beta c`` on the lower triangle of (n, n) c, (n, k) a."""
+    ch = np.array([L, N], np.uint8)
+    ints = np.array([n, k, lda, ldc], np.int32)
+    scalars = np.array([alpha, beta])
+    _dsyrk(
+        ch[0:].ctypes, ch[1:].ctypes, ints[0:].ctypes, ints[1:].ctypes, scalars[0:].ctypes, a.ctypes,
+        ints[2:].ctypes, scalars[1:].ctypes, c.ctypes, ints[3:].ctypes,
     )  # fmt: skip

@@ -31,7 +31,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 import scipy.sparse as sp
-from sksparse.cholmod import analyze
+from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
 from bdf import _lapack
 from bdf.grid import Lattice
@@ -134,10 +134,10 @@ class Stencil:
 
 
 class Support:
-    """The hinges a band touches (``active``) and what their factorisation needs, found once:
-    the lower triangle of their pattern as CSC in the stencil's order restricted to them,
-    CHOLMOD's symbolic analysis of it (its supernodes, postordered) and the layout of the
-    factor's blocks (:class:`_Layout`). The other hinges are decoupled: ``shift`` alone."""
+    """The hinges a band touches (``active``) and what their factorisation needs: the lower
+    triangle of their pattern as CSC in the stencil's order restricted to them, and the
+    layout of the factor's blocks (:class:`_Layout`), found by the first factorisation.
+    The other hinges are decoupled: ``shift`` alone."""
 
     def __init__(self, stencil: Stencil, active: np.ndarray, order: np.ndarray):
         self.stencil, self.active = stencil, np.asarray(active, bool)
@@ -148,7 +148,8 @@ class Support:
         n = len(self.order)
         self._template = sp.csc_matrix((np.ones(len(rows)), rows, indptr), shape=(n, n))
         self._source = source
-        self.layout = _layout(self._template, 2.0 * len(stencil.offsets)) if n else None
+        self._lock = threading.Lock()
+        self.layout = None
 
     def matrix(self, band: np.ndarray) -> sp.csc_matrix:
         """The lower triangle of ``band``'s matrix on the active hinges, in :attr:`order`."""
@@ -158,9 +159,14 @@ class Support:
 
     def factor_of(self, band: np.ndarray, shift: float) -> Factor:
         """The factor of ``band``'s matrix on the active hinges ``+ shift I`` (with ``shift``
-        on the rest): the matrix placed in the blocks, factored in place (:func:`_factor`)."""
-        if self.layout is None:
+        on the rest): the matrix placed in the blocks, factored in place (:func:`_factor`).
+        The support's first is CHOLMOD's, whose pattern gives the layout (:func:`_analyse`)."""
+        if not len(self.order):
             return Factor(self, None, shift)
+        with self._lock:
+            if self.layout is None:
+                self.layout, blocks = _analyse(self._template, self.matrix(band), shift)
+                return Factor(self, blocks, shift)
         lay = self.layout
         blocks = np.zeros(lay.offsets[-1])
         blocks[lay.position] = np.asarray(band).ravel()[self._source]
@@ -188,13 +194,18 @@ class _Layout(NamedTuple):
     position: np.ndarray
 
 
-def _layout(template: sp.csc_matrix, dominant: float) -> _Layout:
-    """The layout of the factor of ``template``'s pattern: CHOLMOD's supernodal analysis
-    (natural order, postordered, relaxed supernodes), its pattern read off one numeric
-    factorisation of the pattern made diagonally dominant (``dominant`` on the diagonal)."""
-    L = analyze(template, mode="supernodal", ordering_method="natural")
-    P = L.P()
-    L = L.cholesky(template, beta=dominant).L().tocsc()
+def _analyse(template: sp.csc_matrix, A: sp.csc_matrix, shift: float) -> tuple[_Layout, np.ndarray]:
+    """The layout of the factors of ``template``'s pattern, and the blocks of ``A + shift I``'s.
+
+    CHOLMOD's supernodal analysis (natural order, postordered, relaxed supernodes) and one
+    numeric factorisation of ``A``: scikit-sparse gives the pattern of L only with values
+    (as CSC), so the first factor is CHOLMOD's, placed in the blocks, and the rest ours."""
+    symbolic = analyze(template, mode="supernodal", ordering_method="natural")
+    P = symbolic.P()
+    try:
+        L = symbolic.cholesky(A, beta=shift).L().tocsc()
+    except CholmodNotPositiveDefiniteError as exc:
+        raise NotPositiveDefinite(str(exc)) from None
     L.sort_indices()
     indptr, indices = L.indptr.astype(np.int64), L.indices
     starts = _supernodes(indptr, indices)
@@ -209,7 +220,9 @@ def _layout(template: sp.csc_matrix, dominant: float) -> _Layout:
     b = column[np.repeat(np.arange(template.shape[1]), np.diff(template.indptr))]
     row, col = np.maximum(a, b), np.minimum(a, b)
     position = _block_positions(indptr, indices, starts, offsets, column_node, row, col)
-    return _Layout(indptr, indices, starts, offsets, column_node, diagonal, P, position)
+    blocks = np.zeros(offsets[-1])
+    _place_columns(indptr, L.data, starts, offsets, column_node, blocks)
+    return _Layout(indptr, indices, starts, offsets, column_node, diagonal, P, position), blocks
 
 
 class Factor:
@@ -469,6 +482,18 @@ def _supernodes(indptr, indices):  # pragma: no cover - compiled
     return np.array(starts)
 
 
+@numba.njit(cache=True)
+def _place_columns(indptr, data, starts, offsets, column_node, blocks):  # pragma: no cover - compiled
+    """L's columns (CSC) into their supernodes' blocks: column j's entries from its diagonal
+    down, the rows of its supernode's first column from the j-th on."""
+    for j in range(len(indptr) - 1):
+        s = column_node[j]
+        c = j - starts[s]
+        nr = indptr[starts[s] + 1] - indptr[starts[s]]
+        first = offsets[s] + c * nr + c
+        blocks[first : first + indptr[j + 1] - indptr[j]] = data[indptr[j] : indptr[j + 1]]
+
+
 @numba.njit(nogil=True, cache=True)
 def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: no cover - compiled
     """Supernodal Cholesky in place: ``blocks`` hold the lower triangle of the matrix in the
@@ -510,8 +535,12 @@ def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: n
             b1 = b
             while b1 < r and R[b1] < starts[s2 + 1]:
                 b1 += 1
-            h, panel = r - b, below[b:]
-            _lapack.gemm(_lapack.N, _lapack.T, h, b1 - b, w, 1.0, panel, nr, panel, nr, 0.0, update, h)
+            h, g, panel = r - b, b1 - b, below[b:]  # the panel's square top by syrk, the rest by gemm
+            _lapack.syrk(g, w, 1.0, panel, nr, 0.0, update, h)
+            if h > g:
+                _lapack.gemm(
+                    _lapack.N, _lapack.T, h - g, g, w, 1.0, panel[g:], nr, panel, nr, 0.0, update[g:], h
+                )
             for bb in range(b, b1):
                 column = blocks[offsets[s2] + (R[bb] - f2) * nr2 :]
                 base = (bb - b) * h - b

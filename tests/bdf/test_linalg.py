@@ -82,3 +82,22 @@ def test_band_product_and_midpoint_maps_equal_dense_algebra():
     np.testing.assert_array_equal(linalg.midpoint_band(stencil, density), expected_band)
     midpoints = Lattice(np.zeros(3), np.full(3, 0.5), mid_shape)
     np.testing.assert_allclose(linalg.band_density(stencil, band, midpoints), expected_density, atol=1e-12)
+
+
+def test_a_band_that_is_not_positive_definite_raises_on_every_factorisation():
+    """The support's first factorisation (CHOLMOD's, which finds the layout) and the later
+    ones (compiled) both raise NotPositiveDefinite, which the evidence search takes as
+    "more regularisation"; the support stays usable."""
+    stencil = linalg.stencil((6, 5, 4), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 1e-3)
+    rng = np.random.default_rng(7)
+    band = rng.uniform(-1.0, 1.0, (len(stencil.offsets), stencil.size))
+    band[0] = 2.0 * len(stencil.offsets)
+    bad = band.copy()
+    bad[0, 17] = -1.0  # a negative diagonal entry
+    for _ in range(2):
+        with pytest.raises(linalg.NotPositiveDefinite):
+            stencil.factor_of(bad, 0.5)
+    stencil.factor_of(band, 0.5)  # the first good one finds the layout
+    with pytest.raises(linalg.NotPositiveDefinite):
+        stencil.factor_of(bad, 0.5)
+    assert_dense_algebra(stencil, band, stencil.factor_of(band, 0.5), rng)
