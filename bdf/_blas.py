@@ -1,9 +1,10 @@
-"""BLAS threads: one for the small products this library makes.
+"""BLAS threads: one for the small products this library makes, and for work in threads.
 
 Waking a second OpenBLAS thread costs more than it saves on the small GEMMs of the
-splat and gather kernels (:mod:`bdf.features`). Only numpy's and scipy's own OpenBLAS
-are limited: the sparse factorisations (CHOLMOD, :mod:`bdf.linalg`) run on the system
-BLAS with every core, also while another thread is in a limited section.
+splat and gather kernels (:mod:`bdf.features`). The factorisations and inversions of
+:mod:`bdf.linalg` run on scipy's OpenBLAS with every core, but a directional map's
+classes gain more from a thread each (:func:`in_threads`). Only numpy's and scipy's own
+OpenBLAS are limited: a support's first factorisation (CHOLMOD) runs on the system BLAS.
 """
 
 from __future__ import annotations

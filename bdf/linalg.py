@@ -1,4 +1,4 @@
-"""The precision's sparse algebra: stencil, CHOLMOD factorisation, selected inversion.
+"""The precision's sparse algebra: stencil, supernodal factorisation, selected inversion.
 
 Two hinges couple through ``c(h_m - h_m') = exp(-sum_d gamma_d (h_md - h_m'd)^2 / 2)``
 (:mod:`bdf.stats`), so pairs whose factor is below the kernel ``cutoff`` are dropped:
@@ -7,19 +7,23 @@ hinge. Matrices on that pattern are kept as *bands*: ``band[k, m] = A[m, m + o_k
 the half of the offsets that is lexicographically >= 0 (the other half by symmetry),
 zeros where ``m + o_k`` leaves the lattice.
 
-A band is factored by CHOLMOD (scikit-sparse; supernodal, BLAS) in a geometric nested
-dissection of the lattice (:func:`dissection`: less fill than METIS, in a tenth of its time);
-the factor gives the log-determinant (evidence) and the solves (posterior mean). Only the
-hinges the data touch are factored (:class:`Support`): a hinge whose Gram diagonal is zero
-has a zero row (``G`` is positive semi-definite), so ``G + shift I`` is ``shift`` there, apart
-from the rest. Sparse traffic on a large lattice, and each heading sector of a directional
-map, touch a fraction of the hinges: the factor's work falls roughly with its cube. Where
-a class touches most of the hinges its total touches, it is factored on the total's
-support instead (:data:`COVER`): one symbolic analysis serves them all.
+A band is factored in a geometric nested dissection of the lattice (:func:`dissection`:
+less fill than METIS, in a tenth of its time), by supernodes: CHOLMOD (scikit-sparse)
+analyses the pattern and makes a support's first factorisation, whose L gives the layout
+of the supernodes' dense blocks; every later one is ours (:func:`_factor`), as are the
+solves and the selected inversion, each one compiled call on those blocks with LAPACK and
+BLAS (:mod:`bdf._lapack`) that releases the GIL, so that the classes of a directional map
+are factored side by side. The factor gives the log-determinant (evidence) and the solves
+(posterior mean). Only the hinges the data touch are factored (:class:`Support`): a hinge
+whose Gram diagonal is zero has a zero row (``G`` is positive semi-definite), so
+``G + shift I`` is ``shift`` there, apart from the rest. Sparse traffic on a large lattice,
+and each heading sector of a directional map, touch a fraction of the hinges: the
+factor's work falls roughly with its cube. Where a class touches most of the hinges its
+total touches, it is factored on the total's support instead (:data:`COVER`): one
+analysis serves them all.
 The variance density needs the posterior covariance only on the stencil's pairs, which
 lie in the factor's pattern: :func:`_selected_inverse` computes the inverse on that pattern
-by the Takahashi recursions, supernode by supernode (column-major dense blocks with BLAS
-and LAPACK, gathers compiled with numba).
+by the Takahashi recursions, supernode by supernode.
 """
 
 from __future__ import annotations

@@ -228,6 +228,10 @@ class Mixture:
     alpha / beta of the map with one class, the first "Directional maps" table, fitted 2.5x
     faster and lost 0.12 of mixture MSLL on Paris).
     Fixed values are (3,) for all, or (1 + C, 3): the map with one class, then each class.
+
+    The modes are fitted and their variance densities computed at construction, side by
+    side in a thread per core (their algebra releases the GIL, :mod:`bdf._lapack`): a
+    directional map is only ever queried whole.
     """
 
     def __init__(
@@ -259,8 +263,10 @@ class Mixture:
         # the modes side by side on the cores (their algebra releases the GIL), the most
         # data first so that the threads end together; and the total's variance meanwhile
         by_count = sorted(range(C), key=lambda c: -evidence.classes[c].count)
-        done = _blas.in_threads([self.total.variance_table, *(functools.partial(mode, c) for c in by_count)])
-        self.modes = [post for _, post in sorted(zip(by_count, done[1:], strict=True), key=lambda p: p[0])]
+        _, *fitted = _blas.in_threads(
+            [self.total.variance_table, *(functools.partial(mode, c) for c in by_count)]
+        )
+        self.modes = [dict(zip(by_count, fitted, strict=True))[c] for c in range(C)]
         self.fitted = self.total.fitted
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])

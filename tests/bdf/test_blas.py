@@ -33,3 +33,18 @@ def test_a_worker_thread_limits_and_restores_the_count():
     with _blas.one_thread():  # the worker gave up control: this thread can limit now
         assert blas_threads() == {1}
     assert blas_threads() == original
+
+
+def test_tasks_in_threads_run_side_by_side_on_one_blas_thread_each_and_answer_in_order():
+    both = threading.Barrier(2, timeout=10)  # the first two meet: they run side by side
+
+    def task(k):
+        if k < 2:
+            both.wait()
+        return k, blas_threads()
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        answers = _blas.in_threads([lambda k=k: task(k) for k in range(6)])
+        assert [k for k, _ in answers] == list(range(6))
+        assert all(threads == {1} for _, threads in answers)
+        assert blas_threads() == {2}
