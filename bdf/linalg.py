@@ -60,7 +60,8 @@ class Stencil:
     (``offsets``, lexicographically >= 0, zero first), and a nested-dissection order of the
     lattice (:func:`dissection`)."""
 
-    #: Supports kept per stencil (the classes of a map, searched one after another).
+    #: Supports kept per stencil: a directional map's classes use the total's, or their own
+    #: where they touch fewer hinges (:data:`COVER`); refits find them all here.
     SUPPORTS = 4
 
     def __init__(self, shape, step, gamma, cutoff):
@@ -255,7 +256,7 @@ class Factor:
             hinges = self.support.order[lay.columns]
             y = np.ascontiguousarray(np.asarray(b, float)[hinges].reshape(len(hinges), -1))
             _solve(lay.indptr, lay.indices, lay.starts, lay.offsets, self._blocks, y)
-            x[hinges] = y.reshape(x[hinges].shape)
+            x[hinges] = y.reshape((len(hinges), *x.shape[1:]))
         return x
 
     @property
@@ -269,8 +270,7 @@ class Factor:
 
     @property
     def madds(self) -> float:
-        """Multiply-adds of the factorisation: ``c (c + 1) / 2`` for a column of ``c`` entries
-        (a dense Cholesky: ``M^3 / 6``)."""
+        """Multiply-adds of the factorisation (:func:`factor_madds`)."""
         return factor_madds(self.support.layout.indptr)
 
     @property
