@@ -44,6 +44,7 @@ def single_threaded(fn):
 def in_threads(tasks: list) -> list:
     """The results of ``tasks`` (callables), run side by side in a thread per core with one
     BLAS thread each: for work that releases the GIL (the factorisations and inversions of
-    :mod:`bdf.linalg`), whose BLAS gains little from a second thread (bench/RESULTS.md)."""
+    :mod:`bdf.linalg`), which gains more from a core per task than from two BLAS threads
+    per task (the directional fit, bench/RESULTS.md)."""
     with one_thread(), ThreadPoolExecutor(min(len(tasks), os.cpu_count() or 1)) as pool:
         return [f.result() for f in [pool.submit(task) for task in tasks]]

@@ -260,11 +260,6 @@ class Factor:
         return x
 
     @property
-    def nnz(self) -> int:
-        """Entries of L (what the factorisation and the selected inversion work on)."""
-        return int(self.support.layout.indptr[-1]) if self._blocks is not None else 0
-
-    @property
     def nbytes(self) -> int:
         return self._blocks.nbytes if self._blocks is not None else 0
 
@@ -499,6 +494,35 @@ def _place_columns(indptr, data, starts, offsets, column_node, blocks):  # pragm
 
 
 @numba.njit(nogil=True, cache=True)
+def _extent(indptr, starts):  # pragma: no cover - compiled
+    """The widest supernode's columns and the tallest one's rows (the kernels' buffers)."""
+    widest, tallest = 1, 1
+    for s in range(len(starts) - 1):
+        widest = max(widest, starts[s + 1] - starts[s])
+        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
+    return widest, tallest
+
+
+@numba.njit(nogil=True, cache=True)
+def _holder(indptr, indices, starts, offsets, column_node, R, b, pos, rel):  # pragma: no cover
+    """The run ``R[b:b1]`` of a supernode's rows R whose columns one later supernode holds
+    (R is a clique of the filled graph, so all of ``R[a]``, a >= b, are among its rows):
+    ``b1``, and column ``R[bb]``'s place ``origin + R[bb] * height`` in its block, with
+    ``rel[a]`` the row of ``R[a]`` there. ``pos`` is scratch (one entry per column)."""
+    s2 = column_node[R[b]]
+    first = indptr[starts[s2]]
+    height = indptr[starts[s2] + 1] - first
+    for t in range(height):
+        pos[indices[first + t]] = t
+    for a in range(b, len(R)):
+        rel[a] = pos[R[a]]
+    b1 = b
+    while b1 < len(R) and R[b1] < starts[s2 + 1]:
+        b1 += 1
+    return b1, offsets[s2] - starts[s2] * height, height
+
+
+@numba.njit(nogil=True, cache=True)
 def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: no cover - compiled
     """Supernodal Cholesky in place: ``blocks`` hold the lower triangle of the matrix in the
     layout of :class:`_Layout` and end holding L. Right-looking, by supernodes from the
@@ -507,12 +531,8 @@ def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: n
     of the filled graph, so each of its entries is stored there), a panel of one supernode's
     columns at a time. Returns 0, or 1 + the supernode whose diagonal block is not
     positive definite."""
-    n = len(indptr) - 1
-    pos = np.empty(n, np.int64)
-    widest, tallest = 1, 1
-    for s in range(len(starts) - 1):
-        widest = max(widest, starts[s + 1] - starts[s])
-        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
+    pos = np.empty(len(indptr) - 1, np.int64)
+    widest, tallest = _extent(indptr, starts)
     update, rel = np.empty(tallest * widest), np.empty(tallest, np.int64)
     for s in range(len(starts) - 1):
         f, w = starts[s], starts[s + 1] - starts[s]
@@ -527,18 +547,8 @@ def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: n
         _lapack.trsm(_lapack.R, _lapack.T, r, w, 1.0, blk, nr, below, nr)
         R = indices[indptr[f] + w : indptr[f + 1]]
         b = 0
-        while b < r:  # the columns of R in one supernode s2: rows b.. of their panel
-            s2 = column_node[R[b]]
-            f2 = starts[s2]
-            first = indptr[f2]
-            nr2 = indptr[f2 + 1] - first
-            for t in range(nr2):
-                pos[indices[first + t]] = t
-            for a in range(b, r):
-                rel[a] = pos[R[a]]
-            b1 = b
-            while b1 < r and R[b1] < starts[s2 + 1]:
-                b1 += 1
+        while b < r:  # the columns of R in one supernode: rows b.. of their panel
+            b1, origin, nr2 = _holder(indptr, indices, starts, offsets, column_node, R, b, pos, rel)
             h, g, panel = r - b, b1 - b, below[b:]  # the panel's square top by syrk, the rest by gemm
             _lapack.syrk(g, w, 1.0, panel, nr, 0.0, update, h)
             if h > g:
@@ -546,7 +556,7 @@ def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: n
                     _lapack.N, _lapack.T, h - g, g, w, 1.0, panel[g:], nr, panel, nr, 0.0, update[g:], h
                 )
             for bb in range(b, b1):
-                column = blocks[offsets[s2] + (R[bb] - f2) * nr2 :]
+                column = blocks[origin + R[bb] * nr2 :]
                 base = (bb - b) * h - b
                 for a in range(bb, r):
                     column[rel[a]] -= update[base + a]
@@ -560,10 +570,7 @@ def _solve(indptr, indices, starts, offsets, blocks, y):  # pragma: no cover - c
     are a column-major (k, w) block): forward by supernodes, then back."""
     k = y.shape[1]
     flat = y.ravel()
-    tallest = 1
-    for s in range(len(starts) - 1):
-        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
-    z = np.empty(tallest * k)
+    z = np.empty(_extent(indptr, starts)[1] * k)
     for backward in range(2):
         for step in range(len(starts) - 1):
             s = len(starts) - 2 - step if backward else step
@@ -596,12 +603,8 @@ def _selected_inverse(indptr, indices, starts, offsets, column_node, blocks):  #
     ``S_RR`` is gathered from later supernodes (R is a clique of the filled graph, so each
     of its entries is stored there). Returns LAPACK's info of the first failure, or 0.
     """
-    n = len(indptr) - 1
-    pos = np.empty(n, np.int64)
-    tallest, widest = 1, 1
-    for s in range(len(starts) - 1):
-        widest = max(widest, starts[s + 1] - starts[s])
-        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
+    pos = np.empty(len(indptr) - 1, np.int64)
+    widest, tallest = _extent(indptr, starts)
     srr, rel = np.empty(tallest * tallest), np.empty(tallest, np.int64)
     Y = np.empty(tallest * widest)
     for s in range(len(starts) - 2, -1, -1):
@@ -621,19 +624,9 @@ def _selected_inverse(indptr, indices, starts, offsets, column_node, blocks):  #
         R = indices[indptr[f] + w : indptr[f + 1]]
         b = 0
         while b < r:  # S_RR's lower triangle, column-major (r, r), from R's supernodes
-            s2 = column_node[R[b]]
-            f2 = starts[s2]
-            first = indptr[f2]
-            nr2 = indptr[f2 + 1] - first
-            for t in range(nr2):
-                pos[indices[first + t]] = t
-            for a in range(b, r):
-                rel[a] = pos[R[a]]
-            b1 = b
-            while b1 < r and R[b1] < starts[s2 + 1]:
-                b1 += 1
+            b1, origin, nr2 = _holder(indptr, indices, starts, offsets, column_node, R, b, pos, rel)
             for bb in range(b, b1):
-                column = blocks[offsets[s2] + (R[bb] - f2) * nr2 :]
+                column = blocks[origin + R[bb] * nr2 :]
                 for a in range(bb, r):
                     srr[bb * r + a] = column[rel[a]]
             b = b1

@@ -266,7 +266,8 @@ class Mixture:
         _, *fitted = _blas.in_threads(
             [self.total.variance_table, *(functools.partial(mode, c) for c in by_count)]
         )
-        self.modes = [dict(zip(by_count, fitted, strict=True))[c] for c in range(C)]
+        of_class = dict(zip(by_count, fitted, strict=True))
+        self.modes = [of_class[c] for c in range(C)]
         self.fitted = self.total.fitted
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])

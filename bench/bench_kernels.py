@@ -36,22 +36,22 @@ from bdf.tiles import RegionSpec
 from service import formats
 
 
-def best(fn, repeat=5) -> float:
+def timings(fn, repeat: int) -> np.ndarray:
+    """Seconds of ``repeat`` calls of ``fn``."""
     times = []
     for _ in range(repeat):
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
-    return min(times)
+    return np.array(times)
+
+
+def best(fn, repeat=5) -> float:
+    return float(timings(fn, repeat).min())
 
 
 def median(fn, repeat=10) -> float:
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return float(np.median(timings(fn, repeat)))
 
 
 def evidence_rows() -> list[tuple[str, str]]:
