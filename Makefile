@@ -16,8 +16,8 @@ $(STAMP): pyproject.toml | $(PY) sparse
 
 install: $(STAMP)
 
-# scikit-sparse builds against Debian's SuiteSparse 5 (CHOLMOD), whose supernodes run on
-# OpenBLAS; installed here when we may (root with apt-get), else a clear stop
+# scikit-sparse (CHOLMOD, the benchmarks' peer of bdf.linalg) builds against Debian's
+# SuiteSparse 5; installed here when we may (root with apt-get), else a clear stop
 sparse:
 	@[ -e /usr/include/suitesparse/cholmod.h ] || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
 	  { apt-get install -y -q libsuitesparse-dev libopenblas0-pthread >/dev/null || \

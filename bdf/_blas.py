@@ -3,8 +3,7 @@
 Waking a second OpenBLAS thread costs more than it saves on the small GEMMs of the
 splat and gather kernels (:mod:`bdf.features`). The factorisations and inversions of
 :mod:`bdf.linalg` run on scipy's OpenBLAS with every core, but a directional map's
-classes gain more from a thread each (:func:`in_threads`). Only numpy's and scipy's own
-OpenBLAS are limited: a support's first factorisation (CHOLMOD) runs on the system BLAS.
+classes gain more from a thread each (:func:`in_threads`).
 """
 
 from __future__ import annotations

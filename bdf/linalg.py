@@ -8,12 +8,12 @@ the half of the offsets that is lexicographically >= 0 (the other half by symmet
 zeros where ``m + o_k`` leaves the lattice.
 
 A band is factored in a geometric nested dissection of the lattice (:func:`dissection`:
-less fill than METIS, in a tenth of its time), by supernodes: CHOLMOD (scikit-sparse)
-analyses the pattern and makes a support's first factorisation, whose L gives the layout
-of the supernodes' dense blocks; every later one is ours (:func:`_factor`), as are the
-solves and the selected inversion, each one compiled call on those blocks with LAPACK and
-BLAS (:mod:`bdf._lapack`) that releases the GIL, so that the classes of a directional map
-are factored side by side. The factor gives the log-determinant (evidence) and the solves
+less fill than METIS, in a tenth of its time), by supernodes: a symbolic analysis of the
+pattern (:func:`_symbolic`: the elimination tree, its postorder and CHOLMOD's relaxed
+supernodes) gives the layout of the supernodes' dense blocks, and the factorisation
+(:func:`_factor`), the solves and the selected inversion are each one compiled call on
+those blocks with LAPACK and BLAS (:mod:`bdf._lapack`) that releases the GIL, so that the
+classes of a directional map are analysed and factored side by side. The factor gives the log-determinant (evidence) and the solves
 (posterior mean). Only the hinges the data touch are factored (:class:`Support`): a hinge
 whose Gram diagonal is zero has a zero row (``G`` is positive semi-definite), so
 ``G + shift I`` is ``shift`` there, apart from the rest. Sparse traffic on a large lattice,
@@ -35,7 +35,6 @@ from typing import NamedTuple
 import numba
 import numpy as np
 import scipy.sparse as sp
-from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
 from bdf import _lapack
 from bdf.grid import Lattice
@@ -141,7 +140,7 @@ class Stencil:
 class Support:
     """The hinges a band touches (``active``) and what their factorisation needs: the lower
     triangle of their pattern as CSC in the stencil's order restricted to them, and the
-    layout of the factor's blocks (:class:`_Layout`), found by the first factorisation.
+    layout of the factor's blocks (:class:`_Layout`), analysed at the first factorisation.
     The other hinges are decoupled: ``shift`` alone."""
 
     def __init__(self, stencil: Stencil, active: np.ndarray, order: np.ndarray):
@@ -164,70 +163,63 @@ class Support:
 
     def factor_of(self, band: np.ndarray, shift: float) -> Factor:
         """The factor of ``band``'s matrix on the active hinges ``+ shift I`` (with ``shift``
-        on the rest): the matrix placed in the blocks, factored in place (:func:`_factor`).
-        The support's first is CHOLMOD's, whose pattern gives the layout (:func:`_analyse`)."""
+        on the rest): the matrix placed in the blocks, factored in place (:func:`_factor`)."""
         if not len(self.order):
             return Factor(self, None, shift)
         with self._lock:
             if self.layout is None:
-                self.layout, blocks = _analyse(self._template, self.matrix(band), shift)
-                return Factor(self, blocks, shift)
+                self.layout = _analyse(self._template)
         lay = self.layout
         blocks = np.zeros(lay.offsets[-1])
         blocks[lay.position] = np.asarray(band).ravel()[self._source]
         blocks[lay.diagonal] += shift
-        failed = _factor(lay.indptr, lay.indices, lay.starts, lay.offsets, lay.column_node, blocks)
+        failed = _factor(lay.rowptr, lay.rows, lay.starts, lay.offsets, lay.column_node, blocks)
         if failed:
             raise NotPositiveDefinite(f"the factorisation broke down at supernode {failed - 1}")
         return Factor(self, blocks, shift)
 
 
 class _Layout(NamedTuple):
-    """The factor's pattern (CSC, sorted, diagonal first) and its supernodes (first columns,
-    then the column count), each one's block offset (its rows by its columns,
-    column-major, one after another), each column's supernode and diagonal entry; the
-    hinges of the support in the factor's column order; per entry of the support's
-    matrix, its place in the blocks."""
+    """The factor's supernodes: their first columns (then the column count), rows (each
+    one's sorted, its own columns first: ``rows[rowptr[s]:rowptr[s + 1]]``) and block
+    offsets (its rows by its columns, column-major, one after another); each column's
+    supernode and diagonal entry; the support's hinges in the factor's column order; per
+    entry of the support's matrix, its place in the blocks."""
 
-    indptr: np.ndarray
-    indices: np.ndarray
     starts: np.ndarray
+    rowptr: np.ndarray
+    rows: np.ndarray
     offsets: np.ndarray
     column_node: np.ndarray
     diagonal: np.ndarray
     columns: np.ndarray
     position: np.ndarray
 
+    def column_counts(self) -> np.ndarray:
+        """Entries of each column of L, its diagonal included (padding of the relaxed
+        supernodes included: what the kernels compute)."""
+        heights = np.diff(self.rowptr)[self.column_node]
+        return heights - (np.arange(len(self.column_node)) - self.starts[self.column_node])
 
-def _analyse(template: sp.csc_matrix, A: sp.csc_matrix, shift: float) -> tuple[_Layout, np.ndarray]:
-    """The layout of the factors of ``template``'s pattern, and the blocks of ``A + shift I``'s.
 
-    CHOLMOD's supernodal analysis (natural order, postordered, relaxed supernodes) and one
-    numeric factorisation of ``A``: scikit-sparse gives the pattern of L only with values
-    (as CSC), so the first factor is CHOLMOD's, placed in the blocks, and the rest ours."""
-    symbolic = analyze(template, mode="supernodal", ordering_method="natural")
-    P = symbolic.P()
-    try:
-        L = symbolic.cholesky(A, beta=shift).L().tocsc()
-    except CholmodNotPositiveDefiniteError as exc:
-        raise NotPositiveDefinite(str(exc)) from None
-    L.sort_indices()
-    indptr, indices = L.indptr.astype(np.int64), L.indices
-    starts = _supernodes(indptr, indices)
-    heights = indptr[starts[:-1] + 1] - indptr[starts[:-1]]
-    offsets = np.concatenate([[0], np.cumsum(heights * np.diff(starts))])
-    column_node = np.repeat(np.arange(len(starts) - 1), np.diff(starts))
+def _analyse(template: sp.csc_matrix) -> _Layout:
+    """The layout of the factors of ``template``'s pattern (:func:`_symbolic`), and where
+    each entry of the pattern goes in the blocks."""
+    columns, starts, rowptr, rows = _symbolic(
+        template.indptr.astype(np.int64), template.indices.astype(np.int64)
+    )
+    widths, heights = np.diff(starts), np.diff(rowptr)
+    offsets = np.concatenate([[0], np.cumsum(heights * widths)])
+    column_node = np.repeat(np.arange(len(widths)), widths)
     within = np.arange(len(column_node)) - starts[column_node]
     diagonal = offsets[column_node] + within * (heights[column_node] + 1)
-    column = np.empty(len(P), np.int64)  # the template's column -> the factor's
-    column[P] = np.arange(len(P))
+    column = np.empty(len(columns), np.int64)  # the template's column -> the factor's
+    column[columns] = np.arange(len(columns))
     a = column[template.indices]
     b = column[np.repeat(np.arange(template.shape[1]), np.diff(template.indptr))]
     row, col = np.maximum(a, b), np.minimum(a, b)
-    position = _block_positions(indptr, indices, starts, offsets, column_node, row, col)
-    blocks = np.zeros(offsets[-1])
-    _place_columns(indptr, L.data, starts, offsets, column_node, blocks)
-    return _Layout(indptr, indices, starts, offsets, column_node, diagonal, P, position), blocks
+    position = _block_positions(rowptr, rows, starts, offsets, column_node, row, col)
+    return _Layout(starts, rowptr, rows, offsets, column_node, diagonal, columns, position)
 
 
 class Factor:
@@ -255,7 +247,7 @@ class Factor:
             lay = self.support.layout
             hinges = self.support.order[lay.columns]
             y = np.ascontiguousarray(np.asarray(b, float)[hinges].reshape(len(hinges), -1))
-            _solve(lay.indptr, lay.indices, lay.starts, lay.offsets, self._blocks, y)
+            _solve(lay.rowptr, lay.rows, lay.starts, lay.offsets, self._blocks, y)
             x[hinges] = y.reshape((len(hinges), *x.shape[1:]))
         return x
 
@@ -266,7 +258,7 @@ class Factor:
     @property
     def madds(self) -> float:
         """Multiply-adds of the factorisation (:func:`factor_madds`)."""
-        return factor_madds(self.support.layout.indptr)
+        return factor_madds(self.support.layout.column_counts())
 
     @property
     def inverse_madds(self) -> float:
@@ -287,19 +279,17 @@ class Factor:
         if self._blocks is not None:
             lay = self.support.layout
             blocks = self._blocks.copy()
-            info = _selected_inverse(
-                lay.indptr, lay.indices, lay.starts, lay.offsets, lay.column_node, blocks
-            )
+            info = _selected_inverse(lay.rowptr, lay.rows, lay.starts, lay.offsets, lay.column_node, blocks)
             if info != 0:
                 raise NotPositiveDefinite(f"selected inversion failed (LAPACK info {info})")
             band[self.support._source] = blocks[lay.position]
         return band.reshape(len(st.offsets), st.size)
 
 
-def factor_madds(indptr: np.ndarray) -> float:
-    """Multiply-adds of a Cholesky factorisation with columns ``indptr`` (CSC): ``c (c + 1) / 2``
-    for a column of ``c`` entries (a dense one: ``M^3 / 6``)."""
-    counts = np.diff(indptr).astype(float)
+def factor_madds(counts: np.ndarray) -> float:
+    """Multiply-adds of a Cholesky factorisation whose columns have ``counts`` entries:
+    ``c (c + 1) / 2`` for a column of ``c`` (a dense one: ``M^3 / 6``)."""
+    counts = np.asarray(counts, float)
     return float(np.sum(counts * (counts + 1) / 2))
 
 
@@ -443,77 +433,214 @@ def _lower_pattern(shape, offsets, rank):  # pragma: no cover - compiled
     return indptr, rows, source
 
 
-@numba.njit(cache=True)
-def _block_positions(indptr, indices, starts, offsets, column_node, rows, cols):  # pragma: no cover
-    """Index into the blocks of :func:`_selected_inverse` of every (row, col) entry of L's
-    lower triangle (a binary search in the rows of the column's supernode; must exist)."""
-    out = np.empty(len(rows), np.int64)
-    for t in range(len(rows)):
-        s = column_node[cols[t]]
-        f = starts[s]
-        first, end = indptr[f], indptr[f + 1]
+@numba.njit(nogil=True, cache=True)
+def _block_positions(rowptr, rows, starts, offsets, column_node, row, col):  # pragma: no cover
+    """Index into the blocks of every (row, col) entry of L's lower triangle (a binary
+    search in the rows of the column's supernode; must be there)."""
+    out = np.empty(len(row), np.int64)
+    for t in range(len(row)):
+        s = column_node[col[t]]
+        first, end = rowptr[s], rowptr[s + 1]
         lo, hi = first, end
         while lo < hi:
             mid = (lo + hi) // 2
-            if indices[mid] < rows[t]:
+            if rows[mid] < row[t]:
                 lo = mid + 1
             else:
                 hi = mid
-        if lo == end or indices[lo] != rows[t]:
+        if lo == end or rows[lo] != row[t]:
             raise ValueError("an entry of the stencil is missing from the factor's pattern")
-        out[t] = offsets[s] + (cols[t] - f) * (end - first) + (lo - first)
+        out[t] = offsets[s] + (col[t] - starts[s]) * (end - first) + (lo - first)
     return out
 
 
-@numba.njit(cache=True)
-def _supernodes(indptr, indices):  # pragma: no cover - compiled
-    """First column of each fundamental supernode (columns j, j+1 share one when column
-    j + 1's pattern is column j's without j), and the column count at the end."""
-    n = len(indptr) - 1
-    starts = [0]
-    for j in range(1, n):
-        previous = indptr[j] - indptr[j - 1]
-        if not (
-            indptr[j + 1] - indptr[j] == previous - 1 and previous > 1 and indices[indptr[j - 1] + 1] == j
-        ):
-            starts.append(j)
-    starts.append(n)
-    return np.array(starts)
-
-
-@numba.njit(cache=True)
-def _place_columns(indptr, data, starts, offsets, column_node, blocks):  # pragma: no cover - compiled
-    """L's columns (CSC) into their supernodes' blocks: column j's entries from its diagonal
-    down, the rows of its supernode's first column from the j-th on."""
-    for j in range(len(indptr) - 1):
-        s = column_node[j]
-        c = j - starts[s]
-        nr = indptr[starts[s] + 1] - indptr[starts[s]]
-        first = offsets[s] + c * nr + c
-        blocks[first : first + indptr[j + 1] - indptr[j]] = data[indptr[j] : indptr[j + 1]]
+#: Relaxed supernodes (CHOLMOD's defaults): a supernode joins its parent while the two
+#: have at most ``NRELAX[0]`` columns, or at most ``NRELAX[1]`` / ``NRELAX[2]`` / any number
+#: with explicit zeros below ``ZRELAX[0]`` / ``ZRELAX[1]`` / ``ZRELAX[2]`` of their entries:
+#: a few zeros buy larger blocks for BLAS.
+NRELAX = (4, 16, 48)
+ZRELAX = (0.8, 0.1, 0.05)
 
 
 @numba.njit(nogil=True, cache=True)
-def _extent(indptr, starts):  # pragma: no cover - compiled
+def _symbolic(indptr, rows):  # pragma: no cover - compiled
+    """The supernodal structure of the Cholesky factor of a lower pattern (CSC, sorted,
+    diagonal included): the columns in the etree's postorder (``columns[new] = old``),
+    the relaxed supernodes' first columns ``starts`` (then the column count), and their
+    rows (:class:`_Layout`).
+
+    The elimination tree by Liu's algorithm; column counts by the row subtrees (each row
+    ``i`` of L is the part of the etree between A's entries of row ``i`` and ``i``);
+    fundamental supernodes (a column whose only child is the previous one, with one entry
+    fewer), joined by :data:`NRELAX` / :data:`ZRELAX`; each one's rows are its columns,
+    A's entries below them and its children's rows below them."""
+    n = len(indptr) - 1
+    # A's strict lower triangle by rows: row i's columns k < i
+    rowstart = np.zeros(n + 1, np.int64)
+    for j in range(n):
+        for p in range(indptr[j], indptr[j + 1]):
+            if rows[p] > j:
+                rowstart[rows[p] + 1] += 1
+    rowstart = np.cumsum(rowstart)
+    rowcols, fill = np.empty(rowstart[n], np.int64), rowstart[:n].copy()
+    for j in range(n):
+        for p in range(indptr[j], indptr[j + 1]):
+            if rows[p] > j:
+                rowcols[fill[rows[p]]] = j
+                fill[rows[p]] += 1
+    # the elimination tree, with path compression
+    parent, ancestor = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
+    for i in range(n):
+        for p in range(rowstart[i], rowstart[i + 1]):
+            k = rowcols[p]
+            while k != -1 and k < i:
+                after = ancestor[k]
+                ancestor[k] = i
+                if after == -1:
+                    parent[k] = i
+                k = after
+    # its postorder (children in increasing order): descendants before ancestors, so A's
+    # lower triangle stays lower
+    head, sibling = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
+    for j in range(n - 1, -1, -1):
+        if parent[j] != -1:
+            sibling[j] = head[parent[j]]
+            head[parent[j]] = j
+    columns, stack, k = np.empty(n, np.int64), np.empty(n, np.int64), 0
+    for root in range(n):
+        if parent[root] != -1:
+            continue
+        top, stack[0] = 0, root
+        while top >= 0:
+            j = stack[top]
+            child = head[j]
+            if child == -1:
+                top -= 1
+                columns[k] = j
+                k += 1
+            else:
+                head[j] = sibling[child]
+                top += 1
+                stack[top] = child
+    new = np.empty(n, np.int64)
+    new[columns] = np.arange(n)
+    up, children = np.full(n, -1, np.int64), np.zeros(n, np.int64)
+    for j in range(n):
+        if parent[columns[j]] != -1:
+            up[j] = new[parent[columns[j]]]
+            children[up[j]] += 1
+    # column counts, by the row subtrees
+    count, mark = np.ones(n, np.int64), np.full(n, -1, np.int64)
+    for i in range(n):
+        mark[i] = i
+        for p in range(rowstart[columns[i]], rowstart[columns[i] + 1]):
+            j = new[rowcols[p]]
+            while mark[j] != i:
+                count[j] += 1
+                mark[j] = i
+                j = up[j]
+    # fundamental supernodes, then relaxed: supernode s joins s + 1 (and the ones s + 1
+    # joined) where s + 1 is its parent
+    first = [0]
+    for j in range(1, n):
+        if not (up[j - 1] == j and count[j - 1] == count[j] + 1 and children[j] == 1):
+            first.append(j)
+    first.append(n)
+    nf = len(first) - 1
+    width, height, zeros = np.empty(nf, np.int64), np.empty(nf, np.int64), np.zeros(nf)
+    joins = np.zeros(nf, np.bool_)
+    for s in range(nf):
+        width[s], height[s] = first[s + 1] - first[s], count[first[s]]
+    for s in range(nf - 2, -1, -1):
+        if up[first[s + 1] - 1] != first[s + 1]:
+            continue
+        w0, w1 = width[s], width[s + 1]  # s + 1: the supernode it would join, as joined so far
+        w = w0 + w1
+        added = w0 * (height[s + 1] + w0 - height[s])
+        total = zeros[s + 1] + added
+        z = total / (w * (w + 1) / 2 + w * (height[s + 1] - w1))
+        if (
+            w <= NRELAX[0]
+            or added == 0
+            or (w <= NRELAX[1] and z < ZRELAX[0])
+            or (w <= NRELAX[2] and z < ZRELAX[1])
+            or z < ZRELAX[2]
+        ):
+            joins[s] = True
+            width[s], height[s], zeros[s] = w, height[s + 1] + w0, total
+    starts = [0]
+    s = 0
+    while s < nf:  # a supernode: s and those it joined
+        while joins[s]:
+            s += 1
+        s += 1
+        starts.append(first[s])
+    starts_ = np.array(starts)
+    # each supernode's rows: its columns, A's entries below them, its children's below them
+    ns = len(starts_) - 1
+    node = np.empty(n, np.int64)
+    for t in range(ns):
+        node[starts_[t] : starts_[t + 1]] = t
+    kids, next_kid = np.full(ns, -1, np.int64), np.full(ns, -1, np.int64)
+    mark[:] = -1
+    heights, gathered, pieces = np.empty(ns, np.int64), np.empty(n, np.int64), []
+    for t in range(ns):
+        f, e = starts_[t], starts_[t + 1]
+        m = 0
+        for c in range(f, e):
+            mark[c] = t
+            gathered[m] = c
+            m += 1
+        for c in range(f, e):
+            for p in range(indptr[columns[c]], indptr[columns[c] + 1]):
+                i = new[rows[p]]
+                if i >= e and mark[i] != t:
+                    mark[i] = t
+                    gathered[m] = i
+                    m += 1
+        kid = kids[t]
+        while kid != -1:
+            for i in pieces[kid]:
+                if i >= e and mark[i] != t:
+                    mark[i] = t
+                    gathered[m] = i
+                    m += 1
+            kid = next_kid[kid]
+        pieces.append(np.sort(gathered[:m]))
+        heights[t] = m
+        if up[e - 1] != -1:
+            q = node[up[e - 1]]
+            next_kid[t] = kids[q]
+            kids[q] = t
+    rowptr = np.zeros(ns + 1, np.int64)
+    rowptr[1:] = np.cumsum(heights)
+    rows_ = np.empty(rowptr[ns], np.int64)
+    for t in range(ns):
+        rows_[rowptr[t] : rowptr[t + 1]] = pieces[t]
+    return columns, starts_, rowptr, rows_
+
+
+@numba.njit(nogil=True, cache=True)
+def _extent(rowptr, starts):  # pragma: no cover - compiled
     """The widest supernode's columns and the tallest one's rows (the kernels' buffers)."""
     widest, tallest = 1, 1
     for s in range(len(starts) - 1):
         widest = max(widest, starts[s + 1] - starts[s])
-        tallest = max(tallest, indptr[starts[s] + 1] - indptr[starts[s]])
+        tallest = max(tallest, rowptr[s + 1] - rowptr[s])
     return widest, tallest
 
 
 @numba.njit(nogil=True, cache=True)
-def _holder(indptr, indices, starts, offsets, column_node, R, b, pos, rel):  # pragma: no cover
+def _holder(rowptr, rows, starts, offsets, column_node, R, b, pos, rel):  # pragma: no cover
     """The run ``R[b:b1]`` of a supernode's rows R whose columns one later supernode holds
     (R is a clique of the filled graph, so all of ``R[a]``, a >= b, are among its rows):
     ``b1``, and column ``R[bb]``'s place ``origin + R[bb] * height`` in its block, with
     ``rel[a]`` the row of ``R[a]`` there. ``pos`` is scratch (one entry per column)."""
     s2 = column_node[R[b]]
-    first = indptr[starts[s2]]
-    height = indptr[starts[s2] + 1] - first
+    first = rowptr[s2]
+    height = rowptr[s2 + 1] - first
     for t in range(height):
-        pos[indices[first + t]] = t
+        pos[rows[first + t]] = t
     for a in range(b, len(R)):
         rel[a] = pos[R[a]]
     b1 = b
@@ -523,7 +650,7 @@ def _holder(indptr, indices, starts, offsets, column_node, R, b, pos, rel):  # p
 
 
 @numba.njit(nogil=True, cache=True)
-def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: no cover - compiled
+def _factor(rowptr, rows, starts, offsets, column_node, blocks):  # pragma: no cover - compiled
     """Supernodal Cholesky in place: ``blocks`` hold the lower triangle of the matrix in the
     layout of :class:`_Layout` and end holding L. Right-looking, by supernodes from the
     first: for columns J with rows R below them, ``L_JJ`` by LAPACK, ``L_RJ = A_RJ L_JJ^-T``,
@@ -531,12 +658,12 @@ def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: n
     of the filled graph, so each of its entries is stored there), a panel of one supernode's
     columns at a time. Returns 0, or 1 + the supernode whose diagonal block is not
     positive definite."""
-    pos = np.empty(len(indptr) - 1, np.int64)
-    widest, tallest = _extent(indptr, starts)
+    pos = np.empty(len(column_node), np.int64)
+    widest, tallest = _extent(rowptr, starts)
     update, rel = np.empty(tallest * widest), np.empty(tallest, np.int64)
     for s in range(len(starts) - 1):
         f, w = starts[s], starts[s + 1] - starts[s]
-        nr = indptr[f + 1] - indptr[f]
+        nr = rowptr[s + 1] - rowptr[s]
         r = nr - w
         blk = blocks[offsets[s] : offsets[s + 1]]
         if _lapack.potrf(blk, w, nr) != 0:
@@ -545,10 +672,10 @@ def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: n
             continue
         below = blk[w:]
         _lapack.trsm(_lapack.R, _lapack.T, r, w, 1.0, blk, nr, below, nr)
-        R = indices[indptr[f] + w : indptr[f + 1]]
+        R = rows[rowptr[s] + w : rowptr[s + 1]]
         b = 0
         while b < r:  # the columns of R in one supernode: rows b.. of their panel
-            b1, origin, nr2 = _holder(indptr, indices, starts, offsets, column_node, R, b, pos, rel)
+            b1, origin, nr2 = _holder(rowptr, rows, starts, offsets, column_node, R, b, pos, rel)
             h, g, panel = r - b, b1 - b, below[b:]  # the panel's square top by syrk, the rest by gemm
             _lapack.syrk(g, w, 1.0, panel, nr, 0.0, update, h)
             if h > g:
@@ -565,21 +692,21 @@ def _factor(indptr, indices, starts, offsets, column_node, blocks):  # pragma: n
 
 
 @numba.njit(nogil=True, cache=True)
-def _solve(indptr, indices, starts, offsets, blocks, y):  # pragma: no cover - compiled
+def _solve(rowptr, rows, starts, offsets, blocks, y):  # pragma: no cover - compiled
     """``y <- (L L^T)^-1 y`` in place for ``y`` (n, k) C-ordered (so each supernode's rows
     are a column-major (k, w) block): forward by supernodes, then back."""
     k = y.shape[1]
     flat = y.ravel()
-    z = np.empty(_extent(indptr, starts)[1] * k)
+    z = np.empty(_extent(rowptr, starts)[1] * k)
     for backward in range(2):
         for step in range(len(starts) - 1):
             s = len(starts) - 2 - step if backward else step
             f, w = starts[s], starts[s + 1] - starts[s]
-            nr = indptr[f + 1] - indptr[f]
+            nr = rowptr[s + 1] - rowptr[s]
             r = nr - w
             blk = blocks[offsets[s] : offsets[s + 1]]
             yJ = flat[f * k : (f + w) * k]
-            R = indices[indptr[f] + w : indptr[f + 1]]
+            R = rows[rowptr[s] + w : rowptr[s + 1]]
             if backward:  # x_J^T = (y_J^T - x_R^T L_RJ) L_JJ^-1
                 if r > 0:
                     for a in range(r):
@@ -595,7 +722,7 @@ def _solve(indptr, indices, starts, offsets, blocks, y):  # pragma: no cover - c
 
 
 @numba.njit(nogil=True, cache=True)
-def _selected_inverse(indptr, indices, starts, offsets, column_node, blocks):  # pragma: no cover
+def _selected_inverse(rowptr, rows, starts, offsets, column_node, blocks):  # pragma: no cover
     """``(L L^T)^-1`` on the factor's pattern, in place of L in ``blocks`` (lower triangles).
 
     Takahashi, by supernodes from the last: for columns J with rows R below them,
@@ -603,13 +730,13 @@ def _selected_inverse(indptr, indices, starts, offsets, column_node, blocks):  #
     ``S_RR`` is gathered from later supernodes (R is a clique of the filled graph, so each
     of its entries is stored there). Returns LAPACK's info of the first failure, or 0.
     """
-    pos = np.empty(len(indptr) - 1, np.int64)
-    widest, tallest = _extent(indptr, starts)
+    pos = np.empty(len(column_node), np.int64)
+    widest, tallest = _extent(rowptr, starts)
     srr, rel = np.empty(tallest * tallest), np.empty(tallest, np.int64)
     Y = np.empty(tallest * widest)
     for s in range(len(starts) - 2, -1, -1):
         f, w = starts[s], starts[s + 1] - starts[s]
-        nr = indptr[f + 1] - indptr[f]
+        nr = rowptr[s + 1] - rowptr[s]
         r = nr - w
         blk = blocks[offsets[s] : offsets[s + 1]]
         if r > 0:
@@ -621,10 +748,10 @@ def _selected_inverse(indptr, indices, starts, offsets, column_node, blocks):  #
             return info
         if r == 0:
             continue
-        R = indices[indptr[f] + w : indptr[f + 1]]
+        R = rows[rowptr[s] + w : rowptr[s + 1]]
         b = 0
         while b < r:  # S_RR's lower triangle, column-major (r, r), from R's supernodes
-            b1, origin, nr2 = _holder(indptr, indices, starts, offsets, column_node, R, b, pos, rel)
+            b1, origin, nr2 = _holder(rowptr, rows, starts, offsets, column_node, R, b, pos, rel)
             for bb in range(b, b1):
                 column = blocks[origin + R[bb] * nr2 :]
                 for a in range(bb, r):

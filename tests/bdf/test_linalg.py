@@ -38,6 +38,31 @@ def test_selected_inverse_equals_the_dense_inverse_on_the_stencil(shape, cutoff,
     assert np.array_equal(np.sort(stencil.order), np.arange(stencil.size))
 
 
+@pytest.mark.parametrize(("shape", "idle"), [((9, 8, 5), 0.0), ((12, 10, 4), 0.5)])
+def test_symbolic_rows_are_the_dense_factors_nonzeros(shape, idle):
+    """Each supernode's rows are exactly the rows of its columns' nonzeros in the dense
+    Cholesky factor of a random matrix on the pattern, in the layout's column order (a
+    postorder of the elimination tree; half the hinges idle leave a forest): relaxed
+    supernodes pad their columns with the rows they share, with no others."""
+    stencil = linalg.stencil(shape, (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 1e-3)
+    rng = np.random.default_rng(11)
+    active = rng.uniform(size=stencil.size) >= idle
+    support = linalg.Support(stencil, active, stencil.order)
+    A = support._template.toarray()
+    A = np.tril(A * rng.uniform(0.5, 1.0, A.shape))
+    A = A + A.T + len(A) * np.eye(len(A))
+    layout = linalg._analyse(support._template)
+    P = layout.columns
+    L = np.linalg.cholesky(A[np.ix_(P, P)])
+    assert len(layout.starts) > 5
+    for s in range(len(layout.starts) - 1):
+        f, e = layout.starts[s], layout.starts[s + 1]
+        nonzero = np.flatnonzero(np.any(L[:, f:e] != 0.0, axis=1))
+        expected = np.union1d(np.arange(f, e), nonzero[nonzero >= f])
+        np.testing.assert_array_equal(layout.rows[layout.rowptr[s] : layout.rowptr[s + 1]], expected)
+    assert np.array_equal(np.sort(P), np.arange(len(A)))
+
+
 def assert_dense_algebra(stencil, band, factor, rng):
     """The factor of ``band + 0.5 I``: log-determinant, a solve and the inverse on the
     stencil equal dense algebra's."""
@@ -85,9 +110,9 @@ def test_band_product_and_midpoint_maps_equal_dense_algebra():
 
 
 def test_a_band_that_is_not_positive_definite_raises_on_every_factorisation():
-    """The support's first factorisation (CHOLMOD's, which finds the layout) and the later
-    ones (compiled) both raise NotPositiveDefinite, which the evidence search takes as
-    "more regularisation"; the support stays usable."""
+    """The support's first factorisation (after its analysis) and the later ones raise
+    NotPositiveDefinite, which the evidence search takes as "more regularisation"; the
+    support stays usable."""
     stencil = linalg.stencil((6, 5, 4), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 1e-3)
     rng = np.random.default_rng(7)
     band = rng.uniform(-1.0, 1.0, (len(stencil.offsets), stencil.size))
