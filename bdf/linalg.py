@@ -148,18 +148,17 @@ class Support:
         self.order = order[self.active[order]]  # active hinges, in the dissection's order
         rank = np.full(stencil.size, -1, np.int64)
         rank[self.order] = np.arange(len(self.order))
-        indptr, rows, source = _lower_pattern(np.array(stencil.shape), stencil.offsets, rank)
-        n = len(self.order)
-        self._template = sp.csc_matrix((np.ones(len(rows)), rows, indptr), shape=(n, n))
-        self._source = source
+        self._indptr, self._rows, self._source = _lower_pattern(
+            np.array(stencil.shape), stencil.offsets, rank
+        )
         self._lock = threading.Lock()
         self.layout = None
 
     def matrix(self, band: np.ndarray) -> sp.csc_matrix:
         """The lower triangle of ``band``'s matrix on the active hinges, in :attr:`order`."""
-        out = self._template.copy()
-        out.data = np.asarray(band).ravel()[self._source]
-        return out
+        n = len(self.order)
+        values = np.asarray(band).ravel()[self._source]
+        return sp.csc_matrix((values, self._rows, self._indptr), shape=(n, n))
 
     def factor_of(self, band: np.ndarray, shift: float) -> Factor:
         """The factor of ``band``'s matrix on the active hinges ``+ shift I`` (with ``shift``
@@ -168,12 +167,10 @@ class Support:
             return Factor(self, None, shift)
         with self._lock:
             if self.layout is None:
-                self.layout = _analyse(self._template)
+                self.layout = _analyse(self._indptr, self._rows)
         lay = self.layout
-        blocks = np.zeros(lay.offsets[-1])
-        blocks[lay.position] = np.asarray(band).ravel()[self._source]
-        blocks[lay.diagonal] += shift
-        failed = _factor(lay.rowptr, lay.rows, lay.starts, lay.offsets, lay.column_node, blocks)
+        blocks = np.zeros(lay.offsets[-1])  # fresh pages come zeroed
+        failed = _factor_of(lay, np.ascontiguousarray(band, float).ravel(), self._source, shift, blocks)
         if failed:
             raise NotPositiveDefinite(f"the factorisation broke down at supernode {failed - 1}")
         return Factor(self, blocks, shift)
@@ -202,24 +199,17 @@ class _Layout(NamedTuple):
         return heights - (np.arange(len(self.column_node)) - self.starts[self.column_node])
 
 
-def _analyse(template: sp.csc_matrix) -> _Layout:
-    """The layout of the factors of ``template``'s pattern (:func:`_symbolic`), and where
-    each entry of the pattern goes in the blocks."""
-    columns, starts, rowptr, rows = _symbolic(
-        template.indptr.astype(np.int64), template.indices.astype(np.int64)
-    )
+def _analyse(indptr: np.ndarray, rows: np.ndarray) -> _Layout:
+    """The layout of the factors of a lower pattern (CSC, sorted, diagonal included;
+    :func:`_symbolic`), and where each entry of the pattern goes in the blocks."""
+    columns, starts, rowptr, srows = _symbolic(indptr, rows)
     widths, heights = np.diff(starts), np.diff(rowptr)
     offsets = np.concatenate([[0], np.cumsum(heights * widths)])
     column_node = np.repeat(np.arange(len(widths)), widths)
     within = np.arange(len(column_node)) - starts[column_node]
     diagonal = offsets[column_node] + within * (heights[column_node] + 1)
-    column = np.empty(len(columns), np.int64)  # the template's column -> the factor's
-    column[columns] = np.arange(len(columns))
-    a = column[template.indices]
-    b = column[np.repeat(np.arange(template.shape[1]), np.diff(template.indptr))]
-    row, col = np.maximum(a, b), np.minimum(a, b)
-    position = _block_positions(rowptr, rows, starts, offsets, column_node, row, col)
-    return _Layout(starts, rowptr, rows, offsets, column_node, diagonal, columns, position)
+    position = _block_positions(indptr, rows, columns, starts, rowptr, srows, offsets)
+    return _Layout(starts, rowptr, srows, offsets, column_node, diagonal, columns, position)
 
 
 class Factor:
@@ -277,12 +267,9 @@ class Factor:
         band = np.zeros(len(st.offsets) * st.size)
         band[: st.size] = 1.0 / self.shift
         if self._blocks is not None:
-            lay = self.support.layout
-            blocks = self._blocks.copy()
-            info = _selected_inverse(lay.rowptr, lay.rows, lay.starts, lay.offsets, lay.column_node, blocks)
+            info = _inverse_band(self.support.layout, self._blocks, self.support._source, band)
             if info != 0:
                 raise NotPositiveDefinite(f"selected inversion failed (LAPACK info {info})")
-            band[self.support._source] = blocks[lay.position]
         return band.reshape(len(st.offsets), st.size)
 
 
@@ -387,25 +374,25 @@ def dissection(shape, reach) -> np.ndarray:
     return np.concatenate(parts)
 
 
-@numba.njit(cache=True)
+@numba.njit(nogil=True, cache=True)
 def _lower_pattern(shape, offsets, rank):  # pragma: no cover - compiled
-    """CSC ``indptr``, ``rows`` of the stencil's lower triangle with hinge ``m`` at row and
-    column ``rank[m]`` (hinges ranked -1 left out), and per entry its band index: the pair
-    (m, m + o_k) on the lattice is valued ``band[k, m]``."""
+    """CSC ``indptr``, ``rows`` (sorted) of the stencil's lower triangle with hinge ``m`` at
+    row and column ``rank[m]`` (hinges ranked -1 left out), and per entry its band index:
+    the pair (m, m + o_k) on the lattice is valued ``band[k, m]``. Gathered by rows, then
+    turned into columns, which takes the rows in order."""
     M = shape[0] * shape[1] * shape[2]
     n = 0
     for m in range(M):
         n += rank[m] >= 0
     K = len(offsets)
     flat = (offsets[:, 0] * shape[1] + offsets[:, 1]) * shape[2] + offsets[:, 2]
-    counts = np.zeros(n + 1, np.int64)
-    for step in range(2):  # count the entries per column, then place them
+    rowptr = np.zeros(n + 1, np.int64)
+    for step in range(2):  # count the entries per row, then place them
         if step == 1:
-            indptr = np.zeros(n + 1, np.int64)
-            indptr[1:] = np.cumsum(counts[:n])
-            fill = indptr[:n].copy()
-            rows = np.empty(indptr[n], np.int64)
-            source = np.empty(indptr[n], np.int64)
+            rowptr = np.cumsum(rowptr)
+            fill = rowptr[:n].copy()
+            cols = np.empty(rowptr[n], np.int64)
+            band_index = np.empty(rowptr[n], np.int64)
         for i in range(shape[0]):
             for j in range(shape[1]):
                 for l in range(shape[2]):
@@ -420,37 +407,49 @@ def _lower_pattern(shape, offsets, rank):  # pragma: no cover - compiled
                                 continue
                             row, col = max(p, q), min(p, q)
                             if step == 0:
-                                counts[col] += 1
+                                rowptr[row + 1] += 1
                             else:
-                                rows[fill[col]] = row
-                                source[fill[col]] = k * M + m
-                                fill[col] += 1
-    for col in range(n):  # sorted rows in every column
-        lo, hi = indptr[col], indptr[col + 1]
-        by_row = np.argsort(rows[lo:hi])
-        rows[lo:hi] = rows[lo:hi][by_row]
-        source[lo:hi] = source[lo:hi][by_row]
+                                cols[fill[row]] = col
+                                band_index[fill[row]] = k * M + m
+                                fill[row] += 1
+    indptr = np.zeros(n + 1, np.int64)
+    for e in range(len(cols)):
+        indptr[cols[e] + 1] += 1
+    indptr = np.cumsum(indptr)
+    fill = indptr[:n].copy()
+    rows, source = np.empty(len(cols), np.int32), np.empty(len(cols), np.int64)
+    for row in range(n):
+        for e in range(rowptr[row], rowptr[row + 1]):
+            col = cols[e]
+            rows[fill[col]] = row
+            source[fill[col]] = band_index[e]
+            fill[col] += 1
     return indptr, rows, source
 
 
 @numba.njit(nogil=True, cache=True)
-def _block_positions(rowptr, rows, starts, offsets, column_node, row, col):  # pragma: no cover
-    """Index into the blocks of every (row, col) entry of L's lower triangle (a binary
-    search in the rows of the column's supernode; must be there)."""
-    out = np.empty(len(row), np.int64)
-    for t in range(len(row)):
-        s = column_node[col[t]]
-        first, end = rowptr[s], rowptr[s + 1]
-        lo, hi = first, end
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if rows[mid] < row[t]:
-                lo = mid + 1
-            else:
-                hi = mid
-        if lo == end or rows[lo] != row[t]:
-            raise ValueError("an entry of the stencil is missing from the factor's pattern")
-        out[t] = offsets[s] + (col[t] - starts[s]) * (end - first) + (lo - first)
+def _block_positions(indptr, rows, columns, starts, rowptr, srows, offsets):  # pragma: no cover
+    """Index into the blocks of every entry of a lower pattern (CSC; its column ``j`` is
+    the factor's column ``c`` where ``columns[c] == j``): by supernodes, each one's rows'
+    places in its block looked up in one array."""
+    n = len(columns)
+    new = np.empty(n, np.int64)
+    new[columns] = np.arange(n)
+    place = np.full(n, -1, np.int64)
+    out = np.empty(indptr[n], np.int64)
+    for s in range(len(starts) - 1):
+        first, height = rowptr[s], rowptr[s + 1] - rowptr[s]
+        for t in range(height):
+            place[srows[first + t]] = t
+        for c in range(starts[s], starts[s + 1]):
+            j = columns[c]
+            for p in range(indptr[j], indptr[j + 1]):
+                r = new[rows[p]]
+                if r < c or place[r] < 0:
+                    raise ValueError("an entry of the pattern is missing from the factor's")
+                out[p] = offsets[s] + (c - starts[s]) * height + place[r]
+        for t in range(height):
+            place[srows[first + t]] = -1
     return out
 
 
@@ -647,6 +646,28 @@ def _holder(rowptr, rows, starts, offsets, column_node, R, b, pos, rel):  # prag
     while b1 < len(R) and R[b1] < starts[s2 + 1]:
         b1 += 1
     return b1, offsets[s2] - starts[s2] * height, height
+
+
+@numba.njit(nogil=True, cache=True)
+def _factor_of(layout, band, source, shift, blocks):  # pragma: no cover - compiled
+    """:func:`_factor` of the band's matrix (``band`` flat) ``+ shift I``, placed in
+    ``blocks`` (zeros) first: the whole factorisation without the GIL."""
+    for t in range(len(source)):
+        blocks[layout.position[t]] = band[source[t]]
+    for d in layout.diagonal:
+        blocks[d] += shift
+    return _factor(layout.rowptr, layout.rows, layout.starts, layout.offsets, layout.column_node, blocks)
+
+
+@numba.njit(nogil=True, cache=True)
+def _inverse_band(layout, factor, source, band):  # pragma: no cover - compiled
+    """:func:`_selected_inverse` of a copy of ``factor``'s blocks, put in ``band`` (flat)
+    at the stencil's pairs; LAPACK's info."""
+    blocks = factor.copy()
+    info = _selected_inverse(layout.rowptr, layout.rows, layout.starts, layout.offsets, layout.column_node, blocks)
+    for t in range(len(source)):
+        band[source[t]] = blocks[layout.position[t]]
+    return info
 
 
 @numba.njit(nogil=True, cache=True)

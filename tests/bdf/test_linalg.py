@@ -48,10 +48,9 @@ def test_symbolic_rows_are_the_dense_factors_nonzeros(shape, idle):
     rng = np.random.default_rng(11)
     active = rng.uniform(size=stencil.size) >= idle
     support = linalg.Support(stencil, active, stencil.order)
-    A = support._template.toarray()
-    A = np.tril(A * rng.uniform(0.5, 1.0, A.shape))
-    A = A + A.T + len(A) * np.eye(len(A))
-    layout = linalg._analyse(support._template)
+    A = support.matrix(rng.uniform(0.5, 1.0, (len(stencil.offsets), stencil.size))).toarray()
+    A = A + np.tril(A, -1).T + len(A) * np.eye(len(A))
+    layout = linalg._analyse(support._indptr, support._rows)
     P = layout.columns
     L = np.linalg.cholesky(A[np.ix_(P, P)])
     assert len(layout.starts) > 5
