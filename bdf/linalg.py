@@ -13,14 +13,14 @@ pattern (:func:`_symbolic`: the elimination tree, its postorder and CHOLMOD's re
 supernodes) gives the layout of the supernodes' dense blocks, and the factorisation
 (:func:`_factor`), the solves and the selected inversion are each one compiled call on
 those blocks with LAPACK and BLAS (:mod:`bdf._lapack`) that releases the GIL, so that the
-classes of a directional map are analysed and factored side by side. The factor gives the log-determinant (evidence) and the solves
-(posterior mean). Only the hinges the data touch are factored (:class:`Support`): a hinge
-whose Gram diagonal is zero has a zero row (``G`` is positive semi-definite), so
-``G + shift I`` is ``shift`` there, apart from the rest. Sparse traffic on a large lattice,
-and each heading sector of a directional map, touch a fraction of the hinges: the
-factor's work falls roughly with its cube. Where a class touches most of the hinges its
-total touches, it is factored on the total's support instead (:data:`COVER`): one
-analysis serves them all.
+classes of a directional map are analysed and factored side by side. The factor gives
+the log-determinant (evidence) and the solves (posterior mean). Only the hinges the data
+touch are factored (:class:`Support`): a hinge whose Gram diagonal is zero has a zero row
+(``G`` is positive semi-definite), so ``G + shift I`` is ``shift`` there, apart from the
+rest. Sparse traffic on a large lattice, and each heading sector of a directional map,
+touch a fraction of the hinges: the factor's work falls roughly with its cube. Where a
+class touches most of the hinges its total touches, it is factored on the total's support
+instead (:data:`COVER`): one analysis serves them all.
 The variance density needs the posterior covariance only on the stencil's pairs, which
 lie in the factor's pattern: :func:`_selected_inverse` computes the inverse on that pattern
 by the Takahashi recursions, supernode by supernode.
@@ -664,7 +664,9 @@ def _inverse_band(layout, factor, source, band):  # pragma: no cover - compiled
     """:func:`_selected_inverse` of a copy of ``factor``'s blocks, put in ``band`` (flat)
     at the stencil's pairs; LAPACK's info."""
     blocks = factor.copy()
-    info = _selected_inverse(layout.rowptr, layout.rows, layout.starts, layout.offsets, layout.column_node, blocks)
+    info = _selected_inverse(
+        layout.rowptr, layout.rows, layout.starts, layout.offsets, layout.column_node, blocks
+    )
     for t in range(len(source)):
         band[source[t]] = blocks[layout.position[t]]
     return info
@@ -683,7 +685,7 @@ def _factor(rowptr, rows, starts, offsets, column_node, blocks):  # pragma: no c
     widest, tallest = _extent(rowptr, starts)
     update, rel = np.empty(tallest * widest), np.empty(tallest, np.int64)
     for s in range(len(starts) - 1):
-        f, w = starts[s], starts[s + 1] - starts[s]
+        w = starts[s + 1] - starts[s]
         nr = rowptr[s + 1] - rowptr[s]
         r = nr - w
         blk = blocks[offsets[s] : offsets[s + 1]]
@@ -756,7 +758,7 @@ def _selected_inverse(rowptr, rows, starts, offsets, column_node, blocks):  # pr
     srr, rel = np.empty(tallest * tallest), np.empty(tallest, np.int64)
     Y = np.empty(tallest * widest)
     for s in range(len(starts) - 2, -1, -1):
-        f, w = starts[s], starts[s + 1] - starts[s]
+        w = starts[s + 1] - starts[s]
         nr = rowptr[s + 1] - rowptr[s]
         r = nr - w
         blk = blocks[offsets[s] : offsets[s + 1]]
