@@ -145,6 +145,10 @@ class Support:
 
     def __init__(self, stencil: Stencil, active: np.ndarray, order: np.ndarray):
         self.stencil, self.active = stencil, np.asarray(active, bool)
+        if len(stencil.offsets) * stencil.size >= 2**31:  # the entries' indices are 32-bit
+            raise ValueError(
+                f"a lattice of {stencil.size} hinges is too large for a stencil of {len(stencil.offsets)}"
+            )
         self.order = order[self.active[order]]  # active hinges, in the dissection's order
         rank = np.full(stencil.size, -1, np.int64)
         rank[self.order] = np.arange(len(self.order))
@@ -208,6 +212,8 @@ def _analyse(indptr: np.ndarray, rows: np.ndarray) -> _Layout:
     column_node = np.repeat(np.arange(len(widths)), widths)
     within = np.arange(len(column_node)) - starts[column_node]
     diagonal = offsets[column_node] + within * (heights[column_node] + 1)
+    if offsets[-1] >= 2**31:  # the entries' places are 32-bit
+        raise ValueError(f"the factor needs {offsets[-1] * 8 / 2**30:.0f} GiB: a coarser lattice or cutoff")
     position = _block_positions(indptr, rows, columns, starts, rowptr, srows, offsets)
     return _Layout(starts, rowptr, srows, offsets, column_node, diagonal, columns, position)
 
@@ -267,7 +273,8 @@ class Factor:
         band = np.zeros(len(st.offsets) * st.size)
         band[: st.size] = 1.0 / self.shift
         if self._blocks is not None:
-            info = _inverse_band(self.support.layout, self._blocks, self.support._source, band)
+            blocks = self._blocks.copy()  # numpy's: huge pages for the kernels' gathers
+            info = _inverse_band(self.support.layout, blocks, self.support._source, band)
             if info != 0:
                 raise NotPositiveDefinite(f"selected inversion failed (LAPACK info {info})")
         return band.reshape(len(st.offsets), st.size)
@@ -417,7 +424,7 @@ def _lower_pattern(shape, offsets, rank):  # pragma: no cover - compiled
         indptr[cols[e] + 1] += 1
     indptr = np.cumsum(indptr)
     fill = indptr[:n].copy()
-    rows, source = np.empty(len(cols), np.int32), np.empty(len(cols), np.int64)
+    rows, source = np.empty(len(cols), np.int32), np.empty(len(cols), np.int32)
     for row in range(n):
         for e in range(rowptr[row], rowptr[row + 1]):
             col = cols[e]
@@ -436,7 +443,7 @@ def _block_positions(indptr, rows, columns, starts, rowptr, srows, offsets):  # 
     new = np.empty(n, np.int64)
     new[columns] = np.arange(n)
     place = np.full(n, -1, np.int64)
-    out = np.empty(indptr[n], np.int64)
+    out = np.empty(indptr[n], np.int32)
     for s in range(len(starts) - 1):
         first, height = rowptr[s], rowptr[s + 1] - rowptr[s]
         for t in range(height):
@@ -660,10 +667,9 @@ def _factor_of(layout, band, source, shift, blocks):  # pragma: no cover - compi
 
 
 @numba.njit(nogil=True, cache=True)
-def _inverse_band(layout, factor, source, band):  # pragma: no cover - compiled
-    """:func:`_selected_inverse` of a copy of ``factor``'s blocks, put in ``band`` (flat)
-    at the stencil's pairs; LAPACK's info."""
-    blocks = factor.copy()
+def _inverse_band(layout, blocks, source, band):  # pragma: no cover - compiled
+    """:func:`_selected_inverse` in place of a factor's ``blocks``, put in ``band`` (flat) at
+    the stencil's pairs; LAPACK's info."""
     info = _selected_inverse(
         layout.rowptr, layout.rows, layout.starts, layout.offsets, layout.column_node, blocks
     )
