@@ -3,18 +3,24 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+BENCH_STAMP := $(VENV)/.installed-bench
 
 .PHONY: install sparse browser wrk test lint audit demo bench clean
 
 $(PY):
 	python3 -m venv $(VENV)
 
-$(STAMP): pyproject.toml | $(PY) sparse
+$(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,bench]'
+	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# the benchmarks' peers (scikit-learn, CHOLMOD)
+$(BENCH_STAMP): $(STAMP) | sparse
+	$(PY) -m pip install -q -e '.[dev,bench]'
+	touch $(BENCH_STAMP)
 
 # scikit-sparse (CHOLMOD, the benchmarks' peer of bdf.linalg) builds against Debian's
 # SuiteSparse 5; installed here when we may (root with apt-get), else a clear stop
@@ -51,7 +57,7 @@ test: lint browser
 demo: install
 	$(VENV)/bin/bdf demo --out demo-output
 
-bench: install wrk
+bench: $(BENCH_STAMP) wrk
 	$(PY) bench/bench_core.py
 	$(PY) bench/bench_tiles.py
 	$(PY) bench/bench_lattice.py

@@ -101,9 +101,10 @@ class RegionMaps:
     field, posteriors refreshed in the background."""
 
     def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False):
-        """``isolate``: compute posteriors in a child process (the service does). CHOLMOD
-        holds the GIL while it factors, seconds on a city's lattice, and in this process
-        that would stall every request its other threads serve."""
+        """``isolate``: compute posteriors in a child process (the service does). A
+        posterior takes seconds of CPU on a city's lattice, part of it under the GIL (the
+        steps between the compiled kernels), and in this process that would stall every
+        request its other threads serve."""
         self.store = store
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
         self.cache = PosteriorCache(cache_mb)

@@ -2,11 +2,11 @@ import threading
 
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from bdf import _blas, linalg  # noqa: F401  (linalg loads CHOLMOD and the system BLAS)
+from bdf import _blas
 
 
-def blas_threads(prefix="libscipy_openblas") -> set[int]:
-    return {lib["num_threads"] for lib in threadpool_info() if lib["prefix"] == prefix}
+def blas_threads() -> set[int]:
+    return {lib["num_threads"] for lib in threadpool_info() if lib["prefix"] == "libscipy_openblas"}
 
 
 def test_small_work_runs_on_one_blas_thread_and_the_count_comes_back():
@@ -14,7 +14,6 @@ def test_small_work_runs_on_one_blas_thread_and_the_count_comes_back():
         assert blas_threads() == {2}
         with _blas.one_thread():
             assert blas_threads() == {1}
-            assert blas_threads("libopenblas") == {2}  # CHOLMOD's BLAS keeps its threads
         assert blas_threads() == {2}
 
 

@@ -243,9 +243,9 @@ def test_a_fit_that_cannot_be_solved_stores_nothing(store, spec):
 
 @pytest.mark.parametrize("directions", [1, 4])
 def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(store, spec, directions):
-    """The service computes posteriors in a child process (CHOLMOD holds the GIL while it
-    factors): what comes back, without its factors, answers as here (to rounding: BLAS may
-    sum in another order there); errors too."""
+    """The service computes posteriors in a child process (seconds of CPU on a city's
+    lattice, part of it under the GIL): what comes back, without its factors, answers as
+    here (to rounding: BLAS may sum in another order there); errors too."""
     name = f"town{directions}"
     store.create_region(RegionSpec.model_validate({**SPEC, "name": name, "directions": directions}))
     here, there = RegionMaps(store), RegionMaps(store, isolate=True)
