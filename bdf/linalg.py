@@ -574,24 +574,24 @@ def _symbolic(indptr, rows):  # pragma: no cover - compiled
         ):
             joins[s] = True
             width[s], height[s], zeros[s] = w, height[s + 1] + w0, total
-    starts = [0]
+    bounds = [0]
     s = 0
     while s < nf:  # a supernode: s and those it joined
         while joins[s]:
             s += 1
         s += 1
-        starts.append(first[s])
-    starts_ = np.array(starts)
+        bounds.append(first[s])
+    starts = np.array(bounds)
     # each supernode's rows: its columns, A's entries below them, its children's below them
-    ns = len(starts_) - 1
+    ns = len(starts) - 1
     node = np.empty(n, np.int64)
     for t in range(ns):
-        node[starts_[t] : starts_[t + 1]] = t
+        node[starts[t] : starts[t + 1]] = t
     kids, next_kid = np.full(ns, -1, np.int64), np.full(ns, -1, np.int64)
     mark[:] = -1
     heights, gathered, pieces = np.empty(ns, np.int64), np.empty(n, np.int64), []
     for t in range(ns):
-        f, e = starts_[t], starts_[t + 1]
+        f, e = starts[t], starts[t + 1]
         m = 0
         for c in range(f, e):
             mark[c] = t
@@ -620,10 +620,10 @@ def _symbolic(indptr, rows):  # pragma: no cover - compiled
             kids[q] = t
     rowptr = np.zeros(ns + 1, np.int64)
     rowptr[1:] = np.cumsum(heights)
-    rows_ = np.empty(rowptr[ns], np.int64)
+    supernode_rows = np.empty(rowptr[ns], np.int64)
     for t in range(ns):
-        rows_[rowptr[t] : rowptr[t + 1]] = pieces[t]
-    return columns, starts_, rowptr, rows_
+        supernode_rows[rowptr[t] : rowptr[t + 1]] = pieces[t]
+    return columns, starts, rowptr, supernode_rows
 
 
 @numba.njit(nogil=True, cache=True)
