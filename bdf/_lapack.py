@@ -33,21 +33,27 @@ L, R, N, T = ord("L"), ord("R"), ord("N"), ord("T")
 
 
 @numba.njit(nogil=True, cache=True)
-def potrf(a, n, lda):  # pragma: no cover - compiled
-    """Lower Cholesky factor of the (n, n) block of ``a`` in place; LAPACK's info."""
+def _positive_definite(inverse, a, n, lda):  # pragma: no cover - compiled
+    """``dpotri`` if ``inverse`` else ``dpotrf`` on the lower (n, n) block of ``a``; info."""
     ch = np.array([L], np.uint8)
     ints = np.array([n, lda, 0], np.int32)
-    _dpotrf(ch.ctypes, ints[0:].ctypes, a.ctypes, ints[1:].ctypes, ints[2:].ctypes)
+    if inverse:
+        _dpotri(ch.ctypes, ints[0:].ctypes, a.ctypes, ints[1:].ctypes, ints[2:].ctypes)
+    else:
+        _dpotrf(ch.ctypes, ints[0:].ctypes, a.ctypes, ints[1:].ctypes, ints[2:].ctypes)
     return ints[2]
+
+
+@numba.njit(nogil=True, cache=True)
+def potrf(a, n, lda):  # pragma: no cover - compiled
+    """Lower Cholesky factor of the (n, n) block of ``a`` in place; LAPACK's info."""
+    return _positive_definite(False, a, n, lda)
 
 
 @numba.njit(nogil=True, cache=True)
 def potri(a, n, lda):  # pragma: no cover - compiled
     """``(L L^T)^-1`` (lower triangle) from the lower factor in ``a``, in place; info."""
-    ch = np.array([L], np.uint8)
-    ints = np.array([n, lda, 0], np.int32)
-    _dpotri(ch.ctypes, ints[0:].ctypes, a.ctypes, ints[1:].ctypes, ints[2:].ctypes)
-    return ints[2]
+    return _positive_definite(True, a, n, lda)
 
 
 @numba.njit(nogil=True, cache=True)

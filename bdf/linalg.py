@@ -263,7 +263,7 @@ class Factor:
         the diagonal block (w^3 / 3) and ``Y`` (r w^2 / 2)."""
         layout = self.support.layout
         w = np.diff(layout.starts).astype(float)
-        r = np.diff(layout.offsets) / w - w  # a block holds its rows by its w columns
+        r = np.diff(layout.rowptr) - w
         return float(np.sum(r * r * w + w * w * r + w**3 / 3 + r * w * w / 2))
 
     def inverse_band(self) -> np.ndarray:
