@@ -45,6 +45,12 @@ CHUNK_POINTS = 2048
 SPLAT_CHUNK = 256
 
 
+def reach(k, cutoff: float) -> np.ndarray:
+    """How far a Gaussian ``exp(-k d^2)`` stays above ``cutoff`` (per axis, as ``k``)."""
+    with np.errstate(over="ignore", divide="ignore"):
+        return np.sqrt(np.log(1.0 / cutoff) / np.asarray(k, float))
+
+
 def expected_kernel(gamma: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-point coefficients of the expected kernel under Gaussian input noise.
 

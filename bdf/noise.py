@@ -30,7 +30,7 @@ import numpy as np
 
 from bdf import features
 from bdf._validate import as_vector3
-from bdf.grid import Lattice
+from bdf.grid import Lattice, axis_counts
 
 #: Largest noise lattice (7 float64 channels per point: 56 bytes each).
 MAX_NOISE_CELLS = 2_000_000
@@ -48,13 +48,13 @@ def noise_lattice(lower, upper, spacing) -> Lattice:
     """The lattice ``lower + i * spacing`` per axis covering ``[lower, upper]``."""
     lower, upper = as_vector3(lower, "lower"), as_vector3(upper, "upper")
     step = as_vector3(spacing, "noise_spacing", positive=True)
-    shape = tuple(int(n) for n in np.floor((upper - lower) / step + 1e-9).astype(int) + 1)
-    if np.prod(shape) > MAX_NOISE_CELLS:
+    counts = axis_counts(lower, upper, step)  # floats: a tiny step never overflows
+    if not np.prod(counts) <= MAX_NOISE_CELLS:
         raise ValueError(
-            f"the noise lattice would have {int(np.prod(shape))} points ({list(shape)} per axis), "
+            f"the noise lattice would have {np.prod(counts):.6g} points ({counts.tolist()} per axis), "
             f"more than {MAX_NOISE_CELLS}; increase noise_spacing"
         )
-    return Lattice(lower, step, shape)
+    return Lattice(lower, step, tuple(int(n) for n in counts))
 
 
 def moments(lattice: Lattice, X, V, weight) -> np.ndarray:

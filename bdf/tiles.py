@@ -60,6 +60,11 @@ TileKey = tuple[int, int, int]
 MAX_TILES = 100_000
 #: ``known``: a tile core with data lies where the kernel is at least this (its 1 % reach).
 KNOWN_KERNEL = 0.01
+#: A region's bounds lie within this distance of its origin (metres): ENU is a local frame.
+MAX_EXTENT_M = 1e6
+#: Most hinge offsets that couple in the precision (its stencil): with the hinge count, what
+#: bounds a posterior's memory.
+MAX_STENCIL = 5000
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -85,6 +90,32 @@ class Bounds(BaseModel):
         if any(hi <= lo for lo, hi in zip(self.min, self.max, strict=True)):
             raise ValueError(f"bounds_m.max {self.max} must exceed bounds_m.min {self.min} on every axis")
         return self
+
+
+class Envelope(BaseModel):
+    """What the region's traffic can physically do (defaults: aircraft). Rows outside are
+    rejected and counted by reason, like non-finite ones; the bounds also keep every
+    accepted row's contribution to the statistics finite and the precision well posed."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    max_horizontal_speed_mps: Positive = 400.0
+    max_vertical_speed_mps: Positive = 100.0
+    max_input_noise_std_m: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 1000.0
+    max_sample_weight: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] = 1000.0
+
+    def speed_ok(self, V: np.ndarray) -> np.ndarray:
+        """(n,): the velocity rows (finite) within the speed limits."""
+        horizontal = V[:, 0] ** 2 + V[:, 1] ** 2
+        vertical = np.abs(V[:, 2])
+        return (horizontal <= self.max_horizontal_speed_mps**2) & (vertical <= self.max_vertical_speed_mps)
+
+    def noise_ok(self, noise: np.ndarray) -> np.ndarray:
+        """(n,): input-noise rows (finite) within ``[0, max_input_noise_std_m]`` on every axis."""
+        return rows_all((noise >= 0) & (noise <= self.max_input_noise_std_m))
+
+    def weight_ok(self, weight: np.ndarray) -> np.ndarray:
+        """(n,): sample weights (finite) in ``(0, max_sample_weight]``."""
+        return (weight > 0) & (weight <= self.max_sample_weight)
 
 
 class Increment(NamedTuple):
@@ -117,12 +148,41 @@ class RegionSpec(BaseModel):
     #: Heading sectors (1: the paper's model; more: a mixture, :mod:`bdf.directions`).
     directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] = 1
     slow_mps: Positive = 5.0
+    envelope: Envelope = Envelope()
 
     @model_validator(mode="after")
     def _consistent(self):
+        """Refuse a spec that could not be served: every accepted one takes uploads and
+        answers queries, grids and slices (tests/bdf/test_tiles.py, a property test)."""
+        lower, upper, spacing = self.lower, self.upper, np.array(self.spacing_m)
+        extent = upper - lower
+        if np.abs(np.r_[lower, upper]).max() > MAX_EXTENT_M:
+            raise ValueError(f"bounds_m must lie within {MAX_EXTENT_M:g} m of the origin on every axis")
+        if np.any(spacing > extent):
+            raise ValueError(
+                f"spacing_m {self.spacing_m} must not exceed the box {extent.tolist()} on any axis"
+            )
+        if self.noise_spacing_m is not None and np.any(np.array(self.noise_spacing_m) > extent):
+            raise ValueError(
+                f"noise_spacing_m {self.noise_spacing_m} must not exceed the box {extent.tolist()} on any "
+                "axis"
+            )
+        reach = self.reach_m
+        if np.any(reach < spacing / 2) or np.any(reach > extent.max()):
+            raise ValueError(
+                f"the kernel's reach at the cutoff, sqrt(log(1/cutoff) / gamma) = {reach.tolist()} m, must "
+                f"be at least half the spacing {(spacing / 2).tolist()} and at most the box's longest side "
+                f"{extent.max():g} on every axis: change gamma"
+            )
         self.tile_counts  # noqa: B018  (raises if the region would have too many tiles)
         self.grid  # noqa: B018  (raises if the region would have too many hinges)
         self.noise_lattice  # noqa: B018  (or too many noise lattice points)
+        widths = np.minimum(2 * np.floor(reach / spacing) + 1, 2 * np.array(self.grid.shape) - 1)
+        if np.prod(widths) > MAX_STENCIL:
+            raise ValueError(
+                f"the kernel couples {np.prod(widths):.6g} hinge offsets ({widths.tolist()} per axis), more "
+                f"than {MAX_STENCIL}: raise gamma or the spacing"
+            )
         return self
 
     # -- geometry ---------------------------------------------------------------------------
@@ -133,6 +193,11 @@ class RegionSpec(BaseModel):
     @property
     def upper(self) -> np.ndarray:
         return np.array(self.bounds_m.max, float)
+
+    @property
+    def reach_m(self) -> np.ndarray:
+        """Per axis, how far the kernel reaches above the cutoff (metres)."""
+        return features.reach(np.array(self.gamma), self.cutoff)
 
     @property
     def auto(self) -> bool:
@@ -188,8 +253,7 @@ class RegionSpec(BaseModel):
 
     def tile_grid(self, key: TileKey) -> HingeGrid:
         """The tile's support: the region's hinges its core's points reach (at the cutoff)."""
-        reach = np.sqrt(np.log(1.0 / self.cutoff) / np.array(self.gamma))
-        sub = self._support(key, self.grid, reach)
+        sub = self._support(key, self.grid, self.reach_m)
         return HingeGrid(sub.origin, sub.origin + sub.step * (np.array(sub.shape) - 1) + 1e-9, sub.step)
 
     def tile_noise_lattice(self, key: TileKey) -> Lattice | None:
@@ -340,7 +404,7 @@ class RegionSpec(BaseModel):
         data_tiles = frozenset(data_tiles)
         if not len(X) or not data_tiles:
             return np.zeros(len(X), bool)
-        reach = np.sqrt(np.log(1.0 / KNOWN_KERNEL) / np.array(self.gamma))
+        reach = features.reach(np.array(self.gamma), KNOWN_KERNEL)
         return _boxes_hold_data(
             np.ascontiguousarray(X, dtype=float),
             self.lower,

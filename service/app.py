@@ -8,6 +8,7 @@ database runs in the thread pool, never on the event loop.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import pathlib
 from contextlib import asynccontextmanager
@@ -131,8 +132,24 @@ def _view(info: RegionInfo) -> dict:
     }
 
 
-def _etag(region_id: str, version: int) -> str:
-    return f'W/"{region_id}.{version}"'
+def _etag(request: Request, region_id: str, version: int, body: bytes = b"") -> str:
+    """Names everything an answer depends on: the map state (region instance and version)
+    and the request (path, query, Accept, Content-Type and the body's digest)."""
+    h = hashlib.sha256()
+    for part in (
+        request.url.path,
+        repr(sorted(request.query_params.multi_items())),
+        request.headers.get("accept", ""),
+        request.headers.get("content-type", ""),
+    ):
+        h.update(part.encode() + b"\0")
+    h.update(body)
+    return f'W/"{region_id}.{version}.{h.hexdigest()[:20]}"'
+
+
+def _answer_headers(request: Request, pred, body: bytes = b"") -> dict:
+    """An answer's ETag and the region version it was computed from."""
+    return {"ETag": _etag(request, pred.region_id, pred.version, body), "X-Region-Version": str(pred.version)}
 
 
 def _not_modified(request: Request, etag: str) -> bool:
@@ -143,10 +160,11 @@ def _not_modified(request: Request, etag: str) -> bool:
     return "*" in tags or etag.removeprefix("W/") in tags
 
 
-def _region_or_304(request: Request, name: str) -> tuple[RegionInfo, Response | None]:
-    """The region's info, and a 304 response if the client's ETag names its current state."""
+def _region_or_304(request: Request, name: str, body: bytes = b"") -> tuple[RegionInfo, Response | None]:
+    """The region's info, and a 304 response if the client's ETag names its current state
+    and this request."""
     info = request.app.state.maps.store.region(name)
-    etag = _etag(info.region_id, info.version)
+    etag = _etag(request, info.region_id, info.version, body)
     return info, Response(status_code=304, headers={"ETag": etag}) if _not_modified(request, etag) else None
 
 
@@ -193,7 +211,10 @@ def grid_axes(spec: RegionSpec, bbox: str | None, step: str, max_voxels: int):
                 f"bbox {box.tolist()} leaves region {spec.name!r}, whose bounds are "
                 f"{spec.bounds_m.min} .. {spec.bounds_m.max} (ENU metres)",
             )
-    return RegionSpec.box_axes(lo, hi, step_v, max_voxels)
+    try:
+        return RegionSpec.box_axes(lo, hi, step_v, max_voxels)
+    except ValueError as exc:  # the voxel limit
+        raise Problem(422, str(exc)) from None
 
 
 def _mesh(axes) -> np.ndarray:
@@ -204,10 +225,21 @@ def _mesh(axes) -> np.ndarray:
 router = APIRouter(prefix="/v1")
 
 
-@router.post("/regions", status_code=201, response_model=RegionView, **scoped("admin"))
-def create_region(spec: RegionSpec, request: Request):
-    """Create a region from its spec; 409 if the name exists."""
-    return _view(request.app.state.maps.store.create_region(spec))
+@router.post(
+    "/regions",
+    status_code=201,
+    response_model=RegionView,
+    **scoped("admin", **_body_doc(RegionSpec, binary=())),
+)
+async def create_region(request: Request):
+    """Create a region from its spec; 409 if the name exists. The body is read after the
+    token is checked (a parameter would have it parsed first, by anyone)."""
+    body = await request.body()
+    if formats.media_type(request.headers.get("content-type")) not in (JSON, ""):
+        raise Problem(415, f"send the region spec as {JSON}")
+    spec = RegionSpec.model_validate_json(formats.json_body(body, _limits(request.app, 0)))
+    info = await run_in_threadpool(request.app.state.maps.store.create_region, spec)
+    return JSONResponse(_view(info), status_code=201)
 
 
 @router.get("/regions", response_model=list[RegionView], **scoped("read"))
@@ -258,8 +290,13 @@ async def post_observations(name: RegionName, request: Request, idempotency_key:
 def _observations(app, name: str, body: bytes, content_type: str | None):
     """The region's spec and the body's observations, checked against it."""
     spec = app.state.maps.store.region(name).spec
+    limits = _limits(app, app.state.settings.max_points)
+    return spec, formats.read_observations(spec, body, formats.media_type(content_type), limits)
+
+
+def _limits(app, rows: int) -> formats.Limits:
     settings: Settings = app.state.settings
-    return spec, formats.read_observations(spec, body, formats.media_type(content_type), settings.max_points)
+    return formats.Limits(rows, int(settings.max_decoded_mb * 2**20), int(settings.max_json_mb * 2**20))
 
 
 def _apply(app, name: str, upload_id: str, obs: formats.Observations, **kw) -> dict:
@@ -305,6 +342,33 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 
+@router.post(
+    "/regions/{name}/retractions",
+    response_model=UploadResult,
+    **scoped("admin", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
+)
+async def post_retraction(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
+    """Retract an acknowledged upload exactly (a sensor found broken): the Idempotency-Key
+    names the upload, the body holds the very rows it sent (checked against the ledger's
+    digest). The map becomes the map without them; once per upload, a retry replays."""
+    upload_id = _upload_id(idempotency_key)
+    body = await request.body()
+    app = request.app
+
+    def work():
+        _, obs = _observations(app, name, body, request.headers.get("content-type"))
+        return app.state.maps.retract(
+            name,
+            upload_id,
+            obs.X,
+            obs.V,
+            input_noise_std=obs.input_noise_std,
+            sample_weight=obs.sample_weight,
+        )
+
+    return await run_in_threadpool(work)
+
+
 @router.post("/regions/{name}/hyperparameters", response_model=RegionView, **scoped("write"))
 def post_hyperparameters(name: RegionName, request: Request):
     """Refit the region's "auto" alpha and beta at the evidence maximum of all its data and
@@ -337,18 +401,18 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
     app = request.app
 
     def work():
-        info, not_modified = _region_or_304(request, name)
+        info, not_modified = _region_or_304(request, name, body)
         if not_modified:
             return not_modified
         q = formats.read_query(
             info.spec,
             body,
             formats.media_type(request.headers.get("content-type")),
-            app.state.settings.max_query_points,
+            _limits(app, app.state.settings.max_query_points),
             modes,
         )
         pred = app.state.maps.predict(name, q.X, info, min_version, heading_deg=q.heading_deg, modes=q.modes)
-        headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+        headers = _answer_headers(request, pred, body)
         m = pred.modes
         if out == ARROW:
             columns = {
@@ -422,7 +486,7 @@ def grid(
     if axes is None:
         return pred
     shape = pred.known.shape
-    headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+    headers = _answer_headers(request, pred)
     if out == NPZ:
         extra = {}
         if pred.modes is not None:
@@ -480,7 +544,9 @@ def _json_size(voxels: int, settings: Settings) -> None:
 def tubes(
     name: RegionName,
     request: Request,
-    max_std_mps: Annotated[float, Query(gt=0, description="the tube bound on the predictive std, m/s")],
+    max_std_mps: Annotated[
+        float, Query(gt=0, allow_inf_nan=False, description="the tube bound on the predictive std, m/s")
+    ],
     step: Step,
     bbox: BBox = None,
     component: Annotated[Literal["all", "e", "n", "u"], Query(description="whose std is bounded")] = "all",
@@ -514,7 +580,7 @@ def tubes(
     inside = wide & (bounded < max_std_mps).all(axis=-1)
     idx = np.flatnonzero(inside)
     X, mean, std = _mesh(axes)[idx], mean_grid.reshape(-1, 3)[idx], std_grid.reshape(-1, 3)[idx]
-    headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+    headers = _answer_headers(request, pred)
     if out == NPZ:
         body = formats.npz_bytes(
             points=X,
@@ -561,12 +627,18 @@ def tubes(
 def slice_png(
     name: RegionName,
     request: Request,
-    alt_m: Annotated[float, Query(description="altitude of the slice, region ENU metres")],
+    alt_m: Annotated[
+        float, Query(allow_inf_nan=False, description="altitude of the slice, region ENU metres")
+    ],
     layer: Annotated[slices.Layer, Query(description="mean, std, or the tube's mean")] = "mean",
     component: Annotated[slices.Component, Query(description="velocity component shown")] = "e",
-    max_std_mps: Annotated[float, Query(gt=0, description="tube bound (layer=tube), m/s")] = 1.0,
+    max_std_mps: Annotated[
+        float, Query(gt=0, allow_inf_nan=False, description="tube bound (layer=tube), m/s")
+    ] = 1.0,
     bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax in region ENU metres")] = None,
-    step: Annotated[float | None, Query(gt=0, description="horizontal cell size, metres")] = None,
+    step: Annotated[
+        float | None, Query(gt=0, allow_inf_nan=False, description="horizontal cell size, metres")
+    ] = None,
     min_version: MinVersion = 0,
     min_share: Annotated[
         float, Query(ge=0, le=1, description="layer=modes: the least share drawn")
@@ -581,7 +653,10 @@ def slice_png(
     if not spec.lower[2] <= alt_m <= spec.upper[2]:
         raise Problem(422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m")
     box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
-    x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
+    try:
+        x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
+    except ValueError as exc:  # a bbox or step the slice cannot have
+        raise Problem(422, str(exc)) from None
     with_modes = layer in ("modes", "share")
     pred = request.app.state.maps.predict_grid(
         name, [x, y, np.array([alt_m])], info, min_version, modes=with_modes
@@ -607,7 +682,7 @@ def slice_png(
         title=f"{name} v{pred.version}",
         **per_class,
     )
-    headers = {"ETag": _etag(pred.region_id, pred.version), "X-Region-Version": str(pred.version)}
+    headers = _answer_headers(request, pred)
     return Response(png, media_type=PNG, headers=headers)
 
 

@@ -24,7 +24,8 @@ def require(scope: Scope):
             return
         header = request.headers.get("authorization", "")
         kind, _, token = header.partition(" ")
-        scopes = _scopes(settings, token.strip()) if kind.lower() == "bearer" else None
+        token = token.strip()
+        scopes = _scopes(settings, token) if kind.lower() == "bearer" and token else None
         if scopes is None:
             raise Problem(401, "a valid bearer token is required", {"WWW-Authenticate": "Bearer"})
         if scope not in scopes:

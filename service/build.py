@@ -43,7 +43,7 @@ from tqdm import tqdm
 from bdf import ingest
 from bdf.tiles import Increment, RegionSpec, TileKey
 from service import formats
-from service.maps import fitted, observations_evidence, posterior_evidence
+from service.maps import REJECTED, fitted, observations_evidence, posterior_evidence, require_accepted
 from service.problems import Problem
 from service.store import MapStore
 
@@ -237,7 +237,7 @@ def batch_evidence(spec: RegionSpec, batch: pa.RecordBatch | pa.Table) -> Part:
 def slice_evidence(spec_json: str, piece: Slice, batch_rows: int = BATCH_ROWS) -> Part:
     """The evidence of one slice (runs on a worker)."""
     spec = RegionSpec.model_validate_json(spec_json)
-    total = Part({}, {"accepted": 0, "rejected": {"non_finite": 0, "outside_region": 0}})
+    total = Part({}, {"accepted": 0, "rejected": dict.fromkeys(REJECTED, 0)})
     try:
         for batch in read_slice(piece, batch_rows):
             if batch.num_rows:
@@ -333,13 +333,13 @@ def build(
         ) from exc
     digest = hashlib.sha256(f"build:{replace}:{','.join(digests)}".encode()).hexdigest()
     evidence_s, start = time.perf_counter() - start, time.perf_counter()
-    info = store.region(region)
-    if info.region_id != spec_id:
-        raise ValueError(f"region {region!r} was deleted and re-created during the build: run it again")
+    require_accepted(total.summary, "build")
+    info = store.region(region)  # apply refuses it if the region was re-created meanwhile
     evidence = posterior_evidence(info, total.increments, replace)
     post = None if evidence is None else info.spec.posterior(evidence)
     result = store.apply(
         region,
+        spec_id,
         upload_id or f"build-{digest[:40]}",
         digest,
         total.increments,

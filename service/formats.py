@@ -11,6 +11,7 @@ their rows.
 from __future__ import annotations
 
 import io
+import struct
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -30,13 +31,28 @@ NPZ = "application/x-npz"
 GEOJSON = "application/geo+json"
 PARQUET_ALIASES = (PARQUET, "application/x-parquet")
 
-Value = float | None  # null -> NaN: the row is rejected and counted, not the request
+#: a JSON number, never a string, a bool, NaN or an infinity (1e400 parses as one)
+FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+Value = FiniteFloat | None  # null -> NaN: the row is rejected and counted, not the request
 Row3 = Annotated[list[Value], Field(min_length=3, max_length=3)]
 Frame = Literal["enu", "wgs84"]
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 ENU_COLUMNS = ("x", "y", "z")
 WGS84_COLUMNS = ("lat", "lon", "alt_m")
 VELOCITY_COLUMNS = ("ve", "vn", "vu")
+#: the columns a binary body may hold: an upload's, a query's (anything else is a 422)
+UPLOAD_COLUMNS = frozenset(
+    (*ENU_COLUMNS, *WGS84_COLUMNS, *VELOCITY_COLUMNS, "input_noise_std", "sample_weight")
+)
+QUERY_COLUMNS = frozenset((*ENU_COLUMNS, *WGS84_COLUMNS, "heading_deg"))
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What one request body may decode into, checked before it is decoded."""
+
+    rows: int
+    decoded_bytes: int
+    json_bytes: int
 
 
 class ObservationsBody(BaseModel):
@@ -122,23 +138,122 @@ def _to_region(spec: RegionSpec, frame: str, P: np.ndarray, V: np.ndarray | None
     return X, V
 
 
-def _table(body: bytes, media: str) -> pa.Table:
+def _table(body: bytes, media: str, allowed: frozenset, limits: Limits) -> pa.Table:
+    """The body's table: its schema, row count and decoded size checked before any column
+    is decoded (a few hundred kB of zstd can hold gigabytes)."""
     try:
-        if media == ARROW:
-            return pa.ipc.open_stream(body).read_all()
-        return pq.read_table(io.BytesIO(body))
-    except (pa.ArrowInvalid, OSError) as exc:
+        return (
+            _arrow_table(body, allowed, limits) if media == ARROW else _parquet_table(body, allowed, limits)
+        )
+    except (pa.ArrowInvalid, OSError, struct.error, StopIteration) as exc:
         kind = "an Arrow IPC stream" if media == ARROW else "a Parquet file"
-        raise Problem(400, f"the body is not {kind}: {exc}") from exc
+        raise Problem(400, f"the body is not {kind}: {exc or 'it is empty'}") from exc
+
+
+def _check_schema(schema: pa.Schema, allowed: frozenset) -> None:
+    """Documented columns only, each once, each a number (float or integer)."""
+    names = schema.names
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise Problem(422, f"the table has the column(s) {repeated} more than once")
+    unknown = sorted(set(names) - allowed)
+    if unknown:
+        raise Problem(422, f"unknown column(s) {unknown}; this body takes {sorted(allowed)}")
+    for field in schema:
+        if not (pa.types.is_floating(field.type) or pa.types.is_integer(field.type)):
+            raise Problem(
+                422, f"column {field.name!r} has type {field.type}; it must be a number (float or integer)"
+            )
+
+
+def _check_size(rows: int, decoded_bytes: int, limits: Limits) -> None:
+    if rows > limits.rows:
+        raise Problem(422, f"{rows} rows in one request; the limit is {limits.rows}: split it")
+    if decoded_bytes > limits.decoded_bytes:
+        raise Problem(
+            413,
+            f"the body decodes into {decoded_bytes / 2**20:.1f} MiB; the limit is "
+            f"{limits.decoded_bytes / 2**20:g} MiB: split it",
+        )
+
+
+def _arrow_table(body: bytes, allowed: frozenset, limits: Limits) -> pa.Table:
+    reader = pa.ipc.MessageReader.open_stream(pa.py_buffer(body))
+    schema = pa.ipc.read_schema(reader.read_next_message())
+    _check_schema(schema, allowed)
+    batches, rows, decoded = [], 0, 0
+    for message in reader:
+        if message.type != "record batch":
+            raise Problem(422, f"a stream of numeric columns holds record batches, not a {message.type}")
+        n, size = _batch_size(message)
+        rows, decoded = rows + n, decoded + size
+        _check_size(rows, decoded, limits)
+        batch = pa.ipc.read_record_batch(message, schema)
+        batch.validate(full=True)  # the buffers agree with the declared lengths
+        batches.append(batch)
+    return pa.Table.from_batches(batches, schema)
+
+
+def _batch_size(message) -> tuple[int, int]:
+    """Rows and decoded bytes of an Arrow record batch message, read from its flatbuffer
+    metadata (``Message.header: RecordBatch {length, nodes, buffers, compression}``) and, for
+    a compressed body, each buffer's uncompressed length (its first 8 bytes), before decoding."""
+    meta, body = message.metadata.to_pybytes(), message.body
+
+    def table(pos: int):
+        vtable = pos - struct.unpack_from("<i", meta, pos)[0]
+        size = struct.unpack_from("<H", meta, vtable)[0]
+
+        def field(i: int) -> int | None:
+            offset = struct.unpack_from("<H", meta, vtable + 4 + 2 * i)[0] if 4 + 2 * i < size else 0
+            return pos + offset if offset else None
+
+        return field
+
+    def target(pos: int) -> int:
+        return pos + struct.unpack_from("<I", meta, pos)[0]
+
+    header = table(struct.unpack_from("<I", meta, 0)[0])(2)
+    if header is None:
+        raise Problem(400, "the body is not an Arrow IPC stream: a record batch without its header")
+    batch = table(target(header))
+    rows = struct.unpack_from("<q", meta, batch(0))[0] if batch(0) else 0
+    compressed = batch(3) is not None
+    decoded = 0
+    if batch(2):
+        vector = target(batch(2))
+        for i in range(struct.unpack_from("<I", meta, vector)[0]):
+            offset, length = struct.unpack_from("<qq", meta, vector + 4 + 16 * i)
+            if length and compressed:
+                raw = struct.unpack_from("<q", body, offset)[0] if 0 <= offset <= body.size - 8 else None
+                if raw is None:
+                    raise Problem(400, "the body is not an Arrow IPC stream: a buffer lies outside its batch")
+                length = length - 8 if raw == -1 else raw
+            decoded += max(length, 0)
+    if rows < 0:
+        raise Problem(400, f"the body is not an Arrow IPC stream: a batch of {rows} rows")
+    return rows, decoded
+
+
+def _parquet_table(body: bytes, allowed: frozenset, limits: Limits) -> pa.Table:
+    file = pq.ParquetFile(pa.BufferReader(body))
+    schema = file.schema_arrow
+    _check_schema(schema, allowed)
+    rows = file.metadata.num_rows
+    _check_size(rows, rows * sum(f.type.bit_width + 1 for f in schema) // 8, limits)
+    return file.read()
 
 
 def _columns(table: pa.Table | pa.RecordBatch, names) -> np.ndarray:
+    """Numeric columns (:func:`_check_schema`, or a build's file columns) as float64, nulls NaN."""
     out = np.empty((table.num_rows, len(names)))
     for i, name in enumerate(names):
-        try:
-            out[:, i] = np.asarray(table.column(name).to_numpy(zero_copy_only=False), dtype=float)
-        except (pa.ArrowInvalid, TypeError, ValueError) as exc:
-            raise Problem(422, f"column {name!r} is not numeric: {exc}") from exc
+        column = table.column(name)
+        if not (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)):
+            raise Problem(
+                422, f"column {name!r} has type {column.type}; it must be a number (float or integer)"
+            )
+        out[:, i] = np.asarray(column.to_numpy(zero_copy_only=False), dtype=float)
     return out
 
 
@@ -154,29 +269,38 @@ def _table_positions(table: pa.Table | pa.RecordBatch) -> tuple[str, np.ndarray]
     return ("enu", _columns(table, ENU_COLUMNS)) if has_enu else ("wgs84", _columns(table, WGS84_COLUMNS))
 
 
-def read_observations(spec: RegionSpec, body: bytes, media: str, max_points: int) -> Observations:
+def json_body(body: bytes, limits: Limits) -> bytes:
+    """JSON parses into Python objects of about ten times its size: bounded by its length."""
+    if len(body) > limits.json_bytes:
+        raise Problem(
+            413,
+            f"a JSON body may hold {limits.json_bytes / 2**20:g} MiB; this one has {len(body) / 2**20:.1f}: "
+            f"send {ARROW} or {PARQUET}",
+        )
+    return body or b"{}"
+
+
+def read_observations(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> Observations:
     """Decode an upload or fit body (JSON, Arrow or Parquet) into region ENU arrays."""
     if media == JSON:
-        obs = ObservationsBody.model_validate_json(body or b"{}")
+        obs = ObservationsBody.model_validate_json(json_body(body, limits))
         if len(obs.points) != len(obs.velocities):
             raise Problem(422, f"{len(obs.points)} points but {len(obs.velocities)} velocities")
+        _check_size(len(obs.points), 0, limits)
         frame, P, V = obs.frame, _array(obs.points), _array(obs.velocities)
         noise, weight = obs.input_noise_std, obs.sample_weight
         if isinstance(noise, list):
             noise = _array(noise, 3 if noise and isinstance(noise[0], list) else 1)
-    elif media == ARROW or media in PARQUET_ALIASES:
-        table = _table(body, ARROW if media == ARROW else PARQUET)
-        _check_count(table.num_rows, max_points)
-        return table_observations(spec, table)
-    else:
-        raise Problem(415, f"send {JSON}, {ARROW} or {PARQUET}, not {media or 'no Content-Type'}")
-    _check_count(len(P), max_points)
-    return _observations(spec, frame, P, V, noise, weight)
-
-
-def _check_count(n: int, max_points: int) -> None:
-    if n > max_points:
-        raise Problem(422, f"{n} observations in one request; the limit is {max_points}: split it")
+            if len(noise) != len(P):
+                raise Problem(422, f"input_noise_std has {len(noise)} rows for {len(P)} points")
+        if weight is not None and len(weight) != len(P):
+            raise Problem(422, f"sample_weight has {len(weight)} values for {len(P)} points")
+        return _observations(spec, frame, P, V, noise, weight)
+    if media == ARROW or media in PARQUET_ALIASES:
+        return table_observations(
+            spec, _table(body, ARROW if media == ARROW else PARQUET, UPLOAD_COLUMNS, limits)
+        )
+    raise Problem(415, f"send {JSON}, {ARROW} or {PARQUET}, not {media or 'no Content-Type'}")
 
 
 def table_observations(spec: RegionSpec, table: pa.Table | pa.RecordBatch) -> Observations:
@@ -206,23 +330,36 @@ def _observations(spec: RegionSpec, frame: str, P, V, noise, weight) -> Observat
     )
 
 
-def read_query(spec: RegionSpec, body: bytes, media: str, max_points: int, modes: bool = False) -> PointQuery:
+def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes: bool = False) -> PointQuery:
     """Decode a query (JSON, or Arrow with an optional ``heading_deg`` column) into region
-    ENU points (n, 3), the headings asked and whether the modes are (``modes``: the
-    request's query parameter, or the JSON body's field)."""
+    ENU points (n, 3) inside the region, the headings asked and whether the modes are
+    (``modes``: the request's query parameter, or the JSON body's field)."""
     if media == JSON:
-        query = QueryBody.model_validate_json(body or b"{}")
+        query = QueryBody.model_validate_json(json_body(body, limits))
+        _check_size(len(query.points), 0, limits)
         frame, P, heading, modes = query.frame, _array(query.points), query.heading_deg, modes or query.modes
     elif media == ARROW:
-        table = _table(body, ARROW)
+        table = _table(body, ARROW, QUERY_COLUMNS, limits)
         frame, P = _table_positions(table)
         heading = _columns(table, ("heading_deg",))[:, 0] if "heading_deg" in table.column_names else None
     else:
         raise Problem(415, f"send {JSON} or {ARROW}, not {media or 'no Content-Type'}")
-    if len(P) > max_points:
-        raise Problem(422, f"{len(P)} points in one query; the limit is {max_points}")
-    X = _to_region(spec, frame, P, None)[0]  # the map rejects non-finite rows by number
-    return PointQuery(X, None if heading is None else np.asarray(heading, float), modes)
+    X = _to_region(spec, frame, P, None)[0]
+    outside = ~spec.inside(X)  # never true for a row that is not finite
+    if outside.any():
+        rows = np.flatnonzero(outside)
+        raise Problem(
+            422,
+            f"{rows.size} point(s) not finite or outside region {spec.name!r} ({spec.bounds_m.min} .. "
+            f"{spec.bounds_m.max} ENU metres): rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}",
+        )
+    if heading is not None:
+        heading = np.asarray(heading, float)
+        if heading.ndim == 0:
+            heading = np.full(len(X), float(heading))
+        if heading.shape != (len(X),) or not np.isfinite(heading).all():
+            raise Problem(422, f"heading_deg must be one finite number or {len(X)} (one per point)")
+    return PointQuery(X, heading, modes)
 
 
 def media_type(content_type: str | None) -> str:

@@ -31,6 +31,13 @@ from bdf.tiles import Increment, RegionSpec, TileKey
 from service.store import MapStore, RegionInfo, payload_digest
 
 log = logging.getLogger(__name__)
+#: why a row is not learned from: every upload's ``rejected`` counts each, in this order
+REJECTED = ("non_finite", "outside_region", "implausible_speed", "implausible_noise", "implausible_weight")
+
+
+class Unprocessable(ValueError):
+    """A well-formed request this region cannot apply (no row accepted, nothing to fit):
+    the client's to change (422); nothing was stored."""
 
 
 @dataclass(frozen=True)
@@ -169,7 +176,8 @@ class RegionMaps:
         ``ValueError`` and changes nothing. The region's first data fits "auto" likewise;
         later uploads keep the hyperparameters in force. Returns the ledger result:
         accepted, rejected (by reason), tiles_updated, region_version, replayed.
-        ``progress(fraction)`` follows the per-tile work.
+        ``progress(fraction)`` follows the per-tile work. With no row accepted it raises
+        :class:`Unprocessable` and stores nothing.
         """
         X, V, noise, weight = _checked(X, V, input_noise_std, sample_weight)
         digest = payload_digest("fit" if replace else "observations", X, V, noise, weight)
@@ -179,10 +187,12 @@ class RegionMaps:
         info = self.store.region(region)
         spec = info.spec
         increments, summary = _evidence(spec, X, V, noise, weight, progress)
+        require_accepted(summary, "fit" if replace else "upload")
         evidence = posterior_evidence(info, increments, replace)
         post = None if evidence is None else self._posterior(spec, evidence)
         result = self.store.apply(
             region,
+            info.region_id,
             upload_id,
             digest,
             increments,
@@ -199,18 +209,38 @@ class RegionMaps:
             self._schedule(region)
         return result
 
+    def retract(self, region: str, upload_id: str, X, V, *, input_noise_std=None, sample_weight=None) -> dict:
+        """Retract the applied upload ``upload_id``, given its rows again (as sent to
+        :meth:`upload`): the region's map becomes the map without it (the store's
+        ``retract``); once per upload id, a retry replays the result."""
+        X, V, noise, weight = _checked(X, V, input_noise_std, sample_weight)
+        info = self.store.region(region)
+        increments, summary = _evidence(info.spec, X, V, noise, weight, None)
+        result = self.store.retract(
+            region,
+            info.region_id,
+            upload_id,
+            payload_digest("observations", X, V, noise, weight),
+            increments,
+            observations=summary["accepted"],
+        )
+        self._schedule(region)
+        return result
+
     def fit_hyperparameters(self, region: str) -> RegionInfo:
         """Refit the region's "auto" hyperparameters at its evidence maximum and make them
-        the ones in force (a new version). ``ValueError`` if the spec fixes both or the
-        region has no data."""
+        the ones in force (a new version). :class:`Unprocessable` if the spec fixes both or
+        the region has no data."""
         snap = self.store.snapshot(region)
         spec = snap.region.spec
         if not spec.auto:
-            raise ValueError(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
+            raise Unprocessable(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
         if not snap.tiles:
-            raise ValueError(f"region {region!r} has no data to fit its hyperparameters on")
+            raise Unprocessable(f"region {region!r} has no data to fit its hyperparameters on")
         post = self._posterior(spec, spec.region_evidence(snap.evidence))
-        info = self.store.set_hyperparameters(region, fitted(post), snap.region.version)
+        info = self.store.set_hyperparameters(
+            region, snap.region.region_id, fitted(post), snap.region.version
+        )
         if info.region_id == snap.region.region_id and info.version == snap.region.version + 1:
             self._publish(MapState(spec, info.region_id, info.version, post, frozenset(snap.tiles)))
         return info
@@ -386,8 +416,10 @@ def observations_evidence(
     spec: RegionSpec, X, V, input_noise_std=None, sample_weight=None, progress=None
 ) -> tuple[dict[TileKey, Increment], dict]:
     """The tile increments of observations, and the summary the ledger keeps: rows with a
-    non-finite value (or a negative weight or noise) or outside the region are rejected
-    and counted, the rest accepted. Uploads, fits and Dask builds all learn through this."""
+    non-finite value, outside the region or outside its physical envelope (speeds, input
+    noise, weights: :class:`bdf.tiles.Envelope`) are rejected and counted by reason
+    (:data:`REJECTED`), the rest accepted. Uploads, fits and Dask builds all learn through
+    this."""
     return _evidence(spec, *_checked(X, V, input_noise_std, sample_weight), progress)
 
 
@@ -395,11 +427,15 @@ def _evidence(spec: RegionSpec, X, V, noise, weight, progress):
     """:func:`observations_evidence` of arrays :func:`_checked` has passed."""
     finite = rows_all(np.isfinite(X)) & rows_all(np.isfinite(V))
     if noise is not None:
-        finite &= rows_all(np.isfinite(noise) & (noise >= 0))
+        finite &= rows_all(np.isfinite(noise))
     if weight is not None:
-        finite &= np.isfinite(weight) & (weight >= 0)
-    inside = spec.inside(X)  # never true for a row that is not finite
-    keep = finite & inside
+        finite &= np.isfinite(weight)
+    inside = finite & spec.inside(X)  # spec.inside is never true for a row that is not finite
+    envelope = spec.envelope
+    with np.errstate(invalid="ignore", over="ignore"):  # rows already rejected may hold NaN
+        speed = inside & envelope.speed_ok(V)
+        noise_ok = speed if noise is None else speed & envelope.noise_ok(noise)
+        keep = noise_ok if weight is None else noise_ok & envelope.weight_ok(weight)
     every = keep.all()
 
     def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
@@ -416,8 +452,17 @@ def _evidence(spec: RegionSpec, X, V, noise, weight, progress):
             progress=None if progress is None else (lambda f: progress(0.9 * f)),
         )
     )
+    counts = (~finite, finite & ~inside, inside & ~speed, speed & ~noise_ok, noise_ok & ~keep)
     summary = {
         "accepted": int(keep.sum()),
-        "rejected": {"non_finite": int((~finite).sum()), "outside_region": int((finite & ~inside).sum())},
+        "rejected": {reason: int(c.sum()) for reason, c in zip(REJECTED, counts, strict=True)},
     }
     return increments, summary
+
+
+def require_accepted(summary: dict, what: str) -> None:
+    """:class:`Unprocessable` unless some row was accepted: a fit of nothing would wipe the
+    map, an upload of nothing would bump its version for no change."""
+    if summary["accepted"] == 0:
+        reasons = ", ".join(f"{n} {r}" for r, n in summary["rejected"].items() if n) or "no rows"
+        raise Unprocessable(f"no row of the {what} was accepted ({reasons}); nothing was stored")

@@ -15,13 +15,16 @@ from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException
 from starlette.requests import ClientDisconnect
 
+from service.maps import Unprocessable
 from service.store import (
+    RegionChanged,
     RegionExists,
     RegionNotFound,
     StoreError,
     StoreFull,
     StoreUnavailable,
     UploadConflict,
+    UploadNotFound,
 )
 
 REQUEST_ID_HEADER = "X-Request-ID"
@@ -122,10 +125,13 @@ def install(app: FastAPI) -> None:
     on(HTTPException)(lambda e: (e.status_code, e.detail, getattr(e, "headers", None)))
     on(RequestValidationError)(lambda e: (422, _describe(e.errors()), None))
     on(ValidationError)(lambda e: (422, _describe(e.errors()), None))
+    # the client's: a ValueError anywhere else is ours (500, below)
     for exc_type, status in (
-        (ValueError, 422),
+        (Unprocessable, 422),
         (RegionNotFound, 404),
+        (UploadNotFound, 404),
         (RegionExists, 409),
+        (RegionChanged, 409),
         (UploadConflict, 409),
     ):
         on(exc_type)(lambda e, status=status: (status, str(e), None))
@@ -138,9 +144,17 @@ def install(app: FastAPI) -> None:
 
     @on(StoreUnavailable)
     def _unavailable(exc):
+        # the log names the database; the client learns what to do, not where it lives
         log.warning("store unavailable: %s", exc)
-        status = 507 if isinstance(exc, StoreFull) else 503
-        return status, f"{exc}; retry later", {"Retry-After": str(exc.retry_after_s)}
+        if isinstance(exc, StoreFull):
+            detail = (
+                "the map store is out of disk space: nothing was stored; retry once an operator freed some"
+            )
+            return 507, detail, {"Retry-After": str(exc.retry_after_s)}
+        detail = (
+            f"the map store cannot be reached right now: nothing was stored; retry in {exc.retry_after_s} s"
+        )
+        return 503, detail, {"Retry-After": str(exc.retry_after_s)}
 
     @on(StoreError)
     def _store(exc):

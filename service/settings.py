@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -23,6 +23,8 @@ from pydantic_settings import (
 )
 
 Scope = Literal["read", "write", "admin"]
+#: a bearer token shorter than this is refused at startup (guessable)
+MIN_TOKEN_CHARS = 16
 
 
 class Settings(BaseSettings):
@@ -45,6 +47,10 @@ class Settings(BaseSettings):
     max_body_mb: float = Field(256.0, gt=0, description="largest request body (413 above)")
     max_points: int = Field(2_000_000, ge=1, description="observations per upload or fit request")
     max_query_points: int = Field(200_000, ge=1, description="points per query request")
+    max_decoded_mb: float = Field(
+        256.0, gt=0, description="what an Arrow or Parquet body may decode into (413 above; checked first)"
+    )
+    max_json_mb: float = Field(16.0, gt=0, description="largest JSON body (413 above: send Arrow or Parquet)")
     max_grid_voxels: int = Field(4_000_000, ge=1, description="voxels per grid or tube request")
     max_json_voxels: int = Field(20_000, ge=1, description="voxels a JSON grid may hold (binary above)")
     fit_job_points: int = Field(100_000, ge=0, description="fits with more rows run as background jobs")
@@ -70,6 +76,18 @@ class Settings(BaseSettings):
                 raise ValueError(f"BDF_CONFIG names {config!r}, which is not a file")
             sources.append(TomlConfigSettingsSource(settings_cls, toml_file=config))
         return tuple(sources)
+
+    @field_validator("tokens")
+    @classmethod
+    def _long_tokens(cls, tokens: dict[SecretStr, list[Scope]]) -> dict[SecretStr, list[Scope]]:
+        short = sum(len(t.get_secret_value().strip()) < MIN_TOKEN_CHARS for t in tokens)
+        if short:
+            raise ValueError(
+                f"{short} token(s) shorter than {MIN_TOKEN_CHARS} characters (or empty): a bearer token "
+                "must not be guessable; make one with "
+                "`python -c 'import secrets; print(secrets.token_urlsafe())'`"
+            )
+        return tokens
 
     @property
     def store(self) -> str:

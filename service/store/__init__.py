@@ -5,6 +5,7 @@ from __future__ import annotations
 from service.store.base import (
     CorruptTile,
     MapStore,
+    RegionChanged,
     RegionExists,
     RegionInfo,
     RegionNotFound,
@@ -14,6 +15,7 @@ from service.store.base import (
     StoreUnavailable,
     TileInfo,
     UploadConflict,
+    UploadNotFound,
     payload_digest,
 )
 
@@ -38,6 +40,7 @@ def open_store(url: str) -> MapStore:
 __all__ = [
     "CorruptTile",
     "MapStore",
+    "RegionChanged",
     "RegionExists",
     "RegionInfo",
     "RegionNotFound",
@@ -47,6 +50,7 @@ __all__ = [
     "StoreUnavailable",
     "TileInfo",
     "UploadConflict",
+    "UploadNotFound",
     "open_store",
     "payload_digest",
 ]

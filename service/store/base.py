@@ -32,7 +32,15 @@ when opened: its blobs are trusted once and checksummed.
 Exactly once: ``apply`` adds the increments of all tiles, bumps the version and writes
 the ledger row in one transaction, under the region's row lock. A replay of an upload id
 with the same digest returns the first result; another digest raises :class:`UploadConflict`.
-Readers read in one snapshot (``snapshot``), so they never see half an upload.
+Every write names the region instance it read (``region_id``): a region deleted or
+re-created meanwhile makes it fail (:class:`RegionChanged`) and store nothing. Readers
+read in one snapshot (``snapshot``), so they never see half an upload.
+
+Retraction: the statistics are additive, so ``retract`` subtracts an upload's increments,
+recomputed from the same rows (their digest must be the ledger's: nothing else is kept,
+and no upload costs storage for a retraction it may never need). The ledger row's ``kind``
+becomes ``retracted`` and its result keeps the retraction's (a retried retraction replays
+it; a replay of the upload id still applies nothing).
 """
 
 from __future__ import annotations
@@ -73,7 +81,16 @@ class RegionExists(StoreError):
 
 
 class UploadConflict(StoreError):
-    """An upload id already used for a different payload."""
+    """An upload id already used for a different payload, or a retraction whose rows are
+    not the upload's, or of an upload a later fit replaced."""
+
+
+class UploadNotFound(StoreError, LookupError):
+    """A retraction of an upload id the region's ledger does not hold."""
+
+
+class RegionChanged(StoreError):
+    """The region a write read was deleted (or re-created) before the write committed."""
 
 
 class CorruptTile(StoreError):
@@ -255,14 +272,14 @@ class MapStore(ABC):
     # -- regions -------------------------------------------------------------------------------
     def create_region(self, spec: RegionSpec) -> RegionInfo:
         now = time.time()
-        with self._write() as q:
-            if q("SELECT 1 FROM regions WHERE name = ?", (spec.name,)):
-                raise RegionExists(f"region {spec.name!r} exists")
-            q(
+        with self._write() as q:  # one statement: concurrent creates of a name cannot both pass a check
+            created = q(
                 "INSERT INTO regions (name, region_id, spec, version, observations, created_at, updated_at)"
-                " VALUES (?, ?, ?, 0, 0, ?, ?)",
+                " VALUES (?, ?, ?, 0, 0, ?, ?) ON CONFLICT (name) DO NOTHING RETURNING region_id",
                 (spec.name, uuid.uuid4().hex, spec.model_dump_json(), now, now),
             )
+            if not created:
+                raise RegionExists(f"region {spec.name!r} exists")
         return self.region(spec.name)
 
     def region(self, name: str) -> RegionInfo:
@@ -359,9 +376,22 @@ class MapStore(ABC):
             raise UploadConflict(f"upload id {upload_id!r} was already used for different data")
         return {**json.loads(rows[0][1]), "replayed": True}
 
+    def _locked(self, q, name: str, region_id: str, columns: str = "version") -> tuple:
+        """The region row's ``columns``, locked for the transaction, if it is still the
+        instance ``region_id`` the caller read; else :class:`RegionChanged` (or not found)."""
+        rows = q(f"SELECT region_id, {columns} FROM regions WHERE name = ?{self._lock_region()}", (name,))
+        if not rows:
+            raise RegionNotFound(f"no region {name!r}")
+        if rows[0][0] != region_id:
+            raise RegionChanged(
+                f"region {name!r} was deleted or re-created while this request ran; nothing was stored"
+            )
+        return rows[0][1:]
+
     def apply(
         self,
         name: str,
+        region_id: str,
         upload_id: str,
         digest: str,
         increments: Mapping[TileKey, Increment],
@@ -372,7 +402,8 @@ class MapStore(ABC):
         hyper: Mapping | None = None,
     ) -> dict:
         """Add ``increments`` to their tiles (``replace``: drop every tile first, a fit),
-        bump the version and record ``upload_id`` in the ledger, all in one transaction.
+        bump the version and record ``upload_id`` in the ledger, all in one transaction, if
+        the region is still the instance ``region_id`` (else :class:`RegionChanged`).
         ``hyper``: the fitted hyperparameters (module doc) a fit sets, or an upload sets
         where the region has none (its first data); ``evidence_version`` is filled in.
 
@@ -382,63 +413,23 @@ class MapStore(ABC):
         check_upload_id(upload_id)
         now = time.time()
         with self._write() as q:
-            rows = q(
-                f"SELECT region_id, version, spec, hyper FROM regions WHERE name = ?{self._lock_region()}",
-                (name,),
-            )
-            if not rows:
-                raise RegionNotFound(f"no region {name!r}")
-            region_id, version, spec, old_hyper = (
-                rows[0][0],
-                int(rows[0][1]) + 1,
-                _spec(rows[0][2]),
-                rows[0][3],
-            )
+            version, spec, old_hyper = self._locked(q, name, region_id, "version, spec, hyper")
+            version, spec = int(version) + 1, _spec(spec)
             first = self._ledger(q, region_id, upload_id, digest)
             if first is not None:
                 return first
             if replace:
                 q("DELETE FROM tiles WHERE region_id = ?", (region_id,))
             keys = sorted(increments)
-            old = {}
-            if keys and not replace:
-                marks = ",".join("?" * len(keys))
-                for k, blob, fmt, stored_checksum, points in q(
-                    "SELECT key, stats, format_version, checksum, points FROM tiles"
-                    f" WHERE region_id = ? AND key IN ({marks})",
-                    (region_id, *map(key_str, keys)),
-                ):
-                    key = parse_key(k)
-                    old[key] = (_decode(spec, key, blob, fmt, stored_checksum), int(points))
+            old = {} if replace else self._tiles(q, spec, region_id, keys)
             for start in range(0, len(keys), WRITE_CHUNK):
                 rows = []
                 for key in keys[start : start + WRITE_CHUNK]:
                     total, points = increments[key]
                     if key in old:
                         total, points = old[key][0] + total, old[key][1] + points
-                    blob = total.to_bytes()
-                    rows.append(
-                        (
-                            region_id,
-                            key_str(key),
-                            version,
-                            total.count,
-                            points,
-                            blob,
-                            FORMAT_VERSION,
-                            now,
-                            checksum(blob),
-                        )
-                    )
-                q.many(
-                    "INSERT INTO tiles"
-                    " (region_id, key, version, count, points, stats, format_version, updated_at, checksum)"
-                    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (region_id, key) DO UPDATE SET"
-                    " version = excluded.version, count = excluded.count, points = excluded.points,"
-                    " stats = excluded.stats, format_version = excluded.format_version,"
-                    " updated_at = excluded.updated_at, checksum = excluded.checksum",
-                    rows,
-                )
+                    rows.append(self._tile_row(region_id, key, version, total, points, now))
+                q.many(UPSERT_TILE, rows)
                 if self.after_tile_write is not None:
                     self.after_tile_write(keys[start + len(rows) - 1])
             result = {
@@ -464,23 +455,130 @@ class MapStore(ABC):
             )
         return {**result, "replayed": False}
 
-    def set_hyperparameters(self, name: str, hyper: Mapping, evidence_version: int) -> RegionInfo:
+    @staticmethod
+    def _tiles(q, spec: RegionSpec, region_id: str, keys: list[TileKey]) -> dict:
+        """``key -> (statistics, points)`` of the stored tiles among ``keys``."""
+        out = {}
+        if keys:
+            marks = ",".join("?" * len(keys))
+            for k, blob, fmt, stored_checksum, points in q(
+                "SELECT key, stats, format_version, checksum, points FROM tiles"
+                f" WHERE region_id = ? AND key IN ({marks})",
+                (region_id, *map(key_str, keys)),
+            ):
+                key = parse_key(k)
+                out[key] = (_decode(spec, key, blob, fmt, stored_checksum), int(points))
+        return out
+
+    @staticmethod
+    def _tile_row(region_id: str, key: TileKey, version: int, total: SectorEvidence, points: int, now: float):
+        blob = total.to_bytes()
+        return (
+            region_id,
+            key_str(key),
+            version,
+            total.count,
+            points,
+            blob,
+            FORMAT_VERSION,
+            now,
+            checksum(blob),
+        )
+
+    def set_hyperparameters(
+        self, name: str, region_id: str, hyper: Mapping, evidence_version: int
+    ) -> RegionInfo:
         """Make ``hyper`` (fitted on the evidence at ``evidence_version``) the hyperparameters
-        in force: the map changes, so the region's version goes up by one."""
+        in force of the region instance ``region_id``: the map changes, so the region's
+        version goes up by one."""
         with self._write() as q:
-            rows = q(f"SELECT region_id, version FROM regions WHERE name = ?{self._lock_region()}", (name,))
-            if not rows:
-                raise RegionNotFound(f"no region {name!r}")
+            (version,) = self._locked(q, name, region_id)
             q(
                 "UPDATE regions SET version = ?, updated_at = ?, hyper = ? WHERE region_id = ?",
                 (
-                    int(rows[0][1]) + 1,
+                    int(version) + 1,
                     time.time(),
                     json.dumps({**hyper, "evidence_version": int(evidence_version)}),
-                    rows[0][0],
+                    region_id,
                 ),
             )
         return self.region(name)
+
+    def retract(
+        self,
+        name: str,
+        region_id: str,
+        upload_id: str,
+        digest: str,
+        increments: Mapping[TileKey, Increment],
+        *,
+        observations: int,
+    ) -> dict:
+        """Subtract an applied upload's ``increments`` (recomputed from its rows, whose
+        ``digest`` must be the ledger's) from its tiles, in one transaction: the map becomes
+        the map without that upload. A tile left with no observation is dropped. The ledger
+        row turns ``retracted`` and keeps the retraction's result, so a retried retraction
+        returns it (``replayed``). A fit cannot be retracted, nor an upload a later fit
+        replaced (:class:`UploadConflict`)."""
+        now = time.time()
+        with self._write() as q:
+            version, spec = self._locked(q, name, region_id, "version, spec")
+            version, spec = int(version) + 1, _spec(spec)
+            rows = q(
+                "SELECT kind, digest, result FROM uploads WHERE region_id = ? AND upload_id = ?",
+                (region_id, upload_id),
+            )
+            if not rows:
+                raise UploadNotFound(f"region {name!r} has no upload {upload_id!r} to retract")
+            kind, stored_digest, applied = rows[0][0], rows[0][1], json.loads(rows[0][2])
+            if stored_digest != digest:
+                raise UploadConflict(
+                    f"these rows are not those of upload {upload_id!r}: send exactly the rows it sent"
+                )
+            if kind == "retracted":
+                return {**applied["retraction"], "replayed": True}
+            if kind == "fit":
+                raise UploadConflict(f"{upload_id!r} is a fit, which replaced the map: fit again instead")
+            fits = [
+                json.loads(r[0])["region_version"]
+                for r in q("SELECT result FROM uploads WHERE region_id = ? AND kind = 'fit'", (region_id,))
+            ]
+            if fits and max(fits) > applied["region_version"]:
+                raise UploadConflict(
+                    f"upload {upload_id!r} (version {applied['region_version']}) was replaced by the fit "
+                    f"at version {max(fits)}: its rows are no longer in the map"
+                )
+            keys = sorted(increments)
+            old = self._tiles(q, spec, region_id, keys)
+            kept, dropped = [], []
+            for key in keys:
+                total, points = old[key][0] - increments[key].evidence, old[key][1] - increments[key].points
+                if points <= 0:
+                    dropped.append((region_id, key_str(key)))
+                else:
+                    kept.append(self._tile_row(region_id, key, version, total, points, now))
+            if dropped:
+                q.many("DELETE FROM tiles WHERE region_id = ? AND key = ?", dropped)
+            for start in range(0, len(kept), WRITE_CHUNK):
+                q.many(UPSERT_TILE, kept[start : start + WRITE_CHUNK])
+            result = {
+                "upload_id": upload_id,
+                "kind": "retraction",
+                "accepted": int(observations),
+                "rejected": applied.get("rejected", {}),
+                "region_version": version,
+                "tiles_updated": len(keys),
+            }
+            q(
+                "UPDATE regions SET version = ?, updated_at = ?, observations = observations - ?"
+                " WHERE region_id = ?",
+                (version, now, int(observations), region_id),
+            )
+            q(
+                "UPDATE uploads SET kind = 'retracted', result = ? WHERE region_id = ? AND upload_id = ?",
+                (json.dumps({**applied, "retraction": result}), region_id, upload_id),
+            )
+        return {**result, "replayed": False}
 
     def verify(self) -> dict[str, list[str]]:
         """Check every stored tile of every region against its checksum and decode it;
@@ -502,6 +600,16 @@ class MapStore(ABC):
                     except StoreError as exc:
                         problems.append(str(exc))
         return report
+
+
+UPSERT_TILE = (
+    "INSERT INTO tiles"
+    " (region_id, key, version, count, points, stats, format_version, updated_at, checksum)"
+    " VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (region_id, key) DO UPDATE SET"
+    " version = excluded.version, count = excluded.count, points = excluded.points,"
+    " stats = excluded.stats, format_version = excluded.format_version,"
+    " updated_at = excluded.updated_at, checksum = excluded.checksum"
+)
 
 
 def checksum(blob) -> str:

@@ -26,7 +26,7 @@ from tests.service.test_store import SPEC, data
 
 DOCKER = Path(__file__).parents[2] / "docker"
 BIN = Path(sys.executable).parent
-TOKENS = '{"tok": ["read", "write", "admin"]}'
+TOKENS = '{"tok-0123456789abcdef": ["read", "write", "admin"]}'
 
 
 def dockerfile() -> dict:
@@ -147,7 +147,7 @@ def test_image_and_compose_command_lines_work_outside_docker(tmp_path):
 
         wait_until(dashboard_up, "dask scheduler", procs)
 
-        auth = {"Authorization": "Bearer tok"}
+        auth = {"Authorization": "Bearer tok-0123456789abcdef"}
         base = f"http://127.0.0.1:{port}"
         assert httpx.post(f"{base}/v1/regions", json=SPEC, headers=auth).status_code == 201
         assert httpx.get(f"{base}/v1/regions", timeout=5).status_code == 401  # tokens are on

@@ -16,7 +16,7 @@ from bdf.tiles import RegionSpec
 from service.app import create_app
 from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_body, arrow_bytes, npz_bytes
 from service.settings import Settings
-from tests.service.test_store import SPEC, data
+from tests.service.test_store import NO_REJECTS, SPEC, data
 
 NAME = SPEC["name"]
 
@@ -317,16 +317,21 @@ def test_wgs84_bodies_equal_enu_bodies(client):
 def test_rejected_rows_are_counted_and_never_stored(client):
     X, V = data(2, n=10)
     X[1, 0] = 1e6  # outside
-    V[2, 1] = np.nan
     points, velocities = X.tolist(), V.tolist()
-    velocities[3][0] = None
+    velocities[2][1] = velocities[3][0] = None  # JSON's missing values; NaN is not JSON
+    nan = client.post(
+        f"/v1/regions/{NAME}/observations",
+        content=json.dumps({"points": points, "velocities": [[np.nan, 0, 0], *velocities[1:]]}),
+        headers={"Content-Type": "application/json", "Idempotency-Key": "nan"},
+    )
+    assert nan.status_code == 422 and "finite" in nan.json()["detail"]
     r = client.post(
         f"/v1/regions/{NAME}/observations",
         content=json.dumps({"points": points, "velocities": velocities}),
         headers={"Content-Type": "application/json", "Idempotency-Key": "bad-rows"},
     )
     assert r.json()["accepted"] == 7
-    assert r.json()["rejected"] == {"non_finite": 2, "outside_region": 1}
+    assert r.json()["rejected"] == {**NO_REJECTS, "non_finite": 2, "outside_region": 1}
     assert client.get(f"/v1/regions/{NAME}").json()["observations"] == 7
 
 
@@ -342,14 +347,24 @@ def test_etag_and_not_modified(client):
         etags[url] = r.headers["etag"]
         again = client.get(url, params=params, headers={"Accept": NPZ, "If-None-Match": r.headers["etag"]})
         assert again.status_code == 304 and again.content == b""
+    assert etags[grid[0]] != etags[tubes[0]]  # an ETag names the request, not only the map
+    other_box = {**grid[1], "bbox": "0,0,0,100,100,60"}
+    r = client.get(grid[0], params=other_box, headers={"Accept": NPZ, "If-None-Match": etags[grid[0]]})
+    assert r.status_code == 200 and r.headers["etag"] != etags[grid[0]]
     q = client.post(f"/v1/regions/{NAME}/query", json={"points": [[1, 1, 1]]})
-    assert q.headers["etag"] == etags[grid[0]]
+    assert q.headers["etag"] != etags[grid[0]]
     r = client.post(
         f"/v1/regions/{NAME}/query",
         json={"points": [[1, 1, 1]]},
         headers={"If-None-Match": q.headers["etag"]},
     )
     assert r.status_code == 304
+    r = client.post(
+        f"/v1/regions/{NAME}/query",
+        json={"points": [[2, 2, 2]]},
+        headers={"If-None-Match": q.headers["etag"]},
+    )
+    assert r.status_code == 200 and r.json()["region_version"] == 1
     client.post(f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "2"})
     fresh = {**grid[1], "min_version": 2}  # read your write: not the previous map
     r = client.get(grid[0], params=fresh, headers={"Accept": NPZ, "If-None-Match": etags[grid[0]]})
@@ -521,7 +536,7 @@ def test_limits_and_errors_are_problem_json(live_server):
         assert (info["version"], info["observations"]) == (0, 0)
 
 
-TOKENS = {"tok-read": ["read"], "tok-write": ["write"], "tok-admin": ["admin"]}
+TOKENS = {f"tok-{s}-0123456789": [s] for s in ("read", "write", "admin")}
 
 
 def test_every_route_declares_its_scope_and_enforces_it(live_server, tmp_path):
@@ -530,7 +545,7 @@ def test_every_route_declares_its_scope_and_enforces_it(live_server, tmp_path):
     paths = create_app(Settings(store_url=f"sqlite:///{tmp_path / 'openapi'}")).openapi()["paths"]
     routes = [(m.upper(), p, op["x-scope"]) for p, ops in paths.items() for m, op in ops.items()]
     assert {scope for *_, scope in routes} == {"public", "read", "write", "admin"}
-    assert len(routes) == 17
+    assert len(routes) == 18
     fill = {"{name}": NAME, "{job_id}": "0" * 32}
     with httpx.Client(base_url=server.url, timeout=60) as c:
         for method, path, scope in routes:
@@ -540,9 +555,11 @@ def test_every_route_declares_its_scope_and_enforces_it(live_server, tmp_path):
             attempts = {
                 "none": {},
                 "wrong": {"Authorization": "Bearer nope"},
-                "basic": {"Authorization": "Basic tok-admin"},
+                "basic": {"Authorization": "Basic tok-admin-0123456789"},
             }
-            attempts.update({s: {"Authorization": f"Bearer tok-{s}"} for s in ("read", "write", "admin")})
+            attempts.update(
+                {s: {"Authorization": f"Bearer tok-{s}-0123456789"} for s in ("read", "write", "admin")}
+            )
             for who, headers in attempts.items():
                 status = c.request(method, url, headers=headers).status_code
                 if scope == "public":
@@ -581,7 +598,7 @@ def test_serve_refuses_a_public_address_without_tokens_and_warns_when_open(tmp_p
     assert "OPEN" in server.log()
     with pytest.raises(ValueError, match="refusing"):
         Settings(host="10.1.2.3").check_bind()
-    Settings(host="10.1.2.3", tokens={"t": ["read"]}).check_bind()
+    Settings(host="10.1.2.3", tokens={"t-0123456789abcdef": ["read"]}).check_bind()
     Settings(host="::1").check_bind()
 
 

@@ -21,7 +21,7 @@ from service.build import ClusterLost, build, plan
 from service.maps import RegionMaps
 from service.store import open_store
 from tests.service.test_api import enu_columns
-from tests.service.test_store import SPEC, assert_evidence_equal, data
+from tests.service.test_store import NO_REJECTS, SPEC, assert_evidence_equal, data
 
 
 def write(path, X, V, weight=None, rows=None):
@@ -79,7 +79,7 @@ def test_slices_of_every_format_build_what_one_upload_of_all_rows_learns(store, 
     result = build(store, "town", paths, client, progress=False, rows_per_task=100, batch_rows=33)
     assert {k: result[k] for k in ("accepted", "rejected", "region_version", "replayed")} == {
         "accepted": 1498,
-        "rejected": {"non_finite": 1, "outside_region": 1},
+        "rejected": {**NO_REJECTS, "non_finite": 1, "outside_region": 1},
         "region_version": 1,
         "replayed": False,
     }
@@ -134,7 +134,7 @@ def test_adsb_state_vectors_build_in_the_regions_frame(store, spec, client, tmp_
     )
     keep = ~onground
     assert result["accepted"] == 2 * keep.sum()
-    assert result["rejected"] == {"non_finite": 0, "on_ground": 2 * onground.sum(), "outside_region": 0}
+    assert result["rejected"] == {**NO_REJECTS, "on_ground": 2 * onground.sum()}
     expected = spec.increments(np.concatenate([X[keep]] * 2), np.concatenate([V[keep]] * 2))
     assert_evidence_equal(store.snapshot("town").evidence, {k: i.evidence for k, i in expected.items()}, 1e-9)
 

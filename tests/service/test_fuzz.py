@@ -29,7 +29,7 @@ from service.settings import Settings
 from tests.service.test_store import SPEC, data
 
 NAME = SPEC["name"]
-TOKEN = "fuzz-admin"
+TOKEN = "fuzz-admin-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
 CHECKS = [
     not_a_server_error,

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from bdf.tiles import RegionSpec
-from service.maps import PosteriorCache, RegionMaps
+from service.maps import REJECTED, PosteriorCache, RegionMaps
 from service.store import RegionExists, RegionNotFound, UploadConflict, open_store, payload_digest
 
 SPEC = {
@@ -23,6 +23,9 @@ SPEC = {
     "spacing_m": [25, 25, 20],
     "gamma": [1 / 1250, 1 / 1250, 1 / 800],
 }
+
+
+NO_REJECTS = dict.fromkeys(REJECTED, 0)
 
 
 def data(seed, n=200, band=False):
@@ -80,7 +83,7 @@ def test_upload_adds_exactly_the_increments_and_stores_them_losslessly(store, sp
     result = maps.upload("town", "a", X[:100], V[:100], sample_weight=w[:100])
     assert result == {
         "accepted": 100,
-        "rejected": {"non_finite": 0, "outside_region": 0},
+        "rejected": NO_REJECTS,
         "upload_id": "a",
         "kind": "observations",
         "region_version": 1,
@@ -114,7 +117,8 @@ def test_replay_returns_the_first_result_and_a_new_payload_is_a_conflict(store, 
     # the store itself also refuses to apply twice, even if asked directly
     increments = spec.increments(X, V)
     digest = payload_digest("observations", X, V, None, None)
-    assert store.apply("town", "same", digest, increments, observations=len(X))["replayed"] is True
+    region_id = store.region("town").region_id
+    assert store.apply("town", region_id, "same", digest, increments, observations=len(X))["replayed"] is True
     with pytest.raises(UploadConflict):
         maps.upload("town", "same", X + 1.0, V)
     with pytest.raises(UploadConflict):
@@ -130,7 +134,7 @@ def test_bad_rows_are_counted_and_never_stored(store, spec):
     X[3, 1], V[7, 2], X[9] = np.nan, np.inf, [500.0, 10.0, 10.0]
     result = maps.upload("town", "bad", X, V)
     assert result["accepted"] == 47
-    assert result["rejected"] == {"non_finite": 2, "outside_region": 1}
+    assert result["rejected"] == {**NO_REJECTS, "non_finite": 2, "outside_region": 1}
     keep = np.ones(50, bool)
     keep[[3, 7, 9]] = False
     expected = spec.increments(X[keep], V[keep])

@@ -176,8 +176,8 @@ def browser():
 def test_viewer_page_in_headless_chromium(live_server, browser):
     """The page asks for a token, lists the region, draws a slice; the slider (keyboard)
     and the layer menu change the picture. Screenshots go to ``test-artifacts/``."""
-    server = live_server(env={"BDF_TOKENS": '{"tok": ["read", "write", "admin"]}'})
-    auth = {"Authorization": "Bearer tok"}
+    server = live_server(env={"BDF_TOKENS": '{"tok-0123456789abcdef": ["read", "write", "admin"]}'})
+    auth = {"Authorization": "Bearer tok-0123456789abcdef"}
     with httpx.Client(base_url=server.url, timeout=60, headers=auth) as c:
         create_town(c)
         png_at_30 = c.get(f"/v1/regions/{NAME}/slice.png", params={"alt_m": 30}).content
@@ -189,7 +189,7 @@ def test_viewer_page_in_headless_chromium(live_server, browser):
     page.wait_for_selector("#status.error")  # no token yet: the problem's text is shown
     assert "401" in page.text_content("#status")
 
-    page.fill("#token", "tok")
+    page.fill("#token", "tok-0123456789abcdef")
     page.press("#token", "Enter")  # commits the field: its change event reloads the regions
     page.wait_for_selector("#image[data-alt-m='20']")
     assert page.text_content("#status") == f"{NAME} at 20 m, region version 1"
