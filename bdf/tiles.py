@@ -117,6 +117,29 @@ class Envelope(BaseModel):
         """(n,): sample weights (finite) in ``(0, max_sample_weight]``."""
         return (weight > 0) & (weight <= self.max_sample_weight)
 
+    def problems(self, evidence: SectorEvidence, points: int) -> list[str]:
+        """What in a tile's statistics of ``points`` observations no accepted rows can make:
+        values that are not finite, weights or mean squared speeds beyond the envelope (a
+        store written before the envelope was checked, or damaged)."""
+        out = []
+        square = np.array(
+            [self.max_horizontal_speed_mps, self.max_horizontal_speed_mps, self.max_vertical_speed_mps]
+        )
+        for c, ev in enumerate(evidence.classes):
+            parts = [ev.density, ev.proj, ev.mass, ev.v_sum, ev.v_sq, np.array(ev.count)]
+            parts += [a for a in (ev.gram_noisy, ev.moments) if a is not None]
+            if not all(np.isfinite(a).all() for a in parts):
+                out.append(f"class {c}: statistics that are not finite")
+            elif ev.count > points * self.max_sample_weight * (1 + 1e-9):
+                out.append(
+                    f"class {c}: weights summing to {ev.count:.6g} over {points} observations "
+                    f"(at most {self.max_sample_weight:g} each)"
+                )
+            elif np.any(ev.v_sq > ev.count * square**2 * (1 + 1e-9)):
+                rms = np.sqrt(ev.v_sq / ev.count).tolist()
+                out.append(f"class {c}: root mean square velocity {rms} m/s beyond the envelope")
+        return out
+
 
 class Increment(NamedTuple):
     """What one upload adds to one tile."""

@@ -85,7 +85,8 @@ def _health(args) -> int:
     return 0
 
 
-def _send_observations(args, fit: bool) -> int:
+def _send_observations(args, kind: str) -> int:
+    """``bdf upload``, ``bdf fit`` or ``bdf retract`` of a file."""
     from clients.files import read_observations
 
     with _client(args) as bdf:
@@ -94,12 +95,12 @@ def _send_observations(args, fit: bool) -> int:
         if obs.dropped:
             print(f"{args.file}: dropped {obs.dropped}", file=sys.stderr)
         kw = {"input_noise_std": obs.input_noise_std, "frame": obs.frame, "progress": args.progress}
-        if fit:
-            result = bdf.fit(args.name, obs.X, obs.V, **kw)
-        else:
-            result = bdf.upload(args.name, obs.X, obs.V, chunk_size=args.chunk_size, **kw)
+        if kind != "fit":
+            kw["chunk_size"] = args.chunk_size
+        result = getattr(bdf, kind)(args.name, obs.X, obs.V, **kw)
+    done = {"upload": "uploaded", "fit": "fitted", "retract": "retracted"}[kind]
     print(
-        f"{'fitted' if fit else 'uploaded'} {result.accepted} observations to {args.name!r} "
+        f"{done} {result.accepted} observations {'from' if kind == 'retract' else 'to'} {args.name!r} "
         f"(rejected {result.rejected}, {result.chunks} request(s), {result.replayed_chunks} replayed); "
         f"region version {result.region_version}"
     )
@@ -334,19 +335,25 @@ def _open_store(args):
 
 
 def _verify(args) -> int:
-    """Check every stored tile against its checksum; exit 1 if any is damaged."""
-    store = _open_store(args)
+    """Check every region and stored tile; exit 1 if any has a problem."""
+    from service.store import StoreError
+
+    try:
+        store = _open_store(args)
+    except StoreError as exc:
+        print(f"bdf: error: {exc}", file=sys.stderr)
+        return 1
     try:
         report = store.verify()
     finally:
         store.close()
     for region, problems in report.items():
-        print(f"{region}: {'ok' if not problems else f'{len(problems)} damaged tiles'}")
+        print(f"{region}: {'ok' if not problems else f'{len(problems)} problems'}")
         for problem in problems:
             print(f"  {problem}")
-    damaged = sum(map(len, report.values()))
-    print(f"{len(report)} regions, {damaged} damaged tiles")
-    return 1 if damaged else 0
+    found = sum(map(len, report.values()))
+    print(f"{len(report)} regions, {found} problems")
+    return 1 if found else 0
 
 
 def store_options(p: argparse.ArgumentParser) -> None:
@@ -436,9 +443,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "verify",
-        help="check a store's tiles against their checksums",
-        description="Reads every stored tile of every region, checks it against the checksum "
-        "stored with it and decodes it. Lists damaged tiles and exits 1 if there are any.",
+        help="check a store's regions and tiles (checksums, decoding, finite and plausible statistics)",
+        description="Reads every region and every stored tile, checks the tile against the checksum "
+        "stored with it, decodes it and checks that its statistics are finite and within the "
+        "region's envelope. Lists the problems and exits 1 if there are any.",
     )
     store_options(p)
     p.set_defaults(run=_verify)
@@ -483,12 +491,11 @@ def build_parser() -> argparse.ArgumentParser:
             }[action]
         )
 
-    for name, fit in (("upload", False), ("fit", True)):
-        text = (
-            "replace the region's map with the observations in a file"
-            if fit
-            else "add the observations in a file to the region's map (chunked, exactly once)"
-        )
+    for name, text in (
+        ("upload", "add the observations in a file to the region's map (chunked, exactly once)"),
+        ("fit", "replace the region's map with the observations in a file"),
+        ("retract", "undo the upload of a file exactly (the same file and --chunk-size; admin scope)"),
+    ):
         p = client(
             name,
             text,
@@ -497,7 +504,7 @@ def build_parser() -> argparse.ArgumentParser:
         )
         p.add_argument("name", help="region name")
         p.add_argument("file", type=Path, help="observations file")
-        if not fit:
+        if name != "fit":
             p.add_argument(
                 "--chunk-size", type=int, default=200_000, help="rows per request (default 200000)"
             )
@@ -507,7 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
             default=None,
             help="progress bar (default: on a terminal)",
         )
-        p.set_defaults(run=lambda args, fit=fit: _send_observations(args, fit))
+        p.set_defaults(run=lambda args, kind=name: _send_observations(args, kind))
 
     p = client("health", "check that the service answers and its store is reachable (exit 0)")
     p.set_defaults(run=_health)

@@ -379,6 +379,30 @@ class _Endpoints:
             self._upload(name, X, V, input_noise_std, sample_weight, frame, chunk_size, key, progress)
         )
 
+    def retract(
+        self,
+        name: str,
+        X,
+        V,
+        *,
+        input_noise_std=None,
+        sample_weight=None,
+        frame: Frame = "enu",
+        chunk_size: int = 200_000,
+        key: str | None = None,
+        progress: bool | None = None,
+    ) -> UploadResult:
+        """Undo an :meth:`upload` exactly (admin scope), e.g. of a vehicle whose sensor was
+        broken: called with the upload's own arguments (rows, chunk size, key), each chunk
+        names the upload it retracts and carries its rows again, which the service checks
+        against its ledger. The map becomes the map without them; running it again
+        applies nothing twice."""
+        return self._run(
+            self._upload(
+                name, X, V, input_noise_std, sample_weight, frame, chunk_size, key, progress, "retractions"
+            )
+        )
+
     def fit(
         self,
         name: str,
@@ -467,18 +491,21 @@ class _Endpoints:
         response = yield _Request(method, path, **body)
         return parse(response.json() if response.content else None)
 
-    def _upload(self, name, X, V, noise, weight, frame, chunk_size, key, progress) -> Call:
+    def _upload(
+        self, name, X, V, noise, weight, frame, chunk_size, key, progress, route="observations"
+    ) -> Call:
         X, V, noise, weight = _observations(X, V, noise, weight)
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
         key = key or _upload_key(X, V, noise, weight, chunk_size, "observations")
         results = []
-        with _progress_bar(len(X), f"upload {name}", progress) as bar:
+        verb = "upload" if route == "observations" else "retract"
+        with _progress_bar(len(X), f"{verb} {name}", progress) as bar:
             for i, start in enumerate(range(0, len(X), chunk_size)):
                 part = slice(start, start + chunk_size)
                 response = yield _Request(
                     "POST",
-                    f"/v1/regions/{name}/observations",
+                    f"/v1/regions/{name}/{route}",
                     content=_observations_body(
                         X[part],
                         V[part],

@@ -97,6 +97,10 @@ class CorruptTile(StoreError):
     """A tile's stored statistics do not match their checksum (or cannot be decoded)."""
 
 
+class StoreDamaged(StoreError):
+    """The database is not a store, or its file is damaged: an operator's to restore."""
+
+
 class StoreUnavailable(StoreError):
     """The database cannot be reached or written right now (down, connection lost, locked,
     read-only): nothing was stored, and the same request may succeed later."""
@@ -581,24 +585,36 @@ class MapStore(ABC):
         return {**result, "replayed": False}
 
     def verify(self) -> dict[str, list[str]]:
-        """Check every stored tile of every region against its checksum and decode it;
-        returns, per region, the problems found (empty lists: the store is sound)."""
+        """Check every region's spec and every stored tile: its checksum, that it decodes,
+        that its statistics are finite and within the region's envelope; returns, per
+        region, the problems found (empty lists: the store is sound)."""
         report = {}
-        for info in self.list_regions():
-            problems = report.setdefault(info.spec.name, [])
+        with self._read() as q:
+            names = [r[0] for r in q("SELECT name FROM regions ORDER BY name")]
+        for name in names:
+            problems = report.setdefault(name, [])
+            try:
+                info = self.region(name)
+            except (StoreError, ValueError) as exc:  # a spec this code cannot read
+                problems.append(f"region {name!r} does not decode: {exc}".splitlines()[0])
+                continue
             with self._read() as q:
                 keys = [r[0] for r in q("SELECT key FROM tiles WHERE region_id = ?", (info.region_id,))]
             for key in keys:  # one tile in memory at a time
                 with self._read() as q:
                     rows = q(
-                        "SELECT stats, format_version, checksum FROM tiles WHERE region_id = ? AND key = ?",
+                        "SELECT stats, format_version, checksum, points FROM tiles"
+                        " WHERE region_id = ? AND key = ?",
                         (info.region_id, key),
                     )
                 if rows:
                     try:
-                        _decode(info.spec, parse_key(key), *rows[0])
+                        evidence = _decode(info.spec, parse_key(key), *rows[0][:3])
                     except StoreError as exc:
                         problems.append(str(exc))
+                        continue
+                    for problem in info.spec.envelope.problems(evidence, int(rows[0][3])):
+                        problems.append(f"tile {key} of region {name!r}: {problem}")
         return report
 
 

@@ -13,7 +13,7 @@ import sqlite3
 from contextlib import contextmanager
 from pathlib import Path
 
-from service.store.base import SCHEMA_VERSION, MapStore, StoreFull, StoreUnavailable
+from service.store.base import SCHEMA_VERSION, MapStore, StoreDamaged, StoreError, StoreFull, StoreUnavailable
 
 FILE_NAME = "maps.sqlite3"
 
@@ -100,9 +100,11 @@ class SqliteStore(MapStore):
 UNAVAILABLE = ("SQLITE_BUSY", "SQLITE_LOCKED", "SQLITE_READONLY", "SQLITE_IOERR", "SQLITE_CANTOPEN")
 
 
-def _unavailable(exc: sqlite3.Error) -> StoreUnavailable | None:
+def _unavailable(exc: sqlite3.Error) -> StoreError | None:
     """The store error a SQLite error means, or None for an error of ours."""
     name = getattr(exc, "sqlite_errorname", "")
+    if name.startswith(("SQLITE_NOTADB", "SQLITE_CORRUPT")):
+        return StoreDamaged(f"the SQLite file is not a bdf store, or is damaged ({name}: {exc})")
     if name.startswith("SQLITE_FULL"):
         return StoreFull(f"the SQLite database's disk is full ({exc}); nothing was stored")
     if name.startswith(UNAVAILABLE):

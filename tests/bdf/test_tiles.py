@@ -57,6 +57,12 @@ def test_spec_json_is_the_service_body():
         "cutoff": 1e-12,
         "directions": 1,
         "slow_mps": 5.0,
+        "envelope": {  # aircraft
+            "max_horizontal_speed_mps": 400.0,
+            "max_vertical_speed_mps": 100.0,
+            "max_input_noise_std_m": 1000.0,
+            "max_sample_weight": 1000.0,
+        },
     }
     assert spec.tile_counts == (8, 8, 1)
     assert spec.grid.shape == (21, 21, 7)  # the Paris core lattice, 3,087 hinges

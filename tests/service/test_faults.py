@@ -267,7 +267,7 @@ def test_a_damaged_tile_is_reported_by_name_and_never_served(store_url, tmp_path
     cli = [sys.executable, "-m", "clients.cli", "verify", "--store-url", store_url]
     done = subprocess.run(cli, capture_output=True, text=True, timeout=120)
     assert done.returncode == 1 and f"tile {key} of region {NAME!r}" in done.stdout, done.stdout
-    assert "1 damaged tiles" in done.stdout
+    assert "1 problems" in done.stdout
 
 
 def test_verify_passes_a_sound_store(store_url):
