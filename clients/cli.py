@@ -340,13 +340,13 @@ def _verify(args) -> int:
 
     try:
         store = _open_store(args)
-    except StoreError as exc:
+        try:
+            report = store.verify()
+        finally:
+            store.close()
+    except StoreError as exc:  # not a store at all, or one whose file is damaged
         print(f"bdf: error: {exc}", file=sys.stderr)
         return 1
-    try:
-        report = store.verify()
-    finally:
-        store.close()
     for region, problems in report.items():
         print(f"{region}: {'ok' if not problems else f'{len(problems)} problems'}")
         for problem in problems:

@@ -1,0 +1,466 @@
+"""Hostile input, row by row (RELIABILITY.md, "Hostile input"): each request gets its status,
+and the stored statistics, the region version and a query answer are unchanged after it."""
+
+import concurrent.futures
+import io
+import json
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.ipc
+import pyarrow.parquet as pq
+import pytest
+from fastapi.testclient import TestClient
+
+import service.maps
+from bdf.tiles import RegionSpec
+from service.app import create_app
+from service.formats import ARROW, NPZ, PARQUET
+from service.settings import Settings
+from service.store import RegionExists, StoreUnavailable, open_store
+from tests.service.test_store import SPEC, data
+
+NAME = SPEC["name"]
+TOKENS = {
+    "read-0123456789abcdef": ["read"],
+    "write-0123456789abcdef": ["read", "write"],
+    "admin-0123456789abcdef": ["read", "write", "admin"],
+}
+READ, WRITE, ADMIN = ({"Authorization": f"Bearer {t}"} for t in TOKENS)
+PROBE = np.array([[20.0, 30.0, 10.0], [150.0, 100.0, 30.0], [280.0, 180.0, 50.0]])
+
+
+@pytest.fixture
+def app(tmp_path):
+    return create_app(
+        Settings(store_url=f"sqlite:///{tmp_path / 'data'}", tokens=TOKENS, max_decoded_mb=8, max_json_mb=1)
+    )
+
+
+@pytest.fixture
+def client(app):
+    """The region ``town`` with 300 observations in 6 tiles (version 1)."""
+    with TestClient(app, raise_server_exceptions=False) as c:
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+        X, V = data(1, n=300)
+        body = {"points": X.tolist(), "velocities": V.tolist()}
+        c.post(f"/v1/regions/{NAME}/observations", json=body, headers={**WRITE, "Idempotency-Key": "a"})
+        yield c
+
+
+def state(c) -> dict:
+    """What a hostile request must not change: the stored totals and a query's answer."""
+    view = c.get(f"/v1/regions/{NAME}", headers=READ).json()
+    tiles = c.get(f"/v1/regions/{NAME}/tiles", headers=READ).json()["tiles"]
+    answer = c.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ).json()
+    return {
+        "version": view["version"],
+        "observations": view["observations"],
+        "hyperparameters": view["hyperparameters"],
+        "tiles": sorted((t["key"], t["version"], t["count"], t["points"]) for t in tiles),
+        "mean": answer["mean"],
+        "std": answer["std"],
+    }
+
+
+def problem(r, status: int, *phrases: str) -> None:
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"] == "application/problem+json"
+    for phrase in phrases:
+        assert phrase in r.json()["detail"], r.json()
+
+
+def arrow_stream(table: pa.Table, compression=None) -> bytes:
+    sink = pa.BufferOutputStream()
+    options = pa.ipc.IpcWriteOptions(compression=compression)
+    with pa.ipc.new_stream(sink, table.schema, options=options) as writer:
+        writer.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+def rows(X, V, **extra) -> dict:
+    return {"points": np.asarray(X).tolist(), "velocities": np.asarray(V).tolist(), **extra}
+
+
+def post_obs(c, body, key, route="observations", headers=WRITE):
+    return c.post(f"/v1/regions/{NAME}/{route}", json=body, headers={**headers, "Idempotency-Key": key})
+
+
+# -- 1: a column type that crashed the decoder -------------------------------------------------
+def test_row_01_an_interval_column_is_a_422_and_the_server_keeps_answering(live_server):
+    import httpx
+
+    server = live_server(env={"BDF_TOKENS": json.dumps(TOKENS)})
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+        interval = pa.array([pa.MonthDayNano([1, 2, 3])] * 3, pa.month_day_nano_interval())
+        table = pa.table({"x": interval, "y": [1.0, 2.0, 3.0], "z": [1.0, 2.0, 3.0]})
+        r = c.post(
+            f"/v1/regions/{NAME}/query",
+            content=arrow_stream(table),
+            headers={**READ, "Content-Type": ARROW, "Accept": ARROW},
+        )
+        problem(r, 422, "'x'", "month_day_nano_interval")
+        assert c.get("/healthz").status_code == 200
+        assert (
+            c.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ).status_code
+            == 200
+        )
+    assert server.proc.poll() is None
+
+
+# -- 2, 18: schemas: repeated, unknown and non-numeric columns ----------------------------------
+@pytest.mark.parametrize(
+    "columns, phrases",
+    [
+        ({"x": [1.0], "y": [1.0], "z": [1.0], "x ": [1.0]}, ("unknown", "'x '")),
+        ({"x": [1.0], "y": [1.0], "z": [1.0], "colour": [1.0]}, ("unknown", "colour")),
+        ({"x": pa.array([1], pa.timestamp("s")), "y": [1.0], "z": [1.0]}, ("'x'", "timestamp")),
+        ({"x": [True], "y": [1.0], "z": [1.0]}, ("'x'", "bool")),
+        ({"x": ["1.5"], "y": [1.0], "z": [1.0]}, ("'x'", "string")),
+        ({"x": pa.array([1.0]).dictionary_encode(), "y": [1.0], "z": [1.0]}, ("'x'", "dictionary")),
+    ],
+)
+def test_row_18_columns_are_numbers_with_documented_names(client, columns, phrases):
+    before = state(client)
+    body = arrow_stream(pa.table(columns))
+    r = client.post(f"/v1/regions/{NAME}/query", content=body, headers={**READ, "Content-Type": ARROW})
+    problem(r, 422, *phrases)
+    assert state(client) == before
+
+
+def test_row_02_a_repeated_column_is_a_422(client):
+    before = state(client)
+    schema = pa.schema([("x", pa.float64()), ("x", pa.float64()), ("y", pa.float64()), ("z", pa.float64())])
+    table = pa.Table.from_arrays([pa.array([1.0])] * 4, schema=schema)
+    r = client.post(
+        f"/v1/regions/{NAME}/query", content=arrow_stream(table), headers={**READ, "Content-Type": ARROW}
+    )
+    problem(r, 422, "more than once", "'x'")
+    assert state(client) == before
+
+
+def test_row_18_json_numbers_are_numbers(client):
+    before = state(client)
+    X, V = data(2, n=3)
+    for bad in ("1.5", True, "NaN"):
+        body = rows(X, V)
+        body["velocities"][0][0] = bad
+        problem(post_obs(client, body, f"json-{bad}"), 422, "velocities.0.0")
+    text = json.dumps(rows(X, V)).replace(str(V[0, 0]), "1e400", 1)
+    r = client.post(
+        f"/v1/regions/{NAME}/observations",
+        content=text,
+        headers={**WRITE, "Idempotency-Key": "inf", "Content-Type": "application/json"},
+    )
+    problem(r, 422, "finite")
+    assert state(client) == before
+
+
+# -- 3, 4: implausible rows never reach the statistics -----------------------------------------
+@pytest.mark.parametrize(
+    "velocity, extra, reason",
+    [
+        ([1e155, 0, 0], {}, "implausible_speed"),
+        ([1e20, 0, 0], {}, "implausible_speed"),
+        ([0, 0, 150], {}, "implausible_speed"),
+        ([10, 0, 0], {"sample_weight": [1e300]}, "implausible_weight"),
+        ([10, 0, 0], {"sample_weight": [0.0]}, "implausible_weight"),
+        ([10, 0, 0], {"input_noise_std": [1e9]}, "implausible_noise"),
+    ],
+)
+def test_rows_03_04_implausible_rows_are_rejected_and_counted(app, client, velocity, extra, reason):
+    before = state(client)
+    problem(post_obs(client, rows([[10.0, 10.0, 10.0]], [velocity], **extra), "one"), 422, f"1 {reason}")
+    assert state(client) == before
+    X, V = data(3, n=20)
+    V[0] = velocity
+    extra = {
+        k: [v[0]] + [1.0] * 19 if k == "sample_weight" else [v[0]] + [0.0] * 19 for k, v in extra.items()
+    }
+    r = post_obs(client, rows(X, V, **extra), "mixed")
+    assert r.status_code == 200 and r.json()["accepted"] == 19 and r.json()["rejected"][reason] == 1
+    h = client.post(f"/v1/regions/{NAME}/hyperparameters", headers=WRITE)
+    assert h.status_code == 200, h.text
+    answer = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ).json()
+    assert np.all(np.abs(answer["mean"]) < 50) and np.all(np.array(answer["std"]) > 0.01)
+    # a fresh process computes the same map from the store
+    fresh = create_app(app.state.settings)
+    with TestClient(fresh, raise_server_exceptions=False) as c:
+        again = c.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ)
+        assert again.status_code == 200
+        np.testing.assert_allclose(again.json()["mean"], answer["mean"], atol=1e-9)
+
+
+# -- 5, 6: nothing accepted, nothing stored -----------------------------------------------------
+@pytest.mark.parametrize("route", ["fit", "observations"])
+def test_rows_05_06_a_request_with_no_accepted_row_changes_nothing(client, route):
+    before = state(client)
+    assert before["observations"] == 300 and len(before["tiles"]) == 6
+    body = rows([[10.0, 10.0, 10.0]], [[1.0, 1.0, None]])
+    problem(post_obs(client, body, "none", route), 422, "no row", "1 non_finite", "nothing was stored")
+    assert state(client) == before
+
+
+# -- 7: a region deleted and re-created while a write runs --------------------------------------
+@pytest.mark.parametrize("spacing", [[25, 25, 20], [30, 30, 20]])
+def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, monkeypatch, spacing):
+    evidence = service.maps._evidence
+    new_spec = {**SPEC, "spacing_m": spacing}
+
+    def recreate_then(*args, **kw):
+        out = evidence(*args, **kw)
+        app.state.maps.store.delete_region(NAME)
+        app.state.maps.store.create_region(RegionSpec.model_validate(new_spec))
+        return out
+
+    monkeypatch.setattr(service.maps, "_evidence", recreate_then)
+    X, V = data(4, n=50)
+    problem(post_obs(client, rows(X, V), "racing"), 409, "re-created", "nothing was stored")
+    monkeypatch.setattr(service.maps, "_evidence", evidence)
+    view = client.get(f"/v1/regions/{NAME}", headers=READ).json()
+    assert view["version"] == 0 and view["observations"] == 0 and view["tiles"] == 0
+    assert app.state.maps.store.verify() == {NAME: []}
+    q = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ)
+    assert q.status_code == 200 and q.json()["known"] == [False] * 3
+
+
+def test_row_07_a_hyperparameter_fit_of_a_region_recreated_meanwhile_is_a_409(client, app, monkeypatch):
+    posterior = app.state.maps._posterior
+
+    def recreate_then(*args, **kw):
+        out = posterior(*args, **kw)
+        app.state.maps.store.delete_region(NAME)
+        app.state.maps.store.create_region(RegionSpec.model_validate(SPEC))
+        return out
+
+    monkeypatch.setattr(app.state.maps, "_posterior", recreate_then)
+    problem(client.post(f"/v1/regions/{NAME}/hyperparameters", headers=WRITE), 409, "re-created")
+    view = client.get(f"/v1/regions/{NAME}", headers=READ).json()
+    assert view["version"] == 0 and view["hyperparameters"]["fitted_at"] is None
+
+
+# -- 8: specs that could not be served ----------------------------------------------------------
+@pytest.mark.parametrize(
+    "change, phrase",
+    [
+        ({"gamma": [5e-324] * 3}, "reach"),
+        ({"bounds_m": {"min": [0, 0, 0], "max": [1e16, 1e16, 1e16]}, "spacing_m": [1e308] * 3}, "within"),
+        ({"spacing_m": [1000, 25, 20]}, "must not exceed the box"),
+        ({"gamma": [10.0, 10.0, 10.0]}, "half the spacing"),
+        ({"gamma": [3e-4] * 3, "bounds_m": {"min": [0, 0, 0], "max": [600, 600, 200]}}, "offsets"),
+    ],
+)
+def test_row_08_a_spec_that_cannot_be_served_is_a_422(client, change, phrase):
+    problem(client.post("/v1/regions", json={**SPEC, "name": "other", **change}, headers=ADMIN), 422, phrase)
+    assert [r["spec"]["name"] for r in client.get("/v1/regions", headers=READ).json()] == [NAME]
+
+
+# -- 9: concurrent creates of one name ----------------------------------------------------------
+def test_row_09_concurrent_creates_of_one_name_give_one_region_and_409s(store_url):
+    stores = [open_store(store_url) for _ in range(6)]
+    spec = RegionSpec.model_validate(SPEC)
+
+    def create(store):
+        try:
+            return store.create_region(spec).region_id
+        except RegionExists:
+            return "exists"
+
+    try:
+        with concurrent.futures.ThreadPoolExecutor(6) as pool:
+            outcomes = list(pool.map(create, stores))
+        assert outcomes.count("exists") == 5
+        assert stores[0].region(NAME).region_id in outcomes
+    finally:
+        for s in stores:
+            s.close()
+
+
+# -- 10, 11: the body is read after the token, and bounded while it streams ---------------------
+def test_row_10_a_region_body_without_a_token_is_refused_before_it_is_read(live_server):
+    server = live_server(env={"BDF_TOKENS": json.dumps(TOKENS)})
+    with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
+        sock.sendall(
+            b"POST /v1/regions HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            b"Content-Length: 100000000\r\n\r\n{"
+        )
+        head = sock.recv(4096)  # answered with 99.99 MB of the body never sent
+    assert head.startswith(b"HTTP/1.1 401"), head
+
+
+def test_row_11_a_chunked_body_over_the_limit_is_a_413(tmp_path):
+    app = create_app(Settings(store_url=f"sqlite:///{tmp_path / 'data'}", tokens=TOKENS, max_body_mb=0.01))
+
+    def chunks():
+        for _ in range(100):
+            yield b" " * 1024
+
+    with TestClient(app, raise_server_exceptions=False) as c:
+        r = c.post("/v1/regions", content=chunks(), headers={**ADMIN, "Content-Type": "application/json"})
+        problem(r, 413, "limit")
+        assert c.get("/v1/regions", headers=READ).json() == []
+
+
+# -- 12: bodies that decode into far more than they weigh ---------------------------------------
+def test_row_12_rows_and_decoded_size_are_checked_before_decoding(client):
+    before = state(client)
+    zeros = np.zeros(1_000_000)
+    table = pa.table({c: zeros for c in ("x", "y", "z", "ve", "vn", "vu")})
+    body = arrow_stream(table, "zstd")
+    assert len(body) < 100_000  # 48 MB of columns in a few kB
+    pool = pa.proxy_memory_pool(pa.default_memory_pool())
+    previous = pa.default_memory_pool()
+    pa.set_memory_pool(pool)
+    try:
+        r = client.post(
+            f"/v1/regions/{NAME}/observations",
+            content=body,
+            headers={**WRITE, "Content-Type": ARROW, "Idempotency-Key": "zip"},
+        )
+    finally:
+        pa.set_memory_pool(previous)
+    problem(r, 413, "decodes into 45.8 MiB", "limit is 8 MiB")
+    assert pool.max_memory() < 2**20  # refused from the metadata: no column was decoded
+    parquet = io.BytesIO()
+    pq.write_table(
+        pa.table({c: np.zeros(3_000_000) for c in table.column_names}), parquet, compression="zstd"
+    )
+    r = client.post(
+        f"/v1/regions/{NAME}/observations",
+        content=parquet.getvalue(),
+        headers={**WRITE, "Content-Type": PARQUET, "Idempotency-Key": "pq"},
+    )
+    problem(r, 422, "3000000 rows", "limit is 2000000")
+    big_json = b'{"points": [' + b"[1, 1, 1]," * 200_000 + b"[1, 1, 1]]}"
+    r = client.post(
+        f"/v1/regions/{NAME}/query", content=big_json, headers={**READ, "Content-Type": "application/json"}
+    )
+    problem(r, 413, "JSON body", ARROW)
+    assert state(client) == before
+
+
+def test_row_12_a_batch_that_lies_about_its_buffers_is_refused(client):
+    """A compressed buffer's declared length (its first 8 bytes) is what gets allocated."""
+    table = pa.table({"x": np.zeros(1000), "y": np.zeros(1000), "z": np.zeros(1000)})
+    body = bytearray(arrow_stream(table, "lz4"))
+    marker = (8000).to_bytes(8, "little")
+    at = body.index(marker)
+    body[at : at + 8] = (2**40).to_bytes(8, "little")  # "this buffer decodes into 1 TiB"
+    r = client.post(f"/v1/regions/{NAME}/query", content=bytes(body), headers={**READ, "Content-Type": ARROW})
+    problem(r, 413, "decodes into")
+
+
+# -- 13: tokens ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("tokens", [{"": ["admin"]}, {"short": ["read"]}, {"   padded-short  ": ["read"]}])
+def test_row_13_empty_or_short_tokens_are_refused_at_startup(tokens):
+    with pytest.raises(ValueError, match="shorter than 16"):
+        Settings(tokens=tokens)
+
+
+def test_row_13_an_empty_bearer_never_matches(client):
+    for header in ("Bearer", "Bearer ", "Bearer    "):
+        problem(client.get("/v1/regions", headers={"Authorization": header}), 401, "bearer token")
+
+
+# -- 14: parameters are finite before use -------------------------------------------------------
+def test_row_14_parameters_are_validated_finite(client):
+    before = state(client)
+    r = client.get(
+        f"/v1/regions/{NAME}/tubes",
+        params={"max_std_mps": "inf", "step": "50"},
+        headers={**READ, "Accept": NPZ},
+    )
+    problem(r, 422, "max_std_mps")
+    problem(
+        client.get(f"/v1/regions/{NAME}/slice.png", params={"alt_m": "4.1e16"}, headers=READ), 422, "alt_m"
+    )
+    problem(client.get(f"/v1/regions/{NAME}/slice.png", params={"alt_m": "nan"}, headers=READ), 422, "alt_m")
+    r = client.get(f"/v1/regions/{NAME}/grid", params={"step": "1e-300"}, headers={**READ, "Accept": NPZ})
+    problem(r, 422, "voxels")
+    assert state(client) == before
+
+
+# -- 15: ETags name the request -----------------------------------------------------------------
+def test_row_15_an_etag_names_the_request(client):
+    first = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ)
+    etag = {"If-None-Match": first.headers["etag"]}
+    same = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers={**READ, **etag})
+    assert same.status_code == 304
+    other = client.post(
+        f"/v1/regions/{NAME}/query", json={"points": PROBE[:1].tolist()}, headers={**READ, **etag}
+    )
+    assert other.status_code == 200 and len(other.json()["mean"]) == 1
+    junk = client.post(
+        f"/v1/regions/{NAME}/query",
+        content=b"not json",
+        headers={**READ, **etag, "Content-Type": "application/json"},
+    )
+    assert junk.status_code == 422
+    grid = client.get(f"/v1/regions/{NAME}/grid", params={"step": "50"}, headers={**READ, "Accept": NPZ})
+    g_etag = {"If-None-Match": grid.headers["etag"]}
+    box = {"step": "50", "bbox": "0,0,0,100,100,60"}
+    assert (
+        client.get(
+            f"/v1/regions/{NAME}/grid", params=box, headers={**READ, "Accept": NPZ, **g_etag}
+        ).status_code
+        == 200
+    )
+    arrow = client.get(
+        f"/v1/regions/{NAME}/grid", params={"step": "50"}, headers={**READ, "Accept": ARROW, **g_etag}
+    )
+    assert arrow.status_code == 200 and arrow.headers["content-type"] == ARROW
+
+
+# -- 16: errors say what to do, not where the database lives ------------------------------------
+def test_row_16_unavailable_details_do_not_name_the_database(client, app, monkeypatch):
+    def down(*args, **kw):
+        raise StoreUnavailable(
+            'connection to server at "10.0.0.7", port 5432 failed: /var/run/postgresql/.s.PGSQL.5432'
+        )
+
+    monkeypatch.setattr(app.state.maps.store, "region", down)
+    r = client.get(f"/v1/regions/{NAME}", headers=READ)
+    problem(r, 503, "retry")
+    assert (
+        not any(s in r.text for s in ("10.0.0.7", "5432", "/var/run")) and int(r.headers["retry-after"]) > 0
+    )
+
+
+def test_row_16_an_internal_numeric_failure_is_a_500_with_a_request_id(client, app, monkeypatch):
+    def singular(*args, **kw):
+        raise ValueError("the precision is not positive definite: increase alpha")
+
+    monkeypatch.setattr(app.state.maps, "predict", singular)
+    r = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ)
+    problem(r, 500, "request id")
+    assert r.json()["request_id"] == r.headers["x-request-id"] and "alpha" not in r.text
+
+
+# -- 17: bdf verify ------------------------------------------------------------------------------
+def verify(data_dir) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "clients.cli", "verify", "--data-dir", str(data_dir)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+
+
+def test_row_17_verify_reports_implausible_statistics_and_a_file_that_is_no_store(tmp_path):
+    store = open_store(f"sqlite:///{tmp_path / 'data'}")
+    loose = {**SPEC, "envelope": {"max_horizontal_speed_mps": 1e30, "max_sample_weight": 1e6}}
+    spec = RegionSpec.model_validate(SPEC)
+    region_id = store.create_region(spec).region_id
+    X, V = data(5, n=30)
+    V[0, 0] = 1e20  # what an older server accepted, written past today's envelope
+    increments = RegionSpec.model_validate(loose).increments(X, V)
+    store.apply(NAME, region_id, "old", "digest", increments, observations=30)
+    store.close()
+    done = verify(tmp_path / "data")
+    assert done.returncode == 1 and "beyond the envelope" in done.stdout and "1 problems" in done.stdout
+    (tmp_path / "junk").mkdir()
+    db = (tmp_path / "data" / "maps.sqlite3").read_bytes()
+    (tmp_path / "junk" / "maps.sqlite3").write_bytes(db[: len(db) // 3])
+    done = verify(tmp_path / "junk")
+    assert done.returncode == 1 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "not a bdf store, or is damaged" in done.stderr
