@@ -30,6 +30,7 @@ the cutoff are dropped (below ``cutoff^(1 / (1 + 2 gamma nu^2))``).
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Callable, Mapping
 from typing import Annotated, Literal, NamedTuple
 
@@ -52,9 +53,11 @@ from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice, axis_counts
+from bdf.linalg import NotPositiveDefinite
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence, stencil_of
 
+log = logging.getLogger(__name__)
 TileKey = tuple[int, int, int]
 #: Most tiles a region may have (keys, ledgers and listings stay small).
 MAX_TILES = 100_000
@@ -101,7 +104,8 @@ class Envelope(BaseModel):
     max_horizontal_speed_mps: Positive = 400.0
     max_vertical_speed_mps: Positive = 100.0
     max_input_noise_std_m: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 1000.0
-    max_sample_weight: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] = 1000.0
+    min_sample_weight: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1e-6
+    max_sample_weight: Annotated[float, Field(ge=1, le=1e6, allow_inf_nan=False)] = 1000.0
 
     def speed_ok(self, V: np.ndarray) -> np.ndarray:
         """(n,): the velocity rows (finite) within the speed limits."""
@@ -114,8 +118,8 @@ class Envelope(BaseModel):
         return rows_all((noise >= 0) & (noise <= self.max_input_noise_std_m))
 
     def weight_ok(self, weight: np.ndarray) -> np.ndarray:
-        """(n,): sample weights (finite) in ``(0, max_sample_weight]``."""
-        return (weight > 0) & (weight <= self.max_sample_weight)
+        """(n,): sample weights (finite) in ``[min_sample_weight, max_sample_weight]``."""
+        return (weight >= self.min_sample_weight) & (weight <= self.max_sample_weight)
 
     def problems(self, evidence: SectorEvidence, points: int) -> list[str]:
         """What in a tile's statistics of ``points`` observations no accepted rows can make:
@@ -418,8 +422,17 @@ class RegionSpec(BaseModel):
         """The region's posterior of ``evidence`` (:meth:`region_evidence`) at ``alpha``,
         ``beta`` (the values in force; None: the spec's), variance density ready, factors
         dropped. With "auto" it fits them: ``posterior.alpha``, ``posterior.beta``."""
-        field = self.field(alpha, beta).set_evidence(evidence)
-        return field.posterior_.compact()
+        try:
+            return self.field(alpha, beta).set_evidence(evidence).posterior_.compact()
+        except NotPositiveDefinite:
+            if not self.auto or (alpha is None and beta is None):
+                raise
+            # "auto" values fitted on other evidence (earlier data, weighed otherwise) may no
+            # longer factor on this one: "auto" means this evidence's maximum, so find it
+            log.warning(
+                "region %s: the fitted alpha/beta do not factor on its evidence; refitting", self.name
+            )
+            return self.field().set_evidence(evidence).posterior_.compact()
 
     def known(self, X: np.ndarray, data_tiles) -> np.ndarray:
         """(n,) True where a tile core with data lies within the kernel's reach (where it is

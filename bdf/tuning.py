@@ -250,6 +250,11 @@ def fit_evidence(
         x0 = 0.0 if start is None else float(np.log(start / scale))
         evaluations = _search(evaluate, float(np.clip(x0, *bounds)), bounds)
         sol = best[1]
+        if sol is None:  # no ratio in the range could be factored
+            raise linalg.NotPositiveDefinite(
+                f"the precision matrix is not positive definite at any alpha/beta in "
+                f"[{scale * np.exp(bounds[0]):.3g}, {scale * np.exp(bounds[1]):.3g}]"
+            )
         a, b = _hyper_for(sol, alpha, beta, count)
         alpha_v[comps], beta_v[comps] = a[comps], b[comps]
         for c in comps:

@@ -61,6 +61,7 @@ def test_spec_json_is_the_service_body():
             "max_horizontal_speed_mps": 400.0,
             "max_vertical_speed_mps": 100.0,
             "max_input_noise_std_m": 1000.0,
+            "min_sample_weight": 1e-06,
             "max_sample_weight": 1000.0,
         },
     }

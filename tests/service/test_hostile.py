@@ -7,6 +7,7 @@ import json
 import socket
 import subprocess
 import sys
+import tempfile
 
 import numpy as np
 import pyarrow as pa
@@ -14,11 +15,15 @@ import pyarrow.ipc
 import pyarrow.parquet as pq
 import pytest
 from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import service.maps
 from bdf.tiles import RegionSpec
+from service import slices
 from service.app import create_app
 from service.formats import ARROW, NPZ, PARQUET
+from service.maps import RegionMaps
 from service.settings import Settings
 from service.store import RegionExists, StoreUnavailable, open_store
 from tests.service.test_store import SPEC, data
@@ -169,6 +174,7 @@ def test_row_18_json_numbers_are_numbers(client):
         ([0, 0, 150], {}, "implausible_speed"),
         ([10, 0, 0], {"sample_weight": [1e300]}, "implausible_weight"),
         ([10, 0, 0], {"sample_weight": [0.0]}, "implausible_weight"),
+        ([10, 0, 0], {"sample_weight": [1e-300]}, "implausible_weight"),
         ([10, 0, 0], {"input_noise_std": [1e9]}, "implausible_noise"),
     ],
 )
@@ -464,3 +470,111 @@ def test_row_17_verify_reports_implausible_statistics_and_a_file_that_is_no_stor
     done = verify(tmp_path / "junk")
     assert done.returncode == 1 and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "not a bdf store, or is damaged" in done.stderr
+
+
+# -- properties: no accepted row can break a map; every accepted spec can be served ------------
+EDGE_SPEEDS = [0.0, 1e-9, 50.0, 282.84, 399.99]
+extreme_rows = st.lists(
+    st.tuples(
+        st.tuples(*(st.sampled_from([0.0, 1e-9, hi / 2, hi]) for hi in (300.0, 200.0, 60.0))),
+        st.tuples(
+            st.sampled_from(EDGE_SPEEDS), st.sampled_from([-1.0, 1.0]), st.sampled_from([0.0, -100.0, 100.0])
+        ),
+        st.sampled_from([1e-6, 1e-3, 1.0, 1000.0]),  # sample weight
+        st.sampled_from([0.0, 1e-3, 30.0, 1000.0]),  # input noise std
+    ),
+    min_size=1,
+    max_size=12,
+)
+
+
+def _arrays(batch):
+    X = np.array([r[0] for r in batch])
+    speed, sign, vu = (np.array([r[1][i] for r in batch]) for i in range(3))
+    # the horizontal speed split between east and north, within the envelope
+    V = np.stack([sign * speed / np.sqrt(2), speed / np.sqrt(2), vu], axis=1)
+    return X, V, np.array([r[2] for r in batch]), np.array([r[3] for r in batch])
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(uploads=st.lists(extreme_rows, min_size=1, max_size=4), directions=st.sampled_from([1, 4]))
+def test_no_accepted_rows_in_any_order_can_break_a_map(uploads, directions):
+    with tempfile.TemporaryDirectory() as tmp:
+        store = open_store(f"sqlite:///{tmp}")
+        try:
+            spec = RegionSpec.model_validate({**SPEC, "directions": directions})
+            store.create_region(spec)
+            maps = RegionMaps(store)
+            for i, batch in enumerate(uploads):
+                X, V, weight, noise = _arrays(batch)
+                result = maps.upload(NAME, f"u{i}", X, V, sample_weight=weight, input_noise_std=noise)
+                assert result["accepted"] == len(X)  # every row is inside the envelope
+            assert_serves(maps, spec)
+            maps.fit_hyperparameters(NAME)
+            served = assert_serves(maps, spec)
+            fresh = RegionMaps(store)  # what a new process computes from the store
+            # the same evidence maximum (refound where the stored ratio no longer factors)
+            np.testing.assert_allclose(assert_serves(fresh, spec), served, rtol=1e-5, atol=1e-6)
+            assert store.verify() == {NAME: []}
+        finally:
+            store.close()
+
+
+def assert_serves(maps: RegionMaps, spec: RegionSpec) -> np.ndarray:
+    """Points, modes and a grid of the region's map are finite, with positive std."""
+    X = np.concatenate([PROBE, spec.lower[None], spec.upper[None]]) if spec.name == NAME else spec.lower[None]
+    X = np.clip(X, spec.lower, spec.upper)
+    pred = maps.predict(spec.name, X, modes=True)
+    for a in (pred.mean, pred.std, pred.modes.share, pred.modes.mean, pred.modes.std):
+        assert np.isfinite(a).all()
+    assert (pred.std > 0).all()
+    axes = [np.linspace(lo, hi, 3) for lo, hi in zip(spec.lower, spec.upper, strict=True)]
+    grid = maps.predict_grid(spec.name, axes)
+    assert np.isfinite(grid.mean).all() and (grid.std > 0).all()
+    return np.concatenate([pred.mean.ravel(), pred.std.ravel()])
+
+
+lengths = st.floats(1.0, 1e5)
+specs = st.builds(
+    lambda extent, spacing, reach, tile, cutoff, directions, corner: {
+        "name": "prop",
+        "origin": {"lat": 48.0, "lon": 2.0},
+        "bounds_m": {"min": corner, "max": [c + e for c, e in zip(corner, extent, strict=True)]},
+        "tile_size_m": [e * t for e, t in zip(extent, tile, strict=True)],
+        "spacing_m": [e * s for e, s in zip(extent, spacing, strict=True)],
+        "gamma": [np.log(1 / cutoff) / (e * r) ** 2 for e, r in zip(extent, reach, strict=True)],
+        "cutoff": cutoff,
+        "directions": directions,
+    },
+    extent=st.tuples(lengths, lengths, lengths),
+    spacing=st.tuples(*[st.floats(1e-4, 2.0)] * 3),
+    reach=st.tuples(*[st.floats(1e-5, 3.0)] * 3),
+    tile=st.tuples(*[st.floats(1e-3, 2.0)] * 3),
+    cutoff=st.sampled_from([1e-12, 1e-9, 1e-6]),
+    directions=st.sampled_from([1, 8]),
+    corner=st.tuples(*[st.floats(-2e6, 2e6)] * 3),
+)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(body=specs)
+def test_every_accepted_spec_takes_an_upload_and_answers_a_query_a_grid_and_a_slice(body):
+    try:
+        spec = RegionSpec.model_validate(body)
+    except ValueError:
+        return  # refused with a reason (the 422s above); accepted ones must be served
+    with tempfile.TemporaryDirectory() as tmp:
+        store = open_store(f"sqlite:///{tmp}")
+        try:
+            store.create_region(spec)
+            maps = RegionMaps(store)
+            rng = np.random.default_rng(0)
+            X = rng.uniform(spec.lower, spec.upper, (50, 3))
+            V = rng.uniform(-50, 50, (50, 3))
+            assert maps.upload(spec.name, "u", X, V)["accepted"] == 50
+            assert_serves(maps, spec)
+            x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, None, None)
+            cut = maps.predict_grid(spec.name, [x, y, spec.lower[2:]])
+            assert np.isfinite(cut.mean).all()
+        finally:
+            store.close()
