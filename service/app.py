@@ -94,7 +94,7 @@ class UploadResult(BaseModel):
     accepted: int
     rejected: dict[str, int]
     upload_id: str
-    kind: Literal["observations", "fit"]
+    kind: Literal["observations", "fit", "retraction"]
     region_version: int
     tiles_updated: int
     replayed: bool

@@ -535,14 +535,14 @@ class MapStore(ABC):
             if not rows:
                 raise UploadNotFound(f"region {name!r} has no upload {upload_id!r} to retract")
             kind, stored_digest, applied = rows[0][0], rows[0][1], json.loads(rows[0][2])
+            if kind == "fit":
+                raise UploadConflict(f"{upload_id!r} is a fit, which replaced the map: fit again instead")
             if stored_digest != digest:
                 raise UploadConflict(
                     f"these rows are not those of upload {upload_id!r}: send exactly the rows it sent"
                 )
             if kind == "retracted":
                 return {**applied["retraction"], "replayed": True}
-            if kind == "fit":
-                raise UploadConflict(f"{upload_id!r} is a fit, which replaced the map: fit again instead")
             fits = [
                 json.loads(r[0])["region_version"]
                 for r in q("SELECT result FROM uploads WHERE region_id = ? AND kind = 'fit'", (region_id,))

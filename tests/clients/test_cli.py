@@ -120,3 +120,26 @@ def test_slice_plot_greys_the_mean_where_no_tile_has_data(tmp_path):
     assert grey_pixels(everything) < 50
     assert grey_pixels(half) > 20_000
     assert grey_pixels(np.zeros_like(everything)) > 1.8 * grey_pixels(half)
+
+
+def test_retract_undoes_an_upload_of_the_same_file(server, tmp_path):
+    url = ["--url", server.url]
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(json.dumps({**SPEC, "name": "undo"}))
+    assert bdf("region", "create", str(spec_file), *url).returncode == 0
+    files = []
+    for seed in (0, 1):
+        X, V = data(seed, n=300)
+        files.append(tmp_path / f"obs{seed}.csv")
+        pacsv.write_csv(
+            pa.table(dict(zip(["x", "y", "z", "ve", "vn", "vu"], np.hstack([X, V]).T, strict=True))),
+            files[-1],
+        )
+        assert bdf("upload", "undo", str(files[-1]), "--chunk-size", "200", *url).returncode == 0
+    run = bdf("retract", "undo", str(files[1]), "--chunk-size", "200", *url)
+    assert run.returncode == 0, run.stderr
+    assert "retracted 300 observations from 'undo'" in run.stdout and "2 request(s)" in run.stdout
+    with BDFClient(server.url) as client:
+        assert client.region("undo").observations == 300
+    run = bdf("retract", "undo", str(files[1]), "--chunk-size", "100", *url)  # other chunks: other keys
+    assert run.returncode == 2 and "no upload" in run.stderr

@@ -161,3 +161,25 @@ def test_sample_weights_travel_with_the_upload(bdf):
     np.testing.assert_allclose(pred.std, std, rtol=1e-6)
     unweighted, _, _ = library(spec, X, V, Xq, bdf.region(NAME))
     assert np.abs(unweighted - mean).max() > 1e-3  # the weights changed the answer
+
+
+def test_a_retraction_undoes_a_chunked_upload_exactly_and_once(bdf):
+    X, V = data(0, n=300)
+    bdf.upload(NAME, X, V, chunk_size=100)
+    Xq = data(1, n=20)[0]
+    before = bdf.query(NAME, Xq)
+    Xb, Vb = data(2, n=250)
+    weight = np.linspace(0.5, 2.0, 250)
+    bdf.upload(NAME, Xb, Vb + 30, sample_weight=weight, chunk_size=100)  # a broken sensor's
+    assert np.abs(bdf.query(NAME, Xq).mean - before.mean).max() > 1
+    done = bdf.retract(NAME, Xb, Vb + 30, sample_weight=weight, chunk_size=100)
+    assert (done.accepted, done.chunks, done.replayed_chunks, done.region_version) == (250, 3, 0, 9)
+    again = bdf.retract(NAME, Xb, Vb + 30, sample_weight=weight, chunk_size=100)
+    assert (again.replayed_chunks, bdf.region(NAME).version) == (3, 9)
+    assert bdf.region(NAME).observations == 300
+    after = bdf.query(NAME, Xq)
+    np.testing.assert_allclose(after.mean, before.mean, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(after.std, before.std, rtol=1e-9)
+    with pytest.raises(BDFError) as err:
+        bdf.retract(NAME, Xb, Vb, chunk_size=100)  # not the rows of any upload
+    assert err.value.status == 404

@@ -13,7 +13,14 @@ import pytest
 
 from bdf.tiles import RegionSpec
 from service.maps import REJECTED, PosteriorCache, RegionMaps
-from service.store import RegionExists, RegionNotFound, UploadConflict, open_store, payload_digest
+from service.store import (
+    RegionExists,
+    RegionNotFound,
+    UploadConflict,
+    UploadNotFound,
+    open_store,
+    payload_digest,
+)
 
 SPEC = {
     "name": "town",
@@ -406,3 +413,73 @@ def test_a_writer_killed_mid_upload_leaves_all_or_nothing(store_url):
     expected = spec.increments(np.vstack([X0, X]), np.vstack([V0, V]))
     assert_evidence_equal(store.snapshot("city").evidence, {k: i.evidence for k, i in expected.items()})
     store.close()
+
+
+@pytest.mark.parametrize("directions", [1, 4])
+def test_a_retraction_leaves_exactly_the_map_without_that_upload(store, spec, directions):
+    """A broken sensor's upload, retracted: the stored statistics, the tiles and the map
+    equal those of the same region built without it (1e-9), once per upload id."""
+    body = {**SPEC, "name": "town", "directions": directions}
+    if directions > 1:
+        store.delete_region("town")
+        store.create_region(RegionSpec.model_validate(body))
+    maps = RegionMaps(store)
+    (Xa, Va), (Xc, Vc) = data(20, n=150), data(22, n=150)
+    Xb, Vb = data(21, n=120)
+    Xb[:60, 0] = np.linspace(210, 299, 60)  # tile column 2 has only the broken upload's rows
+    Xa[:, 0], Xc[:, 0] = Xa[:, 0] * 0.66, Xc[:, 0] * 0.66
+    weight, noise = np.linspace(0.5, 2, 120), np.full(120, 3.0)
+    maps.upload("town", "a", Xa, Va)
+    maps.upload("town", "b", Xb, Vb + 20, sample_weight=weight, input_noise_std=noise)
+    maps.upload("town", "c", Xc, Vc)
+    assert (2, 0, 0) in store.snapshot("town").tiles
+    result = maps.retract("town", "b", Xb, Vb + 20, sample_weight=weight, input_noise_std=noise)
+    assert (result["kind"], result["accepted"], result["region_version"]) == ("retraction", 120, 4)
+    assert maps.retract("town", "b", Xb, Vb + 20, sample_weight=weight, input_noise_std=noise) == {
+        **result,
+        "replayed": True,
+    }
+    assert maps.upload("town", "b", Xb, Vb + 20, sample_weight=weight, input_noise_std=noise)["replayed"]
+    after = store.snapshot("town")
+    assert after.region.version == 4 and after.region.observations == 300
+    hyper = after.region.hyper
+    # the same region built without the broken upload, at the same hyperparameters
+    fixed = {**body, "name": "clean", "alpha": hyper["alpha"], "beta": hyper["beta"]}
+    if directions > 1:  # per-class values are not a spec's: compare at the map's evidence
+        fixed = {**body, "name": "clean"}
+    clean = RegionSpec.model_validate(fixed)
+    store.create_region(clean)
+    maps.upload("clean", "a", Xa, Va)
+    maps.upload("clean", "c", Xc, Vc)
+    expected = store.snapshot("clean")
+    assert set(after.tiles) == set(expected.tiles) and (2, 0, 0) not in after.tiles
+    assert_evidence_equal(after.evidence, expected.evidence, rtol=1e-9)
+    assert [t.points for t in after.tiles.values()] == [t.points for t in expected.tiles.values()]
+    Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (300, 3))
+    if directions == 1:
+        got, want = maps.predict("town", Q, min_version=4), maps.predict("clean", Q, min_version=2)
+    else:  # both at the evidence maximum of their (equal) evidence
+        got = maps.predict("town", Q, min_version=maps.fit_hyperparameters("town").version)
+        want = maps.predict("clean", Q, min_version=maps.fit_hyperparameters("clean").version)
+    np.testing.assert_allclose(got.mean, want.mean, rtol=1e-9, atol=1e-9 * np.abs(want.mean).max())
+    np.testing.assert_allclose(got.std, want.std, rtol=1e-9)
+    np.testing.assert_array_equal(got.known, want.known)
+
+
+def test_a_retraction_needs_the_uploads_own_rows_and_an_upload_still_in_the_map(store, spec):
+    maps = RegionMaps(store)
+    X, V = data(23, n=60)
+    maps.upload("town", "a", X, V)
+    before = store.snapshot("town")
+    with pytest.raises(UploadConflict, match="not those of upload"):
+        maps.retract("town", "a", X, V + 1)
+    with pytest.raises(UploadNotFound, match="no upload 'zz'"):
+        maps.retract("town", "zz", X, V)
+    maps.upload("town", "f", X[:30], V[:30], replace=True)
+    with pytest.raises(UploadConflict, match="replaced by the fit at version 2"):
+        maps.retract("town", "a", X, V)
+    with pytest.raises(UploadConflict, match="is a fit"):
+        maps.retract("town", "f", X[:30], V[:30])
+    after = store.snapshot("town")
+    assert after.region.version == before.region.version + 1 == 2  # only the fit changed it
+    assert after.region.observations == 30
