@@ -258,15 +258,16 @@ def delete_region(name: RegionName, request: Request):
     return Response(status_code=204)
 
 
-def _upload_id(key: str | None) -> str:
-    if not key:
-        raise Problem(400, "the Idempotency-Key header is required: a retry with the same key applies once")
-    if len(key) > 200 or not key.isprintable():
-        raise Problem(422, "Idempotency-Key must be 1 to 200 printable characters")
-    return key
-
-
-IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key")]
+IdempotencyKey = Annotated[
+    str,
+    Header(
+        alias="Idempotency-Key",
+        min_length=1,
+        max_length=200,
+        pattern=r"^[ -~]+$",
+        description="the upload's id (printable ASCII): a retry with the same key applies once",
+    ),
+]
 
 
 @router.post(
@@ -274,9 +275,8 @@ IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key")]
     response_model=UploadResult,
     **scoped("write", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
-async def post_observations(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
+async def post_observations(name: RegionName, request: Request, upload_id: IdempotencyKey):
     """Add observations to the map (exactly once per Idempotency-Key)."""
-    upload_id = _upload_id(idempotency_key)
     body = await request.body()
     app = request.app
 
@@ -323,10 +323,9 @@ def _apply(app, name: str, upload_id: str, obs: formats.Observations, **kw) -> d
         responses={202: {"model": JobView, "description": "a large fit runs as a job"}},
     ),
 )
-async def post_fit(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
+async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey):
     """Replace the map with this data. Large bodies run as a job (202); the old map keeps
     answering queries until the new one commits."""
-    upload_id = _upload_id(idempotency_key)
     body = await request.body()
     app = request.app
     spec, obs = await run_in_threadpool(_observations, app, name, body, request.headers.get("content-type"))
@@ -347,11 +346,10 @@ async def post_fit(name: RegionName, request: Request, idempotency_key: Idempote
     response_model=UploadResult,
     **scoped("admin", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
-async def post_retraction(name: RegionName, request: Request, idempotency_key: IdempotencyKey = None):
+async def post_retraction(name: RegionName, request: Request, upload_id: IdempotencyKey):
     """Retract an acknowledged upload exactly (a sensor found broken): the Idempotency-Key
     names the upload, the body holds the very rows it sent (checked against the ledger's
     digest). The map becomes the map without them; once per upload, a retry replays."""
-    upload_id = _upload_id(idempotency_key)
     body = await request.body()
     app = request.app
 
@@ -458,8 +456,23 @@ def _grid_prediction(
     return info.spec, axes, app.state.maps.predict_grid(name, axes, info, min_version, modes=modes)
 
 
-BBox = Annotated[str | None, Query(description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")]
-Step = Annotated[str, Query(description="dx,dy,dz metres (or one number for all axes)")]
+#: a number as the comma-separated query parameters take it (two exponent digits: finite)
+NUMBER = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]{1,2})?"
+POSITIVE = r"(?:0*[1-9][0-9]*(?:\.[0-9]*)?|0*\.[0-9]*[1-9][0-9]*)(?:[eE][-+]?[0-9]{1,2})?"
+BBox = Annotated[
+    str | None,
+    Query(
+        pattern=rf"^{NUMBER}(?:,{NUMBER}){{5}}$",
+        description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres",
+    ),
+]
+Step = Annotated[
+    str,
+    Query(
+        pattern=rf"^{POSITIVE}(?:,{POSITIVE},{POSITIVE})?$",
+        description="dx,dy,dz metres (or one number for all axes)",
+    ),
+]
 
 
 @router.get(
@@ -635,7 +648,12 @@ def slice_png(
     max_std_mps: Annotated[
         float, Query(gt=0, allow_inf_nan=False, description="tube bound (layer=tube), m/s")
     ] = 1.0,
-    bbox: Annotated[str | None, Query(description="xmin,ymin,xmax,ymax in region ENU metres")] = None,
+    bbox: Annotated[
+        str | None,
+        Query(
+            pattern=rf"^{NUMBER}(?:,{NUMBER}){{3}}$", description="xmin,ymin,xmax,ymax in region ENU metres"
+        ),
+    ] = None,
     step: Annotated[
         float | None, Query(gt=0, allow_inf_nan=False, description="horizontal cell size, metres")
     ] = None,

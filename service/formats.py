@@ -60,8 +60,10 @@ class ObservationsBody(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     frame: Frame = "enu"
-    points: list[Row3] = Field(description="[x, y, z] ENU metres, or [lat, lon, alt_m]")
-    velocities: list[Row3] = Field(description="[ve, vn, vu] m/s in each point's local ENU axes")
+    points: list[Row3] = Field(min_length=1, description="[x, y, z] ENU metres, or [lat, lon, alt_m]")
+    velocities: list[Row3] = Field(
+        min_length=1, description="[ve, vn, vu] m/s in each point's local ENU axes"
+    )
     input_noise_std: float | list[Value] | list[Row3] | None = Field(
         None, description="position noise std in metres: one number, one per point, or one per axis"
     )
@@ -76,7 +78,7 @@ class QueryBody(BaseModel):
     model_config = ConfigDict(extra="forbid")
     frame: Frame = "enu"
     points: list[Row3]
-    modes: bool = Field(False, description="add every traffic class's share, mean and std")
+    modes: bool = Field(False, strict=True, description="add every traffic class's share, mean and std")
     heading_deg: FiniteFloat | list[FiniteFloat] | None = Field(
         None,
         description="degrees from north, clockwise (one, or one per point): mean and std become "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+import re
 import secrets
 from http import HTTPStatus
 
@@ -122,7 +123,14 @@ def install(app: FastAPI) -> None:
         return decorator
 
     on(Problem)(lambda e: (e.status, e.detail, e.headers))
-    on(HTTPException)(lambda e: (e.status_code, e.detail, getattr(e, "headers", None)))
+
+    async def http_error(request: Request, exc: HTTPException):
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:  # every method of the path, not only its first route's
+            headers["Allow"] = ", ".join(_allowed(request))
+        return problem(exc.status_code, exc.detail, request.scope, headers)
+
+    app.add_exception_handler(HTTPException, http_error)
     on(RequestValidationError)(lambda e: (422, _describe(e.errors()), None))
     on(ValidationError)(lambda e: (422, _describe(e.errors()), None))
     # the client's: a ValueError anywhere else is ours (500, below)
@@ -166,6 +174,16 @@ def install(app: FastAPI) -> None:
         return problem(500, "internal error (logged on the server with this request id)", request.scope)
 
     app.add_exception_handler(Exception, internal)
+
+
+def _allowed(request: Request) -> list[str]:
+    """The methods the API documents at the request's path (its OpenAPI paths)."""
+    methods = set()
+    for path, operations in request.app.openapi()["paths"].items():
+        template = re.sub(r"\\\{[^/]+?\\\}", "[^/]+", re.escape(path))
+        if re.fullmatch(template, request.url.path):
+            methods |= {m.upper() for m in operations}
+    return sorted(methods)
 
 
 def _describe(errors) -> str:

@@ -462,7 +462,7 @@ def test_limits_and_errors_are_problem_json(live_server):
                 422,
                 "limit is 1000",
             ),
-            (c.post(obs, json={"points": [[0, 0, 0]], "velocities": [[0, 0, 0]]}), 400, "Idempotency-Key"),
+            (c.post(obs, json={"points": [[0, 0, 0]], "velocities": [[0, 0, 0]]}), 422, "Idempotency-Key"),
             (
                 c.post(obs, content=b"a,b", headers={"Content-Type": "text/csv", "Idempotency-Key": "k"}),
                 415,
