@@ -459,17 +459,22 @@ def _grid_prediction(
 #: a number as the comma-separated query parameters take it (two exponent digits: finite)
 NUMBER = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]{1,2})?"
 POSITIVE = r"(?:0*[1-9][0-9]*(?:\.[0-9]*)?|0*\.[0-9]*[1-9][0-9]*)(?:[eE][-+]?[0-9]{1,2})?"
+BOX3 = rf"^{NUMBER}(?:,{NUMBER}){{5}}$"
+BOX2 = rf"^{NUMBER}(?:,{NUMBER}){{3}}$"
+STEP = rf"^{POSITIVE}(?:,{POSITIVE},{POSITIVE})?$"
+#: what the patterns mean, in a 422
+PATTERNS = {
+    BOX3: "6 comma-separated numbers",
+    BOX2: "4 comma-separated numbers",
+    STEP: "1 or 3 comma-separated positive numbers",
+}
 BBox = Annotated[
-    str | None,
-    Query(
-        pattern=rf"^{NUMBER}(?:,{NUMBER}){{5}}$",
-        description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres",
-    ),
+    str | None, Query(pattern=BOX3, description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")
 ]
 Step = Annotated[
     str,
     Query(
-        pattern=rf"^{POSITIVE}(?:,{POSITIVE},{POSITIVE})?$",
+        pattern=STEP,
         description="dx,dy,dz metres (or one number for all axes)",
     ),
 ]
@@ -650,9 +655,7 @@ def slice_png(
     ] = 1.0,
     bbox: Annotated[
         str | None,
-        Query(
-            pattern=rf"^{NUMBER}(?:,{NUMBER}){{3}}$", description="xmin,ymin,xmax,ymax in region ENU metres"
-        ),
+        Query(pattern=BOX2, description="xmin,ymin,xmax,ymax in region ENU metres"),
     ] = None,
     step: Annotated[
         float | None, Query(gt=0, allow_inf_nan=False, description="horizontal cell size, metres")
@@ -783,7 +786,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     app.state.maps = maps
     app.state.jobs = Jobs()
     app.state.metrics = Metrics(maps.cache)
-    problems.install(app)
+    problems.install(app, PATTERNS)
     if settings.cors_origins:  # off unless configured: browsers on other origins get no access
         app.add_middleware(
             CORSMiddleware,

@@ -108,7 +108,11 @@ class _RequestIds:
 new_request_id = _RequestIds()
 
 
-def install(app: FastAPI) -> None:
+def install(app: FastAPI, patterns: dict[str, str] | None = None) -> None:
+    """The handlers; ``patterns``: what each parameter pattern means, said in its 422
+    instead of the regular expression."""
+    patterns = patterns or {}
+
     def on(exc_type):
         """Register ``fn(exc) -> (status, detail, headers)`` as the handler of ``exc_type``."""
 
@@ -131,8 +135,8 @@ def install(app: FastAPI) -> None:
         return problem(exc.status_code, exc.detail, request.scope, headers)
 
     app.add_exception_handler(HTTPException, http_error)
-    on(RequestValidationError)(lambda e: (422, _describe(e.errors()), None))
-    on(ValidationError)(lambda e: (422, _describe(e.errors()), None))
+    on(RequestValidationError)(lambda e: (422, _describe(e.errors(), patterns), None))
+    on(ValidationError)(lambda e: (422, _describe(e.errors(), patterns), None))
     # the client's: a ValueError anywhere else is ours (500, below)
     for exc_type, status in (
         (Unprocessable, 422),
@@ -186,9 +190,13 @@ def _allowed(request: Request) -> list[str]:
     return sorted(methods)
 
 
-def _describe(errors) -> str:
+def _describe(errors, patterns: dict[str, str]) -> str:
     parts = []
     for err in errors:
         where = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
-        parts.append(f"{where}: {err['msg']}" if where else err["msg"])
+        msg = err["msg"]
+        meaning = patterns.get(err.get("ctx", {}).get("pattern", ""))
+        if err["type"] == "string_pattern_mismatch" and meaning:
+            msg = f"must be {meaning}, got {err['input']!r}"
+        parts.append(f"{where}: {msg}" if where else msg)
     return "; ".join(parts)

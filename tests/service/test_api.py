@@ -485,7 +485,7 @@ def test_limits_and_errors_are_problem_json(live_server):
             (
                 c.post(obs, json={"points": [[0, 0, 0]], "velocities": []}, headers={"Idempotency-Key": "k"}),
                 422,
-                "1 points but 0 velocities",
+                "velocities: List should have at least 1 item",
             ),
             (
                 c.post(

@@ -136,7 +136,7 @@ def test_slice_png_endpoint(live_server):
         for params, message in (
             ({"alt_m": 61}, "outside region"),
             ({"alt_m": 20, "bbox": "0,0,500,100"}, "leaves the region"),
-            ({"alt_m": 20, "bbox": "0,0,5"}, "bbox must be 4"),
+            ({"alt_m": 20, "bbox": "0,0,5"}, "bbox: must be 4 comma-separated numbers"),
             ({"alt_m": 20, "layer": "speed"}, "layer"),
             ({"alt_m": 20, "step": 0.1}, "per axis"),
         ):
