@@ -56,7 +56,7 @@ def all_checks(examples: int) -> tuple[str, list[str]]:
                 f"Authorization: Bearer {TOKEN}",
             ]
             cmd += ["--seed", str(SEED), "-n", str(examples), "-w", "1"]
-            out = subprocess.run(cmd, capture_output=True, text=True).stdout
+            out = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp).stdout  # its cache there
     findings = re.findall(r"_{3,} (\S+ \S+) _{3,}\n.*?\n- (ST\d+ [^\n]+).*?`(\{[^`]*\})`", out, re.S)
     listed = [f"{op}: {code}: {json.loads(problem)['detail']}" for op, code, problem in findings]
     summary = [line for line in out.splitlines() if " generated, " in line or re.match(r"=+ .* in ", line)]
