@@ -110,6 +110,8 @@ def _hyper_for(sol: Solution, alpha, beta, count: float):
         # the evidence is concave in beta, so the constrained optimum is the bound
         beta = np.minimum(beta, MAX_AUTO_BETA)
     beta = np.broadcast_to(np.asarray(beta, float), (3,))
+    if not isinstance(alpha, str):  # as given, not lam * beta to rounding
+        return np.broadcast_to(np.asarray(alpha, float), (3,)), beta
     return sol.lam * beta, beta
 
 
@@ -248,7 +250,12 @@ def fit_evidence(
             return slope, curvature, fixed_point - np.log(scale)
 
         x0 = 0.0 if start is None else float(np.log(start / scale))
-        evaluations = _search(evaluate, float(np.clip(x0, *bounds)), bounds)
+        span = bounds
+        if tied:  # beta = alpha / lam stays below its cap, so alpha stays the fixed one
+            fixed = np.broadcast_to(np.asarray(alpha, float), (3,))[comps]
+            least = float(np.log(fixed.min() / MAX_AUTO_BETA / scale))
+            span = (max(bounds[0], least), max(bounds[1], least))
+        evaluations = _search(evaluate, float(np.clip(x0, *span)), span)
         sol = best[1]
         if sol is None:  # no ratio in the range could be factored
             raise linalg.NotPositiveDefinite(

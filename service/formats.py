@@ -162,10 +162,12 @@ def _check_schema(schema: pa.Schema, allowed: frozenset) -> None:
     if unknown:
         raise Problem(422, f"unknown column(s) {unknown}; this body takes {sorted(allowed)}")
     for field in schema:
-        if not (pa.types.is_floating(field.type) or pa.types.is_integer(field.type)):
-            raise Problem(
-                422, f"column {field.name!r} has type {field.type}; it must be a number (float or integer)"
-            )
+        _numeric(field.name, field.type)
+
+
+def _numeric(name: str, type_: pa.DataType) -> None:
+    if not (pa.types.is_floating(type_) or pa.types.is_integer(type_)):
+        raise Problem(422, f"column {name!r} has type {type_}; it must be a number (float or integer)")
 
 
 def _check_size(rows: int, decoded_bytes: int, limits: Limits) -> None:
@@ -251,10 +253,7 @@ def _columns(table: pa.Table | pa.RecordBatch, names) -> np.ndarray:
     out = np.empty((table.num_rows, len(names)))
     for i, name in enumerate(names):
         column = table.column(name)
-        if not (pa.types.is_floating(column.type) or pa.types.is_integer(column.type)):
-            raise Problem(
-                422, f"column {name!r} has type {column.type}; it must be a number (float or integer)"
-            )
+        _numeric(name, column.type)
         out[:, i] = np.asarray(column.to_numpy(zero_copy_only=False), dtype=float)
     return out
 

@@ -72,6 +72,23 @@ def test_auto_beta_is_bounded_for_a_constant_component():
     assert np.all(std[:, 2] >= MAX_AUTO_BETA**-0.5) and np.all(std[:, 2] < 1e-2)
 
 
+def test_a_fixed_alpha_stays_fixed_where_auto_beta_meets_its_bound():
+    """beta = alpha / lam with alpha fixed: the search keeps lam above alpha / MAX_AUTO_BETA,
+    so the bound on beta never moves alpha off the value given (it used to: 0.64 for 1)."""
+    from bdf.tuning import MAX_AUTO_BETA
+
+    X = np.zeros((2, 3))
+    V = np.array([[0.0, -1.0, 0.0]] * 2)
+    f = BayesianDynamicField([0, 0, 0], [100, 100, 100], 20, 1 / 400, alpha=1.0, beta="auto")
+    f.fit(X, V, sample_weight=[1e-6, 1000.0])
+    np.testing.assert_array_equal(f.alpha_, 1.0)
+    np.testing.assert_allclose(f.beta_, MAX_AUTO_BETA, rtol=1e-12)
+    refit = BayesianDynamicField([0, 0, 0], [100, 100, 100], 20, 1 / 400, alpha=1.0, beta=f.beta_)
+    np.testing.assert_allclose(
+        refit.fit(X, V, sample_weight=[1e-6, 1000.0]).predict(X), f.predict(X), rtol=1e-9
+    )
+
+
 @pytest.mark.parametrize(("alpha", "beta"), [("auto", "auto"), ("auto", 30.0), (0.5, "auto")])
 def test_search_derivatives_equal_finite_differences_of_the_evidence(alpha, beta):
     """The search's slope and curvature in ln(alpha / beta), with exact traces (the probes
