@@ -299,9 +299,11 @@ def _limits(app, rows: int) -> formats.Limits:
     return formats.Limits(rows, int(settings.max_decoded_mb * 2**20), int(settings.max_json_mb * 2**20))
 
 
-def _apply(app, name: str, upload_id: str, obs: formats.Observations, **kw) -> dict:
-    """Upload (or, with ``replace=True``, fit) and count it in the metrics."""
-    result = app.state.maps.upload(
+def _apply(app, name: str, upload_id: str, obs: formats.Observations, retract: bool = False, **kw) -> dict:
+    """Upload (or, with ``replace=True``, fit; with ``retract``, retract) and count it in
+    the metrics."""
+    maps = app.state.maps
+    result = (maps.retract if retract else maps.upload)(
         name,
         upload_id,
         obs.X,
@@ -355,14 +357,7 @@ async def post_retraction(name: RegionName, request: Request, upload_id: Idempot
 
     def work():
         _, obs = _observations(app, name, body, request.headers.get("content-type"))
-        return app.state.maps.retract(
-            name,
-            upload_id,
-            obs.X,
-            obs.V,
-            input_noise_std=obs.input_noise_std,
-            sample_weight=obs.sample_weight,
-        )
+        return _apply(app, name, upload_id, obs, retract=True)
 
     return await run_in_threadpool(work)
 

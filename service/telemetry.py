@@ -45,7 +45,7 @@ class Metrics:
             registry=self.registry,
         )
         self.uploads = Counter(
-            "bdf_uploads_applied", "uploads and fits applied", ["kind"], registry=self.registry
+            "bdf_uploads_applied", "uploads, fits and retractions applied", ["kind"], registry=self.registry
         )
         self.observations = Counter(
             "bdf_observations", "observations received, by outcome", ["outcome"], registry=self.registry
@@ -56,6 +56,9 @@ class Metrics:
         if result.get("replayed"):
             return
         self.uploads.labels(result["kind"]).inc()
+        if result["kind"] == "retraction":  # its rows were counted when they arrived
+            self.observations.labels("retracted").inc(result["accepted"])
+            return
         self.observations.labels("accepted").inc(result["accepted"])
         for reason, count in result["rejected"].items():
             self.observations.labels(f"rejected_{reason}").inc(count)

@@ -585,3 +585,20 @@ def test_every_accepted_spec_takes_an_upload_and_answers_a_query_a_grid_and_a_sl
             assert np.isfinite(cut.mean).all()
         finally:
             store.close()
+
+
+def test_a_retraction_over_http_needs_admin_and_is_counted(client):
+    before = state(client)
+    X, V = data(6, n=40)
+    post_obs(client, rows(X, V), "broken").raise_for_status()
+    assert state(client)["version"] == before["version"] + 1
+    problem(post_obs(client, rows(X, V), "broken", "retractions"), 403, "admin")
+    done = post_obs(client, rows(X, V), "broken", "retractions", headers=ADMIN)
+    assert done.status_code == 200 and (done.json()["kind"], done.json()["accepted"]) == ("retraction", 40)
+    after = state(client)
+    assert after["observations"] == before["observations"] and after["tiles"] != before["tiles"]
+    np.testing.assert_allclose(after["mean"], before["mean"], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(after["std"], before["std"], rtol=1e-9)
+    metrics = client.get("/metrics").text
+    assert 'bdf_observations_total{outcome="retracted"} 40.0' in metrics
+    assert 'bdf_uploads_applied_total{kind="retraction"} 1.0' in metrics
