@@ -65,9 +65,12 @@ MAX_TILES = 100_000
 KNOWN_KERNEL = 0.01
 #: A region's bounds lie within this distance of its origin (metres): ENU is a local frame.
 MAX_EXTENT_M = 1e6
-#: Most hinge offsets that couple in the precision (its stencil): with the hinge count, what
-#: bounds a posterior's memory.
+#: Most hinge offsets per axis-aligned box the kernel reaches (checked first, cheaply), and
+#: most couplings (hinges x the stencil's offsets x traffic classes, each a float64 of the
+#: Gram band): what bounds a posterior's memory (the demo's Paris map: 13,448 x 571 x 9 =
+#: 6.9e7).
 MAX_STENCIL = 5000
+MAX_COUPLINGS = 3e8
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -209,6 +212,14 @@ class RegionSpec(BaseModel):
             raise ValueError(
                 f"the kernel couples {np.prod(widths):.6g} hinge offsets ({widths.tolist()} per axis), more "
                 f"than {MAX_STENCIL}: raise gamma or the spacing"
+            )
+        offsets = len(self.stencil.offsets)
+        couplings = self.grid.size * offsets * self.sectors.classes
+        if couplings > MAX_COUPLINGS:
+            raise ValueError(
+                f"{self.grid.size} hinges x {offsets} coupled offsets x {self.sectors.classes} "
+                f"traffic classes is {couplings:.3g} couplings, more than {MAX_COUPLINGS:g}: raise the "
+                "spacing or gamma, or take fewer directions"
             )
         return self
 
