@@ -432,18 +432,37 @@ class RegionSpec(BaseModel):
     def posterior(self, evidence: SectorEvidence, alpha=None, beta=None) -> Posterior | Mixture:
         """The region's posterior of ``evidence`` (:meth:`region_evidence`) at ``alpha``,
         ``beta`` (the values in force; None: the spec's), variance density ready, factors
-        dropped. With "auto" it fits them: ``posterior.alpha``, ``posterior.beta``."""
+        dropped. With "auto" it fits them: ``posterior.alpha``, ``posterior.beta``.
+
+        Values in force that do not factor on stored data (which must be served) are not
+        the end: "auto" ones are found again at this evidence's maximum, fixed ones raised
+        (alpha by powers of ten) to the least that factors, with a warning. Without values
+        (a fit, before anything is stored) such a failure raises ``NotPositiveDefinite``."""
         try:
             return self.field(alpha, beta).set_evidence(evidence).posterior_.compact()
         except NotPositiveDefinite:
-            if not self.auto or (alpha is None and beta is None):
+            if alpha is None and beta is None:  # a fit, before anything is stored: refused
                 raise
-            # "auto" values fitted on other evidence (earlier data, weighed otherwise) may no
-            # longer factor on this one: "auto" means this evidence's maximum, so find it
+            if self.auto:
+                # values fitted on other evidence (earlier data, weighed otherwise) may no
+                # longer factor on this one: "auto" means this evidence's maximum, so find it
+                log.warning(
+                    "region %s: its fitted alpha/beta do not factor on its evidence; refitting", self.name
+                )
+                return self.field().set_evidence(evidence).posterior_.compact()
+        # the spec's fixed values do not factor on stored (accepted) data, which must still be
+        # served: at the least alpha ten times larger, a hundred, ... that does
+        for power in range(1, 13):
+            try:
+                post = self.field(np.asarray(alpha, float) * 10.0**power, beta).set_evidence(evidence)
+                post = post.posterior_.compact()
+            except NotPositiveDefinite:
+                continue
             log.warning(
-                "region %s: the fitted alpha/beta do not factor on its evidence; refitting", self.name
+                "region %s: served at alpha x 1e%d: its fixed alpha/beta do not factor", self.name, power
             )
-            return self.field().set_evidence(evidence).posterior_.compact()
+            return post
+        raise NotPositiveDefinite(f"region {self.name}: no alpha up to 1e12 times the spec's factors")
 
     def known(self, X: np.ndarray, data_tiles) -> np.ndarray:
         """(n,) True where a tile core with data lies within the kernel's reach (where it is

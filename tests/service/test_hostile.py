@@ -510,8 +510,7 @@ def _arrays(batch):
 @given(
     uploads=st.lists(extreme_rows, min_size=1, max_size=4),
     directions=st.sampled_from([1, 4]),
-    # "auto", and a fixed alpha with "auto" beta; both fixed can fail (RELIABILITY.md, limits)
-    hyper=st.sampled_from([{}, {"alpha": 1.0}]),
+    hyper=st.sampled_from([{}, {"alpha": 1.0}, {"alpha": 0.01, "beta": 100.0}]),  # auto, the paper's
 )
 def test_no_accepted_rows_in_any_order_can_break_a_map(uploads, directions, hyper):
     with tempfile.TemporaryDirectory() as tmp:
