@@ -536,7 +536,8 @@ class RegionSpec(BaseModel):
                 f"the grid would have {voxels:.6g} voxels ({counts.tolist()} per axis); the limit is "
                 f"{max_voxels}"
             )
-        return [lo[d] + step[d] * np.arange(int(counts[d])) for d in range(3)]
+        # the last point may pass hi by rounding (far from the origin): it is hi
+        return [np.minimum(lo[d] + step[d] * np.arange(int(counts[d])), hi[d]) for d in range(3)]
 
     def _grid_axes(self, axes) -> list[np.ndarray]:
         axes = [np.asarray(a, float).ravel() for a in axes]

@@ -49,7 +49,8 @@ def slice_axes(lower, upper, spacing, bbox: tuple[float, float, float, float] | 
             f"a slice of {counts.tolist()} cells exceeds {MAX_SIDE} per axis: "
             "use a larger step or a smaller bbox"
         )
-    return lo[0] + step * np.arange(int(counts[0])), lo[1] + step * np.arange(int(counts[1]))
+    # the last point may pass hi by rounding (far from the origin): it is hi
+    return tuple(np.minimum(lo[d] + step * np.arange(int(counts[d])), hi[d]) for d in (0, 1))
 
 
 def render_slice(

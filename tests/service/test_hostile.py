@@ -60,7 +60,10 @@ def state(c) -> dict:
     """What a hostile request must not change: the stored totals and a query's answer."""
     view = c.get(f"/v1/regions/{NAME}", headers=READ).json()
     tiles = c.get(f"/v1/regions/{NAME}/tiles", headers=READ).json()["tiles"]
-    answer = c.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ).json()
+    at = {"min_version": view["version"]}  # this version's map, not one before
+    answer = c.post(
+        f"/v1/regions/{NAME}/query", params=at, json={"points": PROBE.tolist()}, headers=READ
+    ).json()
     return {
         "version": view["version"],
         "observations": view["observations"],
