@@ -198,10 +198,12 @@ class RegionSpec(BaseModel):
                 "axis"
             )
         reach = self.reach_m
-        if np.any(reach < spacing / 2) or np.any(reach > extent.max()):
+        # every point of the box (its last hinge may lie up to a spacing short of its edge)
+        # reaches a hinge, and the kernel does not reach past the whole box
+        if np.any(reach < spacing) or np.any(reach > extent.max()):
             raise ValueError(
                 f"the kernel's reach at the cutoff, sqrt(log(1/cutoff) / gamma) = {reach.tolist()} m, must "
-                f"be at least half the spacing {(spacing / 2).tolist()} and at most the box's longest side "
+                f"be at least the spacing {spacing.tolist()} and at most the box's longest side "
                 f"{extent.max():g} on every axis: change gamma"
             )
         self.tile_counts  # noqa: B018  (raises if the region would have too many tiles)

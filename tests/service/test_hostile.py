@@ -259,7 +259,7 @@ def test_row_07_a_hyperparameter_fit_of_a_region_recreated_meanwhile_is_a_409(cl
         ({"gamma": [5e-324] * 3}, "reach"),
         ({"bounds_m": {"min": [0, 0, 0], "max": [1e16, 1e16, 1e16]}, "spacing_m": [1e308] * 3}, "within"),
         ({"spacing_m": [1000, 25, 20]}, "must not exceed the box"),
-        ({"gamma": [10.0, 10.0, 10.0]}, "half the spacing"),
+        ({"gamma": [10.0, 10.0, 10.0]}, "at least the spacing"),
         ({"gamma": [3e-4] * 3, "bounds_m": {"min": [0, 0, 0], "max": [600, 600, 200]}}, "offsets"),
     ],
 )
@@ -563,7 +563,7 @@ specs = st.builds(
         "bounds_m": {"min": corner, "max": [c + e for c, e in zip(corner, extent, strict=True)]},
         "tile_size_m": [e / t for e, t in zip(extent, tiles, strict=True)],
         "spacing_m": [e / h for e, h in zip(extent, hinges, strict=True)],
-        # the kernel's reach at the cutoff, in spacings (below a half: refused)
+        # the kernel's reach at the cutoff, in spacings (below one: refused)
         "gamma": [
             np.log(1 / cutoff) / (e / h * r) ** 2 for e, h, r in zip(extent, hinges, reach, strict=True)
         ],
