@@ -183,7 +183,7 @@ class RegionSpec(BaseModel):
     @model_validator(mode="after")
     def _consistent(self):
         """Refuse a spec that could not be served: every accepted one takes uploads and
-        answers queries, grids and slices (tests/bdf/test_tiles.py, a property test)."""
+        answers queries, grids and slices (a property test, tests/service/test_hostile.py)."""
         lower, upper, spacing = self.lower, self.upper, np.array(self.spacing_m)
         extent = upper - lower
         if np.abs(np.r_[lower, upper]).max() > MAX_EXTENT_M:

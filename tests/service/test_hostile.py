@@ -479,7 +479,12 @@ def test_row_17_verify_reports_implausible_statistics_and_a_file_that_is_no_stor
 
 # -- properties: no accepted row can break a map; every accepted spec can be served ------------
 #: seeded and unshrunk: a failure is reported as drawn (each example costs a posterior)
-NO_SHRINK = (Phase.explicit, Phase.reuse, Phase.generate)
+PROPERTY = settings(
+    derandomize=True,
+    deadline=None,
+    phases=(Phase.explicit, Phase.reuse, Phase.generate),
+    suppress_health_check=list(HealthCheck),
+)
 EDGE_SPEEDS = [0.0, 1e-9, 50.0, 282.84, 399.99]
 extreme_rows = st.lists(
     st.tuples(
@@ -503,13 +508,7 @@ def _arrays(batch):
     return X, V, np.array([r[2] for r in batch]), np.array([r[3] for r in batch])
 
 
-@settings(
-    max_examples=20,
-    derandomize=True,
-    deadline=None,
-    phases=NO_SHRINK,
-    suppress_health_check=list(HealthCheck),
-)
+@settings(PROPERTY, max_examples=20)
 @given(
     uploads=st.lists(extreme_rows, min_size=1, max_size=4),
     directions=st.sampled_from([1, 4]),
@@ -580,13 +579,7 @@ specs = st.builds(
 )
 
 
-@settings(
-    max_examples=30,
-    derandomize=True,
-    deadline=None,
-    phases=NO_SHRINK,
-    suppress_health_check=list(HealthCheck),
-)
+@settings(PROPERTY, max_examples=30)
 @given(body=specs)
 def test_every_accepted_spec_takes_an_upload_and_answers_a_query_a_grid_and_a_slice(body):
     try:
