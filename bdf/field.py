@@ -176,6 +176,7 @@ class BayesianDynamicField:
         input_noise = as_noise_std(input_noise_std, len(X))
         weight = as_sample_weight(sample_weight, len(X))
         time = self._advance(time)
+        self._warm_start()
         self.evidence_ = self.evidence_ + SectorEvidence.from_points(
             self._grid,
             self._gamma,
@@ -214,14 +215,22 @@ class BayesianDynamicField:
         if getattr(self, "_posterior", None) is None:
             model = (self._grid, self._gamma)
             rest = (self.cutoff, self._noise_lattice, float(self.noise_prior))
+            start = getattr(self, "_start", None)
             if self._sectors.classes == 1:
                 (evidence,) = self.evidence_.classes
-                self._posterior = Posterior(*model, evidence, self._alpha, self._beta, *rest)
+                self._posterior = Posterior(*model, evidence, self._alpha, self._beta, *rest, start=start)
             else:
                 self._posterior = Mixture(
-                    *model, self.evidence_, self._alpha, self._beta, *rest, self._sectors
+                    *model, self.evidence_, self._alpha, self._beta, *rest, self._sectors, start=start
                 )
         return self._posterior
+
+    def _warm_start(self) -> None:
+        """Before the evidence changes: the next "auto" search starts at the current
+        optimum (the same optimum, found in a step or two instead of a search)."""
+        post = getattr(self, "_posterior", None)
+        if post is not None and post.fitted:
+            self._start = post.alpha / post.beta
 
     @property
     def alpha_(self) -> np.ndarray:
@@ -304,9 +313,12 @@ class BayesianDynamicField:
         evidence = SectorEvidence.from_arrays(arrays, grid, stencil, lattice, field._sectors)
         return field.set_evidence(evidence, time)
 
-    def set_evidence(self, evidence: SectorEvidence, time=None) -> BayesianDynamicField:
+    def set_evidence(self, evidence: SectorEvidence, time=None, start=None) -> BayesianDynamicField:
         """Take ``evidence`` (made on this field's grid, e.g. stored per tile) as everything
-        learned. Returns self."""
+        learned. ``start``: ratios alpha / beta where the "auto" search starts ((3,), or a
+        row per class of a directional field: an optimum found on earlier evidence); the
+        optimum is the same from any start. Returns self."""
+        self._start = start
         self._grid, self._gamma, self._alpha, self._beta, self._noise_lattice = self._setup()
         if len(evidence.classes) != self._sectors.classes:
             raise ValueError(

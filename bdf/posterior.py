@@ -7,11 +7,25 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
+from scipy import special
 
 from bdf import _blas, features, linalg, noise, tuning
 from bdf.directions import Sectors, mixture_moments
 from bdf.grid import HingeGrid
 from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence, stencil_of
+
+
+#: ``known``: the data within the kernel's reach weigh at least this (:func:`known`): one
+#: observation of weight 1 at the kernel's 1 % reach, or a track's unit of weight
+#: (:func:`bdf.ingest.track_weights`) passing there.
+KNOWN_WEIGHT = 0.01
+
+
+def known(weight: np.ndarray) -> np.ndarray:
+    """Where a map holds data: the data's weight within the kernel's reach (summed over the
+    classes, the last axis of ``weight``: :meth:`Posterior.data_weight`) is at least
+    :data:`KNOWN_WEIGHT`."""
+    return weight.sum(axis=-1) >= KNOWN_WEIGHT
 
 
 class Modes(NamedTuple):
@@ -21,6 +35,7 @@ class Modes(NamedTuple):
     share_std: np.ndarray  # (n,) epistemic std of each share (the same for every class)
     mean: np.ndarray  # (n, C, 3) velocity of each mode
     std: np.ndarray  # (n, C, 3) its std (predictive, or epistemic)
+    weight: np.ndarray  # (n, C) the class's data within the kernel's reach (:meth:`Posterior.data_weight`)
 
     def answer(self, sectors: Sectors, heading_deg=None) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std (..., 3): the mixture's moments (at points or on a grid), or with
@@ -32,6 +47,13 @@ class Modes(NamedTuple):
             return mixture_moments(self.share, self.mean, self.std)
         pick = (np.arange(len(self.share)), sectors.sector_of_heading(heading_deg))
         return self.mean[pick], self.std[pick]
+
+    @property
+    def prior_only(self) -> np.ndarray:
+        """(n, C): the class has no data within the kernel's reach (its weight is below
+        :data:`KNOWN_WEIGHT`), so its mode there is only its prior: the class's mean velocity
+        at that altitude, and its share the region's overall share where no class has data."""
+        return self.weight < KNOWN_WEIGHT
 
 
 class Posterior:
@@ -57,6 +79,7 @@ class Posterior:
     ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
+        self._density = evidence.density  # where the data are (:meth:`data_weight`)
         self.stencil = stencil_of(grid, gamma, cutoff)
         #: alpha or beta came from evidence maximisation ("auto" and some data)
         self.fitted = (isinstance(alpha, str) or isinstance(beta, str)) and evidence.count > 0
@@ -71,7 +94,7 @@ class Posterior:
             G_w0 = linalg.band_product(self.stencil, band, w0)
             v_sq = v_sq - 2.0 * np.einsum("mc,mc->c", w0, proj) + np.einsum("mc,mc->c", w0, G_w0)
             proj = proj - G_w0
-        self.alpha, self.beta, sols = tuning.fit_evidence(
+        self.alpha, self.beta, sols, self.factorisations = tuning.fit_evidence(
             self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start
         )
         self.log_evidence = np.array(
@@ -80,6 +103,18 @@ class Posterior:
         self.weights = w0 + np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
         self._solutions = sols
         self._variance = None
+
+    def data_weight(self, X: np.ndarray) -> np.ndarray:
+        """(n, 1): the data's weight within the kernel's reach of each point,
+        ``sum_i w_i k(x, x_i)``: 1 for an observation of weight 1 at ``x``, 0.01 for one at
+        the kernel's 1 % reach. From the data's density (the statistics' ``density``, of the
+        points without input noise), gathered on its lattice: ``k`` is its kernel's
+        convolution with itself."""
+        return data_weight(self.grid, self.gamma, self.cutoff, self._density[..., None], X)
+
+    def data_weight_grid(self, axes) -> np.ndarray:
+        """:meth:`data_weight` on the grid ``axes``, (nx, ny, nz, 1)."""
+        return data_weight_grid(self.grid, self.gamma, self.cutoff, self._density[..., None], axes)
 
     def mean(self, X: np.ndarray) -> np.ndarray:
         T = self.weights.reshape(*self.grid.shape, 3)
@@ -148,13 +183,15 @@ class Posterior:
     def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
         """The one mode of a map of one class."""
         mean, std = self.predict(X, True, include_noise)
-        return Modes(np.ones((len(X), 1)), np.zeros(len(X)), mean[:, None], std[:, None])
+        n = len(X)
+        return Modes(np.ones((n, 1)), np.zeros(n), mean[:, None], std[:, None], self.data_weight(X))
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """The one mode of a map of one class, on the grid ``axes``."""
         mean, var = self.predict_grid(axes, include_noise)
         n = mean.shape[:3]
-        return Modes(np.ones((*n, 1)), np.zeros(n), mean[..., None, :], np.sqrt(var)[..., None, :])
+        weight = self.data_weight_grid(axes)
+        return Modes(np.ones((*n, 1)), np.zeros(n), mean[..., None, :], np.sqrt(var)[..., None, :], weight)
 
     def compact(self) -> Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
@@ -166,7 +203,7 @@ class Posterior:
     @property
     def nbytes(self) -> int:
         """Memory held by the arrays of this posterior."""
-        held = self.weights.nbytes + (0 if self._moments is None else self._moments.nbytes)
+        held = self.weights.nbytes + self._density.nbytes + (0 if self._moments is None else self._moments.nbytes)
         if self._variance is not None:
             held += self._variance[0].nbytes
         if self._solutions is not None:
@@ -183,6 +220,39 @@ class Posterior:
                 densities[id(sol)] = linalg.band_density(self.stencil, inverse, self.grid.midpoints())
             columns.append(list(densities).index(id(sol)))
         return np.stack(list(densities.values()), axis=-1), columns
+
+
+def data_weight(grid: HingeGrid, gamma, cutoff, densities: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``sum_i w_i exp(-sum_d gamma_d (x_d - x_id)^2)`` (n, C) from data densities on the
+    midpoint lattice (kernel ``2 gamma``, :mod:`bdf.stats`; C of them): gathered with the
+    same kernel, each pair of an observation and ``x`` meets at their midpoint with the
+    lattice's sum of ``exp(-4 gamma (g - midpoint)^2)``, which :func:`_lattice_sum` divides
+    out (near ``x``: it falls to half at the lattice's edge)."""
+    at = features.gather(
+        grid.midpoints(), X, densities, 2.0 * np.asarray(gamma), cutoff=cutoff, block=MIDPOINT_BLOCK
+    )
+    norm = np.prod([_lattice_sum(grid, gamma, d, X[:, d]) for d in range(3)], axis=0)[:, None]
+    return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)  # 0 far outside
+
+
+def data_weight_grid(grid: HingeGrid, gamma, cutoff, densities: np.ndarray, axes) -> np.ndarray:
+    """:func:`data_weight` on the grid ``axes`` (nx, ny, nz, C); separable."""
+    at = features.gather_grid(grid.midpoints(), axes, densities, 2.0 * np.asarray(gamma), cutoff=cutoff)
+    nx, ny, nz = (_lattice_sum(grid, gamma, d, np.asarray(axes[d], float)) for d in range(3))
+    norm = (nx[:, None, None] * ny[None, :, None] * nz[None, None, :])[..., None]
+    return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)
+
+
+def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
+    """``sum_g exp(-4 gamma_d (g - x)^2)`` over the midpoint lattice's axis ``d``, by the
+    integral over its cells (the midpoint rule; inside, the sum's ripple is
+    ``2 exp(-pi^2 / (gamma_d spacing_d^2))`` of it, below 1e-4 at the usual
+    ``gamma = 1 / spacing^2``)."""
+    g = float(np.broadcast_to(np.asarray(gamma, float), (3,))[d])
+    h = grid.step[d] / 2.0
+    lo, hi = grid.origin[d] - h / 2, grid.origin[d] + (grid.shape[d] - 1) * grid.step[d] + h / 2
+    root = 2.0 * np.sqrt(g)
+    return np.sqrt(np.pi / (4.0 * g)) / h * 0.5 * (special.erf(root * (hi - x)) + special.erf(root * (x - lo)))
 
 
 def _layer_prior(evidence: Evidence, grid: HingeGrid, gamma) -> np.ndarray:
@@ -235,15 +305,27 @@ class Mixture:
     """
 
     def __init__(
-        self, grid, gamma, evidence: SectorEvidence, alpha, beta, cutoff, noise_lattice, noise_prior, sectors
+        self,
+        grid,
+        gamma,
+        evidence: SectorEvidence,
+        alpha,
+        beta,
+        cutoff,
+        noise_lattice,
+        noise_prior,
+        sectors,
+        start=None,
     ):
         C = sectors.classes
         self.sectors, self.grid, self.gamma, self.cutoff = sectors, grid, gamma, cutoff
         alphas, betas = _per_row(alpha, 1 + C), _per_row(beta, 1 + C)
         rest = (cutoff, noise_lattice, noise_prior)
         total = evidence.total()
-        self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest)
-        start = float(np.mean(self.total.alpha / self.total.beta))  # each mode's search starts there
+        starts = [None] * (1 + C) if start is None else list(np.broadcast_to(start, (1 + C, 3)))
+        self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest, start=starts[0])
+        if start is None:  # each mode's search starts at the total's optimum
+            starts[1:] = [self.total.alpha / self.total.beta] * C
 
         def mode(c):
             e = evidence.classes[c]
@@ -254,7 +336,7 @@ class Mixture:
                 alphas[1 + c],
                 betas[1 + c],
                 *rest,
-                start=start,
+                start=starts[1 + c],
                 prior_weights=_layer_prior(e, grid, gamma),
             )
             post.variance_table()
@@ -268,6 +350,9 @@ class Mixture:
         )
         of_class = dict(zip(by_count, fitted, strict=True))
         self.modes = [of_class[c] for c in range(C)]
+        for mode in self.modes:  # the classes' densities are kept side by side (one gather)
+            mode._density = mode._density[:0]
+        self._densities = np.stack([e.density for e in evidence.classes], axis=-1)
         self.fitted = self.total.fitted
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])
@@ -294,6 +379,11 @@ class Mixture:
     @property
     def log_evidence(self) -> np.ndarray:
         return np.stack([self.total.log_evidence, *(m.log_evidence for m in self.modes)])
+
+    @property
+    def factorisations(self) -> int:
+        """Factorisations the fit took (the map with one class's and every mode's)."""
+        return self.total.factorisations + sum(m.factorisations for m in self.modes)
 
     def _share(self, weights_at, base_variance):
         """Shares from the gathered share weights (n, C), and their std."""
@@ -372,7 +462,14 @@ class Mixture:
             std[:, c] = np.sqrt(v)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
         share, share_std = self._share(at[:, 3 * C :], var[:, columns[-1][0]])
-        return Modes(share, share_std, mean, std)
+        return Modes(share, share_std, mean, std, self.data_weight(X))
+
+    def data_weight(self, X: np.ndarray) -> np.ndarray:
+        """(n, C): each class's data within the kernel's reach (:meth:`Posterior.data_weight`)."""
+        return data_weight(self.grid, self.gamma, self.cutoff, self._densities, X)
+
+    def data_weight_grid(self, axes) -> np.ndarray:
+        return data_weight_grid(self.grid, self.gamma, self.cutoff, self._densities, axes)
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """The mixture's mean (n, 3), and its std if asked (moments over the modes)."""
@@ -405,7 +502,7 @@ class Mixture:
         np.sqrt(std, out=std)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
         share, share_std = self._share(at[..., 3 * C :].reshape(-1, C), var[..., columns[-1][0]].ravel())
-        return Modes(share.reshape(*n, C), share_std.reshape(n), mean, std)
+        return Modes(share.reshape(*n, C), share_std.reshape(n), mean, std, self.data_weight_grid(axes))
 
     def compact(self) -> Mixture:
         self.total.compact()
@@ -416,7 +513,8 @@ class Mixture:
 
     @property
     def nbytes(self) -> int:
-        held = self.share_weights.nbytes + self.total.nbytes + sum(m.nbytes for m in self.modes)
+        held = self.share_weights.nbytes + self._densities.nbytes + self.total.nbytes
+        held += sum(m.nbytes for m in self.modes)
         if self._tables is not None:
             held += self._tables[0].nbytes + self._tables[1].nbytes
         return held

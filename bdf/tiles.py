@@ -10,12 +10,14 @@ region's lattice, :meth:`RegionSpec.tile_grid`). The region's evidence is the su
 tiles' (:meth:`RegionSpec.region_evidence`), every observation counted once, and the map
 is the posterior of ONE field over the region's lattice (:meth:`RegionSpec.field`), with
 one set of hyperparameters: fixed in the spec, or ("auto") the evidence maximum of the
-whole region, fitted on a fit and on request and kept by the uploads in between.
+whole region's data (:meth:`RegionSpec.posterior`).
 
 Where the region has no data the field reverts to its prior, whose predictive variance
 under "auto" is set by the region's evidence (on the scale of its velocities). ``known``
-marks the points within the kernel's reach (where it is above
-:data:`KNOWN_KERNEL`) of a tile core with data.
+marks the points where the data within the kernel's reach weigh at least
+:data:`bdf.posterior.KNOWN_WEIGHT` (their own density, :meth:`bdf.posterior.Posterior.data_weight`,
+not the boxes of the tiles that hold them); per class, the same says where a mode is
+only its prior.
 
 A directional region (``directions`` > 1, :mod:`bdf.directions`) keeps in each tile one
 evidence per traffic class (:class:`bdf.stats.SectorEvidence`); every sum above is per
@@ -34,7 +36,6 @@ import logging
 from collections.abc import Callable, Mapping
 from typing import Annotated, Literal, NamedTuple
 
-import numba
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -54,15 +55,13 @@ from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice, axis_counts
 from bdf.linalg import NotPositiveDefinite
-from bdf.posterior import Mixture, Modes, Posterior
+from bdf.posterior import Mixture, Modes, Posterior, known
 from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence, stencil_of
 
 log = logging.getLogger(__name__)
 TileKey = tuple[int, int, int]
 #: Most tiles a region may have (keys, ledgers and listings stay small).
 MAX_TILES = 100_000
-#: ``known``: a tile core with data lies where the kernel is at least this (its 1 % reach).
-KNOWN_KERNEL = 0.01
 #: A region's bounds lie within this distance of its origin (metres): ENU is a local frame.
 MAX_EXTENT_M = 1e6
 #: Most hinge offsets per axis-aligned box the kernel reaches (checked first, cheaply), and
@@ -305,7 +304,7 @@ class RegionSpec(BaseModel):
 
     def field(self, alpha=None, beta=None) -> BayesianDynamicField:
         """An (unfitted) field over the region's lattice with its model settings (``alpha``,
-        ``beta``: the values in force instead of the spec's)."""
+        ``beta``: other values than the spec's)."""
         return BayesianDynamicField(
             self.lower,
             self.upper,
@@ -431,81 +430,58 @@ class RegionSpec(BaseModel):
                     band[hinges] += ev.gram_noisy[k].reshape(grid.shape)
         return total
 
-    def posterior(self, evidence: SectorEvidence, alpha=None, beta=None) -> Posterior | Mixture:
-        """The region's posterior of ``evidence`` (:meth:`region_evidence`) at ``alpha``,
-        ``beta`` (the values in force; None: the spec's), variance density ready, factors
-        dropped. With "auto" it fits them: ``posterior.alpha``, ``posterior.beta``.
+    def posterior(self, evidence: SectorEvidence, start=None, *, stored: bool = True) -> Posterior | Mixture:
+        """The region's posterior of ``evidence`` (:meth:`region_evidence`) at the spec's
+        hyperparameters, variance density ready, factors dropped. "auto" is this
+        evidence's maximum (``posterior.alpha``, ``posterior.beta``), its search started at
+        ``start`` (ratios alpha / beta, (3,) or a row per class: the optimum of the
+        region's previous version) and the same from any start.
 
-        Values in force that do not factor on stored data (which must be served) are not
-        the end: "auto" ones are found again at this evidence's maximum, fixed ones raised
-        (alpha by powers of ten) to the least that factors, with a warning. Without values
-        (a fit, before anything is stored) such a failure raises ``NotPositiveDefinite``."""
+        Fixed values that do not factor on ``stored`` data (which must be served) are
+        raised (alpha by powers of ten) to the least that factors, with a warning; on data
+        not stored yet (a fit, before it is applied) they raise ``NotPositiveDefinite``."""
         try:
-            return self.field(alpha, beta).set_evidence(evidence).posterior_.compact()
+            return self.field().set_evidence(evidence, start=start).posterior_.compact()
         except NotPositiveDefinite:
-            if alpha is None and beta is None:  # a fit, before anything is stored: refused
+            if self.alpha == "auto" or not stored:
                 raise
-            if self.auto:
-                # values fitted on other evidence (earlier data, weighed otherwise) may no
-                # longer factor on this one: "auto" means this evidence's maximum, so find it
-                log.warning(
-                    "region %s: its fitted alpha/beta do not factor on its evidence; refitting", self.name
-                )
-                return self.field().set_evidence(evidence).posterior_.compact()
-        # the spec's fixed values do not factor on stored (accepted) data, which must still be
-        # served: at the least alpha ten times larger, a hundred, ... that does
+        # the spec's fixed alpha does not factor on stored (accepted) data, which must still
+        # be served: at the least alpha ten times larger, a hundred, ... that does
         for power in range(1, 13):
             try:
-                post = self.field(np.asarray(alpha, float) * 10.0**power, beta).set_evidence(evidence)
-                post = post.posterior_.compact()
+                field = self.field(np.asarray(self.alpha, float) * 10.0**power)
+                post = field.set_evidence(evidence, start=start).posterior_.compact()
             except NotPositiveDefinite:
                 continue
-            log.warning(
-                "region %s: served at alpha x 1e%d: its fixed alpha/beta do not factor", self.name, power
-            )
+            log.warning("region %s: served at alpha x 1e%d: its fixed alpha does not factor", self.name, power)
             return post
         raise NotPositiveDefinite(f"region {self.name}: no alpha up to 1e12 times the spec's factors")
 
-    def known(self, X: np.ndarray, data_tiles) -> np.ndarray:
-        """(n,) True where a tile core with data lies within the kernel's reach (where it is
-        above :data:`KNOWN_KERNEL`)."""
-        data_tiles = frozenset(data_tiles)
-        if not len(X) or not data_tiles:
-            return np.zeros(len(X), bool)
-        reach = features.reach(np.array(self.gamma), KNOWN_KERNEL)
-        return _boxes_hold_data(
-            np.ascontiguousarray(X, dtype=float),
-            self.lower,
-            reach,
-            np.array(self.tile_size_m),
-            _summed_area(self.tile_counts, data_tiles),
-            np.empty(len(X), bool),
-        )
-
     def predict(
-        self, X, posterior: Posterior | Mixture, data_tiles, heading_deg=None, modes: Modes | None = None
+        self, X, posterior: Posterior | Mixture, heading_deg=None, modes: Modes | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predictive mean (n, 3), std (n, 3) and ``known`` (n,) at ``X`` inside the region,
-        from the region's ``posterior``; ``data_tiles``: the keys of the tiles with data.
-        ``heading_deg`` (one or (n,)): the mode of that heading (a region of one direction
-        has one). ``modes``: :meth:`predict_modes` of the same points when the caller has
-        them (the answer derives from them)."""
+        from the region's ``posterior``. ``heading_deg`` (one or (n,)): the mode of that
+        heading (a region of one direction has one). ``modes``: :meth:`predict_modes` of
+        the same points when the caller has them (the answer derives from them)."""
         X = self._inside_points(X)
         if heading_deg is not None:
             heading_deg = as_headings(heading_deg, len(X))
         if modes is None and self.directions == 1:
             mean, std = posterior.predict(X, return_std=True)
+            weight = posterior.data_weight(X)
         else:
             modes = posterior.predict_modes(X) if modes is None else modes
             mean, std = modes.answer(self.sectors, heading_deg)
-        return mean, std, self.known(X, data_tiles)
+            weight = modes.weight
+        return mean, std, known(weight)
 
     def predict_modes(self, X, posterior: Posterior | Mixture) -> Modes:
         """:class:`~bdf.posterior.Modes` at ``X`` inside the region."""
         return posterior.predict_modes(self._inside_points(X))
 
     def predict_grid(
-        self, axes, posterior: Posterior | Mixture, data_tiles, modes: Modes | None = None
+        self, axes, posterior: Posterior | Mixture, modes: Modes | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]`` (inside the region):
         mean and std (nx, ny, nz, 3), known (nx, ny, nz); separable, so a few small
@@ -515,11 +491,11 @@ class RegionSpec(BaseModel):
         if modes is None:
             mean, var = posterior.predict_grid(axes)
             std = np.sqrt(var)
+            weight = posterior.data_weight_grid(axes)
         else:
             mean, std = modes.answer(self.sectors)
-        mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-        known = self.known(mesh, data_tiles).reshape(mean.shape[:3])
-        return mean, std, known
+            weight = modes.weight
+        return mean, std, known(weight)
 
     def predict_grid_modes(self, axes, posterior: Posterior | Mixture) -> Modes:
         """:class:`~bdf.posterior.Modes` on the grid ``axes``, the grid's shape first."""
@@ -552,46 +528,6 @@ class RegionSpec(BaseModel):
             ):
                 raise ValueError(f"grid axis {d} must be finite, non-empty and inside region {self.name!r}")
         return axes
-
-
-@numba.njit(cache=True, nogil=True)  # queries in other threads run meanwhile
-def _boxes_hold_data(X, origin, reach, size, table, out):  # pragma: no cover (compiled)
-    """``out[n]``: some tile with data overlaps the box ``X[n] -/+ reach`` (tiles of ``size``
-    from ``origin``, the box clipped to the region): the summed-area ``table`` at the box's
-    8 corners, signed (inclusion-exclusion), is positive."""
-    lo, hi = np.empty(3, np.int64), np.empty(3, np.int64)
-    for p in range(X.shape[0]):
-        for d in range(3):
-            last = table.shape[d] - 2.0
-            lo[d] = int(min(max(np.floor((X[p, d] - reach[d] - origin[d]) / size[d]), 0.0), last))
-            hi[d] = int(min(max(np.floor((X[p, d] + reach[d] - origin[d]) / size[d]), 0.0), last)) + 1
-        a, b, c = lo
-        A, B, C = hi
-        count = (
-            table[A, B, C]
-            - table[a, B, C]
-            - table[A, b, C]
-            - table[A, B, c]
-            + table[a, b, C]
-            + table[a, B, c]
-            + table[A, b, c]
-            - table[a, b, c]
-        )
-        out[p] = count > 0.5
-    return out
-
-
-@functools.lru_cache(maxsize=64)
-def _summed_area(tile_counts: tuple[int, int, int], data_tiles: frozenset) -> np.ndarray:
-    """The summed-area table of the tiles with data (box counts in 8 reads), once per map
-    state: queries of one region version share it."""
-    has = np.zeros(tile_counts, bool)
-    for key in data_tiles:
-        has[key] = True
-    table = np.zeros(tuple(np.array(tile_counts) + 1))
-    table[1:, 1:, 1:] = has.cumsum(0).cumsum(1).cumsum(2)
-    table.flags.writeable = False
-    return table
 
 
 @functools.lru_cache(maxsize=64)

@@ -20,11 +20,13 @@ both analytic given two traces. At fixed beta,
 MacKay's effective number of parameters (:func:`_derivatives` has the other cases and the
 curvature, which needs ``tr((G + lam I)^-2)`` and ``m^T (G + lam I)^-1 m``). The traces come
 from the factorisation already made, by Hutchinson's estimator on :data:`PROBES` fixed
-random sign vectors (one multi-column solve; about 1 % of error on ``gamma_eff``). The
-evidence is close to quadratic in ``x``, so a search from a good start (the modes of a
-directional map start from their map's ratio) takes 2-3 factorisations where Brent's
-method on the values took 7. The evidence itself stays exact; its derivatives only say
-where to look.
+random sign vectors (one multi-column solve; about 1 % of error on ``gamma_eff``). With the
+probes fixed, the curvature is the exact derivative of the estimated slope, so Newton's
+method converges quadratically to the slope's root, and that root is "auto": a function of
+the evidence alone, the same (to :data:`LOG_TOLERANCE`) from any start. A map refreshed
+after an upload starts at its previous optimum, a step or two away (bench/RESULTS.md,
+"Calibrated under a stream of uploads"), so staying at the evidence maximum of all the
+data costs a factorisation or two, not a search.
 """
 
 from __future__ import annotations
@@ -43,21 +45,20 @@ EMPTY_ALPHA, EMPTY_BETA = 1e-2, 1e2
 #: "auto" beta stays below this (noise std >= 1 mm/s): a component observed as exactly
 #: constant (vertical speed 0 everywhere) would otherwise get beta -> inf and std -> 0.
 MAX_AUTO_BETA = 1e6
-#: The search range of ``log(lam / mean(diag G))``: its top, and its resolution (5 % in
-#: lam: the evidence is flat there). Its bottom is :data:`FLOOR_PER_CUTOFF` times the
-#: kernel cutoff: ``G`` drops the pairs and tails below the cutoff, so its smallest
-#: eigenvalues are truncation noise (down to -1e-10 mean(diag G) at cutoff 1e-12, measured
-#: on a class of the synthetic city), and so is the evidence of a ratio near them. That
-#: class at 1e-10: 29,000 nats above its value at 1e-3 by the factorisation, 3,100 below it
-#: by a dense eigendecomposition (bench/bench_kernels.py), and a mode of 10^6 m/s between
-#: its lanes.
-LOG_TOP, LOG_TOLERANCE = np.log(1e4), 0.05
+#: The search range of ``log(lam / mean(diag G))``: its top. Its bottom is
+#: :data:`FLOOR_PER_CUTOFF` times the kernel cutoff: ``G`` drops the pairs and tails below
+#: the cutoff, so its smallest eigenvalues are truncation noise (down to -1e-10 mean(diag G)
+#: at cutoff 1e-12, measured on a class of the synthetic city), and so is the evidence of a
+#: ratio near them. That class at 1e-10: 29,000 nats above its value at 1e-3 by the
+#: factorisation, 3,100 below it by a dense eigendecomposition (bench/bench_kernels.py), and
+#: a mode of 10^6 m/s between its lanes.
+LOG_TOP = np.log(1e4)
 FLOOR_PER_CUTOFF = 1e4
-#: The search also stops where its next step would gain less evidence than this (nats, by
-#: the local quadratic): below one nat two hyperparameters are not told apart (Kass and
-#: Raftery's "not worth more than a bare mention"), and the traces' estimate is about
-#: that noisy.
-EVIDENCE_TOLERANCE = 1.0
+#: The search ends where Newton's step in ``ln lam`` is below this: the optimum is then
+#: known to about this (quadratic convergence), so maps of the same data fitted from
+#: different starts (one fit, or a refresh after many uploads) agree to about 1e-7 of
+#: their velocities' scale.
+LOG_TOLERANCE = 1e-7
 #: The search's longest step (in ln lam), and its most factorisations.
 MAX_STEP, MAX_EVALUATIONS = 4.0, 40
 #: Random sign vectors of the trace estimate (fixed: the search is deterministic).
@@ -168,7 +169,7 @@ def _derivatives(sol: Solution, a, b, count, comps, tied, profiled, probes) -> t
     return -0.5 * float(np.sum(rise)), -0.5 * float(np.sum(drise)), float(np.log(max(fixed, 1e-300)))
 
 
-def _search(evaluate, x: float, bounds: tuple[float, float]) -> int:
+def _search(evaluate, x: float, bounds: tuple[float, float]) -> tuple[float, int]:
     """Find the optimum of ``x = ln lam`` from ``x``, within ``bounds``.
 
     ``evaluate(x)`` returns the cost's slope (NaN where the factorisation fails) and
@@ -176,13 +177,13 @@ def _search(evaluate, x: float, bounds: tuple[float, float]) -> int:
     the fixed point where it is not or goes further the same way (far from the optimum,
     where the curvature changes, it is the better guess), inside the bracket the slopes
     have shown (bisecting it where a step would leave it), until a step is below
-    :data:`LOG_TOLERANCE` or Newton's step would gain less than :data:`EVIDENCE_TOLERANCE`.
-    Returns the number of evaluations.
+    :data:`LOG_TOLERANCE`. Returns the last point evaluated (the optimum) and the number
+    of evaluations.
     """
     lo, hi = -np.inf, np.inf
     for evaluations in range(1, MAX_EVALUATIONS + 1):
         slope, curvature, fixed_point = evaluate(x)
-        log.debug("x=%.4f slope %.4g curvature %.4g fixed point %.4f", x, slope, curvature, fixed_point)
+        log.debug("x=%.9f slope %.4g curvature %.4g fixed point %.4f", x, slope, curvature, fixed_point)
         if not np.isfinite(slope):  # not positive definite: more regularisation
             lo = x
             x = min(x + MAX_STEP, (x + min(hi, bounds[1])) / 2)
@@ -198,23 +199,24 @@ def _search(evaluate, x: float, bounds: tuple[float, float]) -> int:
         if not lo < proposal < hi:
             proposal = (lo + hi) / 2 if np.isfinite(lo + hi) else x - np.sign(slope) * MAX_STEP
         proposal = float(np.clip(proposal, *bounds))
-        newton = curvature > 0 and proposal == x - slope / curvature
-        if abs(proposal - x) < LOG_TOLERANCE or (newton and slope**2 / (2 * curvature) < EVIDENCE_TOLERANCE):
-            return evaluations
+        if abs(proposal - x) < LOG_TOLERANCE:
+            return x, evaluations
         x = proposal
-    return MAX_EVALUATIONS
+    return x, MAX_EVALUATIONS
 
 
 def fit_evidence(
     stencil, band, proj, v_sq, count, alpha, beta, start=None
-) -> tuple[np.ndarray, np.ndarray, list]:
-    """alpha (3,), beta (3,) and the factorisation(s) serving component 0, 1, 2.
+) -> tuple[np.ndarray, np.ndarray, list, int]:
+    """alpha (3,), beta (3,), the factorisation(s) serving component 0, 1, 2, and how
+    many factorisations it took.
 
     ``band``: ``G`` on ``stencil``. ``alpha``/``beta``: "auto" or 3-vectors. Fixed values
     need no search. "auto" for alpha shares ``lam`` over the components; a fixed alpha
     with "auto" beta searches each component on its own.
-    ``start``: a ratio alpha / beta near the optimum, if one is known (the search starts
-    there; the optimum found is the same to the search's tolerance).
+    ``start``: a ratio alpha / beta near the optimum, one or per component, if one is
+    known (the previous optimum of a map refreshed: the search starts there; the optimum
+    found is the same to :data:`LOG_TOLERANCE`).
     """
     auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
     if (auto_a or auto_b) and count <= 0:
@@ -225,46 +227,48 @@ def fit_evidence(
     if not (auto_a or auto_b):
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
-        return alpha_v.copy(), beta_v.copy(), _at_ratios(stencil, band, proj, v_sq, alpha_v / beta_v)
+        sols = _at_ratios(stencil, band, proj, v_sq, alpha_v / beta_v)
+        return alpha_v.copy(), beta_v.copy(), sols, len({id(s) for s in sols})
 
     scale = max(float(np.mean(band[0])), 1e-300)
     bounds = (np.log(FLOOR_PER_CUTOFF * stencil.cutoff), LOG_TOP)
     groups = [[0], [1], [2]] if (auto_b and not auto_a) else [[0, 1, 2]]
     tied = not auto_a  # beta follows lam with alpha fixed
     probes = _probes(len(proj))
-    alpha_v, beta_v, sols = np.empty(3), np.empty(3), [None] * 3
+    starts = None if start is None else np.broadcast_to(np.asarray(start, float), (3,))
+    alpha_v, beta_v, sols, factorisations = np.empty(3), np.empty(3), [None] * 3, 0
     for comps in groups:
-        best = [np.inf, None]
+        solved: dict[float, Solution] = {}
 
-        def evaluate(x, comps=comps, best=best):
+        def evaluate(x, comps=comps, solved=solved):
             try:
                 sol = solve(stencil, band, proj, v_sq, scale * np.exp(x))
             except linalg.NotPositiveDefinite:
                 return np.nan, np.nan, np.nan  # rounding at the smallest ratios: move up
+            solved.clear()  # only the latest is the answer
+            solved[x] = sol
             a, b = _hyper_for(sol, alpha, beta, count)
-            value = -float(np.sum(log_evidence(sol, a, b, count)[comps]))
-            if value < best[0]:
-                best[:] = value, sol
             profiled = auto_a & auto_b & (b < MAX_AUTO_BETA)
             slope, curvature, fixed_point = _derivatives(sol, a, b, count, comps, tied, profiled, probes)
             return slope, curvature, fixed_point - np.log(scale)
 
-        x0 = 0.0 if start is None else float(np.log(start / scale))
+        x0 = 0.0 if starts is None else float(np.log(np.mean(starts[comps]) / scale))
         span = bounds
         if tied:  # beta = alpha / lam stays below its cap, so alpha stays the fixed one
             fixed = np.broadcast_to(np.asarray(alpha, float), (3,))[comps]
             least = float(np.log(fixed.min() / MAX_AUTO_BETA / scale))
             span = (max(bounds[0], least), max(bounds[1], least))
-        evaluations = _search(evaluate, float(np.clip(x0, *span)), span)
-        sol = best[1]
-        if sol is None:  # no ratio in the range could be factored
+        x, evaluations = _search(evaluate, float(np.clip(x0, *span)), span)
+        if not solved:  # no ratio in the range could be factored
             raise linalg.NotPositiveDefinite(
                 f"the precision matrix is not positive definite at any alpha/beta in "
                 f"[{scale * np.exp(bounds[0]):.3g}, {scale * np.exp(bounds[1]):.3g}]"
             )
+        (sol,) = solved.values()
         a, b = _hyper_for(sol, alpha, beta, count)
         alpha_v[comps], beta_v[comps] = a[comps], b[comps]
         for c in comps:
             sols[c] = sol
-        log.debug("evidence fit for components %s: lam=%.4g in %d steps", comps, sol.lam, evaluations)
-    return alpha_v, beta_v, sols
+        log.debug("evidence fit for components %s: lam=%.6g in %d steps", comps, sol.lam, evaluations)
+        factorisations += evaluations
+    return alpha_v, beta_v, sols, factorisations

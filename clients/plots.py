@@ -102,6 +102,7 @@ def plot_modes(grid: Grid, alt_m: float, path, title: str = "", min_share: float
         share=grid.share[:, :, k],
         share_std=grid.share_std[:, :, k],
         mode_mean=grid.mode_mean[:, :, k],
+        mode_known=~grid.mode_prior_only[:, :, k],
         min_share=min_share,
     )
     path = Path(path)

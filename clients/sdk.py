@@ -78,7 +78,8 @@ class UploadResult:
 
 @dataclass(frozen=True)
 class Prediction:
-    """Mean and std (n, 3) in m/s, region ENU axes; ``known`` False where no tile has data."""
+    """Mean and std (n, 3) in m/s, region ENU axes; ``known`` False where no data lies
+    within the kernel's reach (the map is its prior there)."""
 
     mean: np.ndarray
     std: np.ndarray
@@ -90,7 +91,9 @@ class Prediction:
 class Grid:
     """A voxel grid: axes x (nx,), y (ny,), z (nz,); mean and std (nx, ny, nz, 3). With
     ``modes``: each traffic class's ``share`` (nx, ny, nz, C), ``mode_mean`` and ``mode_std``
-    (nx, ny, nz, C, 3), and the shares' std ``share_std`` (nx, ny, nz)."""
+    (nx, ny, nz, C, 3), the shares' std ``share_std`` (nx, ny, nz), and
+    ``mode_prior_only`` (nx, ny, nz, C): no data of the class within the kernel's reach,
+    so its mode there is only its prior."""
 
     x: np.ndarray
     y: np.ndarray
@@ -103,6 +106,7 @@ class Grid:
     mode_mean: np.ndarray | None = None
     mode_std: np.ndarray | None = None
     share_std: np.ndarray | None = None
+    mode_prior_only: np.ndarray | None = None
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -587,7 +591,8 @@ class _Endpoints:
         params = self._read_params(name, _grid_params(step, bbox) | ({"modes": "true"} if modes else {}))
         response = yield _Request("GET", f"/v1/regions/{name}/grid", accept=NPZ, params=params)
         a = _npz(response.content)
-        per_class = (a["share"], a["mode_mean"], a["mode_std"], a["share_std"]) if modes else (None,) * 4
+        names = ("share", "mode_mean", "mode_std", "share_std", "mode_prior_only")
+        per_class = tuple(a[n] for n in names) if modes else (None,) * len(names)
         return Grid(a["x"], a["y"], a["z"], a["mean"], a["std"], a["known"], _version(response), *per_class)
 
     def _tubes(self, name, max_std_mps, step, bbox, component, media) -> Call:

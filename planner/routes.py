@@ -84,15 +84,15 @@ class LocalMap:
     """A region's map in process, as a :class:`MapSource`: the spec, its posterior
     (:meth:`RegionSpec.posterior`) and the keys of its tiles with data."""
 
-    def __init__(self, spec: RegionSpec, posterior, data_tiles):
-        self.spec, self.posterior, self.data_tiles = spec, posterior, frozenset(data_tiles)
+    def __init__(self, spec: RegionSpec, posterior):
+        self.spec, self.posterior = spec, posterior
 
     @classmethod
     def fit(cls, spec: RegionSpec, X, V, **kwargs) -> LocalMap:
         """The map of observations ``(X, V)`` (keywords of :meth:`RegionSpec.increments`)."""
         increments = spec.increments(X, V, **kwargs)
         evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
-        return cls(spec, spec.posterior(evidence), increments)
+        return cls(spec, spec.posterior(evidence))
 
     def _check(self, name: str) -> None:
         if name != self.spec.name:
@@ -107,14 +107,14 @@ class LocalMap:
         lo, hi = (self.spec.lower, self.spec.upper) if bbox is None else (bbox[:3], bbox[3:])
         axes = tuple(self.spec.box_axes(lo, hi, step))
         m = self.spec.predict_grid_modes(axes, self.posterior) if modes else None
-        mean, std, known = self.spec.predict_grid(axes, self.posterior, self.data_tiles, m)
+        mean, std, known = self.spec.predict_grid(axes, self.posterior, m)
         if m is None:
             return LocalGrid(axes, mean, std, known)
         return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std, m.share_std)
 
     def query(self, name: str, X, *, heading_deg=None) -> LocalPrediction:
         self._check(name)
-        mean, std, _ = self.spec.predict(np.asarray(X, float), self.posterior, self.data_tiles, heading_deg)
+        mean, std, _ = self.spec.predict(np.asarray(X, float), self.posterior, heading_deg)
         return LocalPrediction(mean, std)
 
 

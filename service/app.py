@@ -68,10 +68,11 @@ def scoped(scope: str, responses: dict | None = None, **extra) -> dict:
 
 
 class Hyperparameters(BaseModel):
-    """alpha and beta in force: the spec's fixed values, or fitted at the evidence maximum
-    of the region at ``evidence_version`` ("auto" until the region's first data). A
-    directional region has a row per component triple: the map with one class, then each
-    class (:class:`bdf.posterior.Mixture`)."""
+    """alpha and beta: the spec's fixed values, or ("auto") the evidence maximum of the
+    region's data at ``evidence_version``, found at ``fitted_at`` (the map of every version
+    is at its own data's maximum: each refresh finds it and records it here; "auto" until
+    the first). A directional region has a row per component triple: the map with one
+    class, then each class (:class:`bdf.posterior.Mixture`)."""
 
     alpha: Literal["auto"] | float | list[float] | list[list[float]]
     beta: Literal["auto"] | float | list[float] | list[list[float]]
@@ -148,8 +149,16 @@ def _etag(request: Request, region_id: str, version: int, body: bytes = b"") -> 
 
 
 def _answer_headers(request: Request, pred, body: bytes = b"") -> dict:
-    """An answer's ETag and the region version it was computed from."""
-    return {"ETag": _etag(request, pred.region_id, pred.version, body), "X-Region-Version": str(pred.version)}
+    """An answer's ETag, the region version it was computed from and how far that is behind
+    the region's newest (versions, and seconds since the first of them was written); the
+    lag is counted in /metrics too."""
+    request.app.state.metrics.answered(pred.behind, pred.behind_s)
+    return {
+        "ETag": _etag(request, pred.region_id, pred.version, body),
+        "X-Region-Version": str(pred.version),
+        "X-Region-Versions-Behind": str(pred.behind),
+        "X-Region-Seconds-Behind": f"{pred.behind_s:.3f}",
+    }
 
 
 def _not_modified(request: Request, etag: str) -> bool:
@@ -364,8 +373,9 @@ async def post_retraction(name: RegionName, request: Request, upload_id: Idempot
 
 @router.post("/regions/{name}/hyperparameters", response_model=RegionView, **scoped("write"))
 def post_hyperparameters(name: RegionName, request: Request):
-    """Refit the region's "auto" alpha and beta at the evidence maximum of all its data and
-    make them the ones in force (a new region version); uploads keep them until then."""
+    """The region's map at its current version, now (each refresh after a write does the
+    same in the background): its "auto" alpha and beta at the evidence maximum of all its
+    data, recorded in the region view, which this answers."""
     return _view(request.app.state.maps.fit_hyperparameters(name))
 
 
@@ -418,6 +428,7 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
                     columns[f"share{c}"] = np.ascontiguousarray(m.share[:, c])
                     columns |= formats.vector_columns(f"mode{c}_v", m.mean[:, c])
                     columns |= formats.vector_columns(f"mode{c}_std_", m.std[:, c])
+                    columns[f"prior_only{c}"] = np.ascontiguousarray(m.prior_only[:, c])
                 columns["share_std"] = m.share_std
             return Response(formats.arrow_body(columns), media_type=ARROW, headers=headers)
         content = {
@@ -433,6 +444,7 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
                 "share_std": m.share_std.tolist(),
                 "mean": m.mean.tolist(),
                 "std": m.std.tolist(),
+                "prior_only": m.prior_only.tolist(),
             }
         return JSONResponse(content, headers=headers)
 
@@ -489,7 +501,9 @@ def grid(
 ):
     """Mean and std on the voxel grid ``bbox`` x ``step``: npz (arrays mean, std (nx, ny, nz,
     3), known (nx, ny, nz), x, y, z; with ``modes``: share (nx, ny, nz, C), share_std,
-    mode_mean and mode_std (nx, ny, nz, C, 3), heading_deg (C,), NaN for the slow class),
+    mode_mean and mode_std (nx, ny, nz, C, 3), mode_prior_only (nx, ny, nz, C: no data of
+    the class within the kernel's reach, the mode is its prior), heading_deg (C,), NaN for
+    the slow class),
     Arrow (one row per voxel, C order; ``shape`` in the schema metadata), or JSON for small
     grids."""
     out = formats.negotiate(request.headers.get("accept"), [JSON, NPZ, ARROW])
@@ -510,6 +524,7 @@ def grid(
                 share_std=m.share_std,
                 mode_mean=m.mean,
                 mode_std=m.std,
+                mode_prior_only=m.prior_only,
                 heading_deg=np.array(headings),
             )
         body = formats.npz_bytes(
@@ -683,6 +698,7 @@ def slice_png(
             share=pred.modes.share[:, :, 0],
             share_std=pred.modes.share_std[:, :, 0],
             mode_mean=pred.modes.mean[:, :, 0],
+            mode_known=~pred.modes.prior_only[:, :, 0],
             min_share=min_share,
         )
     png = slices.render_slice(
@@ -780,7 +796,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     app.state.settings = settings
     app.state.maps = maps
     app.state.jobs = Jobs()
-    app.state.metrics = Metrics(maps.cache)
+    app.state.metrics = Metrics(maps)
     problems.install(app, PATTERNS)
     if settings.cors_origins:  # off unless configured: browsers on other origins get no access
         app.add_middleware(
@@ -788,7 +804,15 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
             allow_origins=settings.cors_origins,
             allow_methods=["GET", "POST", "DELETE"],
             allow_headers=["Authorization", "Content-Type", "Accept", "Idempotency-Key", "If-None-Match"],
-            expose_headers=["ETag", "X-Region-Version", "X-Request-ID", "Location", "Retry-After"],
+            expose_headers=[
+                "ETag",
+                "X-Region-Version",
+                "X-Region-Versions-Behind",
+                "X-Region-Seconds-Behind",
+                "X-Request-ID",
+                "Location",
+                "Retry-After",
+            ],
         )
     app.add_middleware(
         RequestMiddleware, max_body_bytes=int(settings.max_body_mb * 2**20), metrics=app.state.metrics

@@ -43,7 +43,7 @@ from tqdm import tqdm
 from bdf import ingest
 from bdf.tiles import Increment, RegionSpec, TileKey
 from service import formats
-from service.maps import REJECTED, fitted, observations_evidence, posterior_evidence, require_accepted
+from service.maps import REJECTED, fitted, observations_evidence, require_accepted
 from service.problems import Problem
 from service.store import MapStore
 
@@ -293,8 +293,8 @@ def build(
     build is a replay. Returns the ledger result, like an upload's.
     ``progress``: a bar over the slices (default: on a terminal). ``rows_per_task`` and
     ``batch_rows`` set the slices and the rows a worker holds at once.
-    The result also says how long the evidence and the commit (the region's posterior
-    with "auto" hyperparameters, then the store's transaction) took: ``seconds``.
+    The result also says how long the evidence and the commit (a fit's posterior, then
+    the store's transaction) took: ``seconds``.
     """
     paths = [Path(p).resolve() for p in paths]
     if not paths:
@@ -335,8 +335,10 @@ def build(
     evidence_s, start = time.perf_counter() - start, time.perf_counter()
     require_accepted(total.summary, "build")
     info = store.region(region)  # apply refuses it if the region was re-created meanwhile
-    evidence = posterior_evidence(info, total.increments, replace)
-    post = None if evidence is None else info.spec.posterior(evidence)
+    post = None  # a fit's map is computed first: one that cannot be solved stores nothing
+    if replace:
+        evidence = info.spec.region_evidence({k: i.evidence for k, i in total.increments.items()})
+        post = info.spec.posterior(evidence, stored=False)
     result = store.apply(
         region,
         spec_id,

@@ -1,11 +1,18 @@
 """The map layer the routes call: uploads into tiles, queries of the region's one field.
 
-The store holds the truth (tile statistics, versions, ledger, hyperparameters in force);
-a region's posterior is derived data, computed from the sum of its tiles' evidence per
-``(region_id, version)``, kept in a memory-bounded LRU, and refreshed in the background
-after a write: until the new version's posterior is ready, queries answer from the
-newest one this process has (the answer names its version), unless they ask for at
-least a given version (``min_version``: read your own writes), which waits for it.
+The store holds the truth (tile statistics, versions, ledger); a region's map is derived
+data: the posterior of the sum of its tiles' evidence at the spec's hyperparameters
+("auto": the evidence maximum of that version's data, whatever uploads brought it), per
+``(region_id, version)``, kept in a memory-bounded LRU.
+
+Refreshes: a write answers at once and schedules its region's refresh. One refresh per
+region runs at a time, always of the newest version (versions written meanwhile are
+skipped, not queued: the next refresh starts from the newest), warm from the last (the
+tiles' decoded evidence whose version has not changed, the previous optimum as the
+search's start, the symbolic analysis of an unchanged support in the posterior process).
+Until it is ready, queries answer from the newest map this process has, and each answer
+says which version it is and how far behind (:class:`Prediction`); a query that asks for
+at least a version (``min_version``: read your own writes) waits for it.
 """
 
 from __future__ import annotations
@@ -13,7 +20,6 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-import queue
 import threading
 import time
 from collections import OrderedDict
@@ -26,9 +32,15 @@ import numpy as np
 
 from bdf._validate import noise_std_rows, rows_all
 from bdf.posterior import Mixture, Modes, Posterior
-from bdf.stats import SectorEvidence
-from bdf.tiles import Increment, RegionSpec, TileKey
-from service.store import MapStore, RegionInfo, payload_digest
+from bdf.tiles import RegionSpec, TileKey
+from service.store import (
+    MapStore,
+    RegionChanged,
+    RegionInfo,
+    RegionNotFound,
+    StoreUnavailable,
+    payload_digest,
+)
 
 log = logging.getLogger(__name__)
 #: why a row is not learned from: every upload's ``rejected`` counts each, in this order
@@ -42,13 +54,12 @@ class Unprocessable(ValueError):
 
 @dataclass(frozen=True)
 class MapState:
-    """The map of one region version: the posterior of its field and the tiles with data."""
+    """The map of one region version: the posterior of its field."""
 
     spec: RegionSpec
     region_id: str
     version: int
     posterior: Posterior | Mixture
-    data_tiles: frozenset
 
     @property
     def nbytes(self) -> int:
@@ -101,11 +112,27 @@ class Prediction:
     version: int  # region version the answer was computed from
     region_id: str  # with the version, names the map state (ETag)
     modes: Modes | None = None  # per traffic class, when asked
+    behind: int = 0  # versions written that the answer's map does not hold yet
+    behind_s: float = 0.0  # since when (s): the age of the first of them
+
+
+@dataclass
+class RefreshStats:
+    """What the refreshes did (``/metrics``)."""
+
+    count: int = 0  # maps computed
+    seconds: float = 0.0  # their total time
+    skipped: int = 0  # versions never computed: a newer one was written first
+    factorisations: int = 0  # of their hyperparameter searches (and fixed values)
+    last_s: float = 0.0
 
 
 class RegionMaps:
     """Region maps over a :class:`MapStore`: exactly-once uploads, queries of the region's
-    field, posteriors refreshed in the background."""
+    field, maps refreshed in the background (module doc)."""
+
+    #: Regions whose decoded tile evidence is kept for the next refresh (most recent).
+    EVIDENCE_REGIONS = 8
 
     def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False):
         """``isolate``: compute posteriors in a child process (the service does). A
@@ -115,38 +142,38 @@ class RegionMaps:
         self.store = store
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
         self.cache = PosteriorCache(cache_mb)
+        self.stats = RefreshStats()
         self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
         self._lock = threading.Lock()
         self._building: dict[str, threading.Lock] = {}  # region name -> one computation at a time
-        self._queue: queue.SimpleQueue[str | None] = queue.SimpleQueue()
-        self._pending: set[str] = set()
-        self._worker: threading.Thread | None = None
+        self._refreshing: dict[str, bool] = {}  # region name -> written again since it started
+        self._threads: dict[str, threading.Thread] = {}
+        self._evidence: OrderedDict[str, dict] = OrderedDict()  # region_id -> key -> (version, evidence)
         self._closed = False
         store.on_close(self.close)
 
     def close(self) -> None:
-        """Stop the background refresh (after the one under way): the store closes next."""
+        """Stop the background refreshes (after the ones under way): the store closes next."""
         with self._lock:
-            self._closed, worker = True, self._worker
-        if worker is not None and worker.is_alive():
-            self._queue.put(None)
-            worker.join(timeout=120)
+            self._closed, threads = True, list(self._threads.values())
+        for thread in threads:
+            thread.join(timeout=120)
         with self._lock:
             pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(cancel_futures=True)
 
-    def _posterior(self, spec: RegionSpec, evidence, alpha=None, beta=None) -> Posterior | Mixture:
-        """``spec.posterior(evidence, alpha, beta)``, in the child process if isolated."""
+    def _posterior(self, spec: RegionSpec, evidence, start=None, stored=True) -> Posterior | Mixture:
+        """``spec.posterior(evidence, start, stored=stored)``, in the child process if isolated."""
         if not self._isolate:
-            return spec.posterior(evidence, alpha, beta)
+            return spec.posterior(evidence, start, stored=stored)
         for attempt in range(2):
             with self._lock:
                 if self._pool is None:
                     self._pool = _posterior_process()
                 pool = self._pool
             try:
-                return pool.submit(spec.posterior, evidence, alpha, beta).result()
+                return pool.submit(_compute_posterior, spec, evidence, start, stored).result()
             except BrokenProcessPool:  # the child died (killed, out of memory): start another
                 if attempt:
                     raise
@@ -169,12 +196,11 @@ class RegionMaps:
     ) -> dict:
         """Apply observations (ENU metres, m/s) to a region once per ``upload_id``.
 
-        Rows with a non-finite value or outside the region are rejected and counted, the
-        rest accepted. ``replace``: the map becomes this data alone (a fit): its posterior
-        is computed before anything is stored (with "auto", at the evidence maximum, which
-        becomes the region's hyperparameters), so a fit that cannot be solved raises
-        ``ValueError`` and changes nothing. The region's first data fits "auto" likewise;
-        later uploads keep the hyperparameters in force. Returns the ledger result:
+        Rows with a non-finite value, outside the region or outside its envelope are
+        rejected and counted, the rest accepted. ``replace``: the map becomes this data
+        alone (a fit): its posterior is computed before anything is stored, so a fit that
+        cannot be solved raises ``ValueError`` and changes nothing. An upload answers
+        without waiting for its map (a refresh is scheduled). Returns the ledger result:
         accepted, rejected (by reason), tiles_updated, region_version, replayed.
         ``progress(fraction)`` follows the per-tile work. With no row accepted it raises
         :class:`Unprocessable` and stores nothing.
@@ -188,8 +214,10 @@ class RegionMaps:
         spec = info.spec
         increments, summary = _evidence(spec, X, V, noise, weight, progress)
         require_accepted(summary, "fit" if replace else "upload")
-        evidence = posterior_evidence(info, increments, replace)
-        post = None if evidence is None else self._posterior(spec, evidence)
+        post = None
+        if replace:
+            evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
+            post = self._posterior(spec, evidence, self._start(info), stored=False)
         result = self.store.apply(
             region,
             info.region_id,
@@ -201,10 +229,9 @@ class RegionMaps:
             summary=summary,
             hyper=None if post is None else fitted(post),
         )
-        version = result["region_version"]
-        if post is not None and not result["replayed"] and (replace or version == info.version + 1):
-            # the posterior of exactly this version: nothing else reached the region
-            self._publish(MapState(spec, info.region_id, version, post, frozenset(increments)))
+        if post is not None and not result["replayed"]:  # the map of exactly this version
+            state = MapState(spec, info.region_id, result["region_version"], post)
+            self._publish(state)
         else:
             self._schedule(region)
         return result
@@ -228,22 +255,17 @@ class RegionMaps:
         return result
 
     def fit_hyperparameters(self, region: str) -> RegionInfo:
-        """Refit the region's "auto" hyperparameters at its evidence maximum and make them
-        the ones in force (a new version). :class:`Unprocessable` if the spec fixes both or
-        the region has no data."""
-        snap = self.store.snapshot(region)
-        spec = snap.region.spec
-        if not spec.auto:
+        """The region's map at its current version, now: its "auto" hyperparameters are that
+        version's evidence maximum (every refresh finds them; this waits for it). Returns
+        the region with them. :class:`Unprocessable` if the spec fixes both or the region
+        has no data."""
+        info = self.store.region(region)
+        if not info.spec.auto:
             raise Unprocessable(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
-        if not snap.tiles:
+        if not info.tiles:
             raise Unprocessable(f"region {region!r} has no data to fit its hyperparameters on")
-        post = self._posterior(spec, spec.region_evidence(snap.evidence))
-        info = self.store.set_hyperparameters(
-            region, snap.region.region_id, fitted(post), snap.region.version
-        )
-        if info.region_id == snap.region.region_id and info.version == snap.region.version + 1:
-            self._publish(MapState(spec, info.region_id, info.version, post, frozenset(snap.tiles)))
-        return info
+        self._compute(region, info.version)
+        return self.store.region(region)
 
     def predict(
         self,
@@ -258,33 +280,44 @@ class RegionMaps:
         """Mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region.
 
         ``info``: the region as the caller read it (its version names the map wanted).
-        ``min_version``: answer from at least this version (waiting for its posterior).
+        ``min_version``: answer from at least this version (waiting for its map).
         ``heading_deg``: the mode of traffic flying it instead of the mixture; ``modes``:
         every class's share, mean and std too.
         """
-        state = self._state(region, info or self.store.region(region), min_version)
+        info = info or self.store.region(region)
+        state = self._state(region, info, min_version)
         X = np.asarray(X, float)
         per_class = state.spec.predict_modes(X, state.posterior) if modes else None
-        mean, std, known = state.spec.predict(X, state.posterior, state.data_tiles, heading_deg, per_class)
-        return Prediction(mean, std, known, state.version, state.region_id, per_class)
+        mean, std, known = state.spec.predict(X, state.posterior, heading_deg, per_class)
+        return Prediction(mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state))
 
     def predict_grid(
         self, region: str, axes, info: RegionInfo | None = None, min_version: int = 0, *, modes: bool = False
     ) -> Prediction:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
         (nx, ny, nz, 3) and (nx, ny, nz), the modes' (nx, ny, nz, C, ...)."""
-        state = self._state(region, info or self.store.region(region), min_version)
+        info = info or self.store.region(region)
+        state = self._state(region, info, min_version)
         per_class = state.spec.predict_grid_modes(axes, state.posterior) if modes else None
-        mean, std, known = state.spec.predict_grid(axes, state.posterior, state.data_tiles, per_class)
-        return Prediction(mean, std, known, state.version, state.region_id, per_class)
+        mean, std, known = state.spec.predict_grid(axes, state.posterior, per_class)
+        return Prediction(mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state))
 
     def refresh(self, region: str) -> MapState:
         """The map state of the region's current version, computed now if need be."""
-        return self._compute(region)
+        return self._compute(region, self.store.region(region).version)
+
+    def _lag(self, info: RegionInfo, state: MapState) -> tuple[int, float]:
+        """How far ``state`` is behind the region as read (``info``): versions, and the
+        seconds since the first of them was written."""
+        behind = info.version - state.version if info.region_id == state.region_id else 0
+        if behind <= 0:
+            return 0, 0.0
+        since = self.store.committed_at(info.region_id, state.version + 1) or info.updated_at
+        return behind, max(time.time() - since, 0.0)
 
     def _state(self, region: str, info: RegionInfo, min_version: int) -> MapState:
-        """The state at ``info``'s version if ready; else the newest ready one (a refresh
-        is scheduled) if it is at least ``min_version``; else computed now."""
+        """The map at ``info``'s version if ready; else the newest ready one (a refresh is
+        scheduled) if it is at least ``min_version``; else it waits for one that is."""
         state = self.cache.get((info.region_id, info.version))
         if state is not None:
             return state
@@ -293,9 +326,12 @@ class RegionMaps:
         if newest is not None and newest.version >= min_version and newest.spec == info.spec:
             self._schedule(region)
             return newest
-        return self._compute(region)
+        return self._compute(region, max(min_version, 1 if info.version else 0))
 
-    def _compute(self, region: str) -> MapState:
+    def _compute(self, region: str, at_least: int) -> MapState:
+        """A map of the region at version ``at_least`` or newer: one computed meanwhile (a
+        caller waiting here shares the refresh under way), else the current version's,
+        computed now. One computation per region at a time."""
         with self._lock:
             lock = self._building.setdefault(region, threading.Lock())
         with lock:
@@ -303,12 +339,80 @@ class RegionMaps:
             state = self.cache.get((info.region_id, info.version))
             if state is not None:
                 return state
-            snap = self.store.snapshot(region)
+            with self._lock:
+                newest = self._newest.get(info.region_id)
+            if newest is not None and newest.version >= at_least and newest.spec == info.spec:
+                return newest
+            started = time.perf_counter()
+            snap, evidence = self._snapshot_evidence(region)
             spec = snap.region.spec
-            post = self._posterior(spec, spec.region_evidence(snap.evidence), *snap.region.hyperparameters())
-            state = MapState(spec, snap.region.region_id, snap.region.version, post, frozenset(snap.tiles))
+            post = self._posterior(spec, spec.region_evidence(evidence), self._start(snap.region, newest))
+            state = MapState(spec, snap.region.region_id, snap.region.version, post)
             self._publish(state)
+            seconds = time.perf_counter() - started
+            with self._lock:
+                self.stats.count += 1
+                self.stats.seconds += seconds
+                self.stats.last_s = seconds
+                self.stats.factorisations += post.factorisations
+                if newest is not None and newest.region_id == state.region_id:
+                    self.stats.skipped += max(state.version - newest.version - 1, 0)
+            log.info(
+                "region %s version %d: map ready in %.2f s (%d factorisations)",
+                region,
+                state.version,
+                seconds,
+                post.factorisations,
+            )
+            if spec.auto and post.fitted:
+                self._record(region, state)
             return state
+
+    def _snapshot_evidence(self, region: str):
+        """The region's snapshot and every tile's evidence, decoding only the tiles whose
+        version changed since the last refresh here."""
+        region_id = self.store.region(region).region_id
+        with self._lock:
+            kept = self._evidence.pop(region_id, {})
+        snap = self.store.snapshot(region, need=lambda rid, key, version: kept.get(key, (None,))[0] != version)
+        if snap.region.region_id != region_id:  # re-created meanwhile
+            kept = {}
+            snap = self.store.snapshot(region)
+        tiles = {
+            key: (info.version, snap.evidence[key] if key in snap.evidence else kept[key][1])
+            for key, info in snap.tiles.items()
+        }
+        with self._lock:
+            self._evidence[snap.region.region_id] = tiles
+            while len(self._evidence) > self.EVIDENCE_REGIONS:
+                self._evidence.popitem(last=False)
+        return snap, {key: evidence for key, (_, evidence) in tiles.items()}
+
+    def _start(self, info: RegionInfo, newest: MapState | None = None):
+        """Where the "auto" search of ``info``'s region starts: the optimum of its newest map
+        here, or the one the store records (another process's, or before a restart)."""
+        if not info.spec.auto:
+            return None
+        if newest is not None and newest.spec == info.spec and newest.posterior.fitted:
+            return newest.posterior.alpha / newest.posterior.beta
+        hyper = info.hyper or {}
+        rows = 1 if info.spec.directions == 1 else 1 + info.spec.sectors.classes
+        try:
+            start = np.asarray(hyper["alpha"], float) / np.asarray(hyper["beta"], float)
+        except (KeyError, TypeError, ValueError):
+            return None
+        if start.shape != ((3,) if rows == 1 else (rows, 3)) or not np.all(np.isfinite(start) & (start > 0)):
+            return None
+        return start
+
+    def _record(self, region: str, state: MapState) -> None:
+        """Record the hyperparameters the map of ``state`` found (the region view shows
+        them; a new process starts its search there). A store that cannot be written now
+        costs only the record."""
+        try:
+            self.store.record_hyperparameters(region, state.region_id, fitted(state.posterior), state.version)
+        except (StoreUnavailable, RegionChanged, RegionNotFound) as exc:
+            log.warning("region %s: hyperparameters of version %d not recorded: %s", region, state.version, exc)
 
     def _publish(self, state: MapState) -> None:
         self.cache.put((state.region_id, state.version), state)
@@ -318,34 +422,39 @@ class RegionMaps:
                 self._newest[state.region_id] = state
 
     def _schedule(self, region: str) -> None:
-        """Refresh the region's posterior in the background (once per burst of writes)."""
+        """Refresh the region's map in the background: one refresh per region at a time; a
+        write during one makes it run once more, for the newest version then."""
         with self._lock:
-            if region in self._pending or self._closed:
+            if self._closed:
                 return
-            self._pending.add(region)
-            if self._worker is None or not self._worker.is_alive():
-                self._worker = threading.Thread(target=self._refresh_loop, name="bdf-refresh", daemon=True)
-                self._worker.start()
-        self._queue.put(region)
+            if region in self._refreshing:
+                self._refreshing[region] = True
+                return
+            self._refreshing[region] = False
+            thread = threading.Thread(target=self._refresh_loop, args=(region,), name=f"refresh-{region}", daemon=True)
+            self._threads[region] = thread
+        thread.start()
 
-    def _refresh_loop(self) -> None:
+    def _refresh_loop(self, region: str) -> None:
         while True:
-            region = self._queue.get()
-            if region is None:
-                return
-            with self._lock:
-                self._pending.discard(region)
             try:
-                started = time.perf_counter()
-                state = self._compute(region)
-                log.info(
-                    "region %s version %d posterior ready in %.2f s",
-                    region,
-                    state.version,
-                    time.perf_counter() - started,
-                )
+                self._compute(region, self.store.region(region).version)
+            except RegionNotFound:
+                pass
             except Exception:  # the previous version keeps answering
                 log.exception("refreshing region %s failed; its previous version keeps answering", region)
+            with self._lock:
+                if self._refreshing.get(region) and not self._closed:
+                    self._refreshing[region] = False
+                    continue
+                self._refreshing.pop(region, None)
+                self._threads.pop(region, None)
+                return
+
+
+def _compute_posterior(spec: RegionSpec, evidence, start, stored):
+    """:meth:`RegionSpec.posterior` (a module function: what the posterior process runs)."""
+    return spec.posterior(evidence, start, stored=stored)
 
 
 #: How often the posterior process checks that the process that started it lives (s).
@@ -373,19 +482,6 @@ def _leave_with_parent(parent: int) -> None:
         os._exit(0)
 
     threading.Thread(target=watch, name="leave-with-parent", daemon=True).start()
-
-
-def posterior_evidence(
-    info: RegionInfo, increments: dict[TileKey, Increment], replace: bool
-) -> SectorEvidence | None:
-    """The evidence whose posterior a write computes before it commits, or None: a fit's
-    (``replace``), and, with "auto" hyperparameters, the region's first data's, since either
-    sets them (:func:`fitted`). A precision that cannot be factored raises ``ValueError``
-    then, before anything is stored."""
-    spec = info.spec
-    if not increments or not (replace or (spec.auto and info.hyper is None)):
-        return None
-    return spec.region_evidence({k: i.evidence for k, i in increments.items()})
 
 
 def fitted(post: Posterior) -> dict | None:

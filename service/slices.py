@@ -68,24 +68,29 @@ def render_slice(
     share: np.ndarray | None = None,
     share_std: np.ndarray | None = None,
     mode_mean: np.ndarray | None = None,
+    mode_known: np.ndarray | None = None,
     min_share: float = MIN_SHARE,
 ) -> bytes:
     """PNG of one slice. ``mean``, ``std``: (nx, ny, 3) m/s; ``known``: (nx, ny);
-    ``share`` (nx, ny, C), ``share_std`` (nx, ny) and ``mode_mean`` (nx, ny, C, 3): each
-    traffic class's.
+    ``share`` (nx, ny, C), ``share_std`` (nx, ny), ``mode_mean`` (nx, ny, C, 3) and
+    ``mode_known`` (nx, ny, C: the class has data within the kernel's reach): each traffic
+    class's.
 
-    ``mean``: the mean of ``component``, grey where no tile has data (the prior);
+    ``mean``: the mean of ``component``, grey where no data is within the kernel's reach
+    (the prior);
     ``std``: its predictive std; ``tube``: the mean where every component's std is below
     ``max_std_mps`` and there is data, grey elsewhere; ``share``: the largest class's share
     (1: one direction; low: mixed traffic); ``modes``: an arrow per class with at least
-    ``min_share`` of the traffic, along its horizontal mean, as wide as its share, faint
-    where that share is less than one std above ``min_share`` (where data is thin the shares
-    and modes are their priors: the region's overall shares, each class's mean velocity at
-    that altitude), on the horizontal speed of the mixture.
+    ``min_share`` of the traffic and data of its own within the kernel's reach (elsewhere a
+    mode is only its prior: the class's mean velocity at that altitude), along its
+    horizontal mean, as wide as its share, faint where that share is less than one std above
+    ``min_share``, on the horizontal speed of the mixture.
     """
     c = COMPONENTS.index(component)
     if layer in ("modes", "share") and share is None:
         raise ValueError(f"the {layer} layer needs the modes")
+    if mode_known is None and share is not None:
+        mode_known = np.broadcast_to(known[..., None], share.shape)
     if layer == "share":
         values = np.ma.array(share.max(axis=-1), mask=~known)
         cmap, norm = "viridis", Normalize(1.0 / share.shape[-1], 1.0)
@@ -110,7 +115,7 @@ def render_slice(
     extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
     im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
     fig.colorbar(im, ax=ax, label=label, shrink=0.9, extend="max" if layer == "std" else "both")
-    if layer == "modes" and _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share):
+    if layer == "modes" and _mode_arrows(ax, x, y, share, share_std, mode_mean, mode_known, min_share):
         headings = ScalarMappable(Normalize(0, 360), "hsv")  # opaque, whichever arrows were drawn
         bar = fig.colorbar(headings, ax=ax, location="bottom", shrink=0.6, aspect=40)
         bar.set_label("heading of the mode [degrees from north]")
@@ -128,19 +133,19 @@ def render_slice(
     return buf.getvalue()
 
 
-def _mode_arrows(ax, x, y, share, share_std, mode_mean, known, min_share):
+def _mode_arrows(ax, x, y, share, share_std, mode_mean, mode_known, min_share):
     """An arrow per class and cell (every k-th cell) with at least ``min_share`` of the
-    traffic: along the mode's horizontal mean, coloured by heading, wider as its share
+    traffic and data of its own (``mode_known``): along the mode's horizontal mean, coloured by heading, wider as its share
     grows (three widths: below 0.2, to 0.5, above), faint unless the share is at least one
     std above ``min_share``. Returns whether any was drawn."""
     drawn = False
     k = max(1, int(np.ceil(max(len(x), len(y)) / ARROWS_PER_SIDE)))
     xs, ys = np.meshgrid(x[::k] / 1e3, y[::k] / 1e3, indexing="ij")
-    s, m, seen = share[::k, ::k], mode_mean[::k, ::k], known[::k, ::k]
+    s, m, seen = share[::k, ::k], mode_mean[::k, ::k], mode_known[::k, ::k]
     speed = np.hypot(m[..., 0], m[..., 1])
     cell_km = k * float(x[1] - x[0]) / 1e3 if len(x) > 1 else 1.0
-    scale = max(float(np.max(speed[seen[..., None] & (s >= min_share)], initial=0.0)), 1e-9) / (0.9 * cell_km)
-    show = seen[..., None] & (s >= min_share) & (speed > 0)
+    scale = max(float(np.max(speed[seen & (s >= min_share)], initial=0.0)), 1e-9) / (0.9 * cell_km)
+    show = seen & (s >= min_share) & (speed > 0)
     heading = np.degrees(np.arctan2(m[..., 0], m[..., 1])) % 360.0
     sure = s - share_std[::k, ::k, None] >= min_share
     for low, high, width in ((min_share, 0.2, 0.002), (0.2, 0.5, 0.004), (0.5, 1.01, 0.007)):

@@ -32,7 +32,7 @@ LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1, 2.
 class Metrics:
     """The service's Prometheus registry (one per app, so tests can build several apps)."""
 
-    def __init__(self, cache):
+    def __init__(self, maps):
         self.registry = CollectorRegistry()
         self.requests = Counter(
             "bdf_http_requests", "HTTP requests", ["route", "method", "status"], registry=self.registry
@@ -50,7 +50,23 @@ class Metrics:
         self.observations = Counter(
             "bdf_observations", "observations received, by outcome", ["outcome"], registry=self.registry
         )
-        self.registry.register(_CacheCollector(cache))
+        self.versions_behind = Histogram(
+            "bdf_answer_versions_behind",
+            "region versions written that an answer's map did not hold yet",
+            buckets=(0, 1, 2, 3, 5, 10, 20, 50, 100),
+            registry=self.registry,
+        )
+        self.seconds_behind = Histogram(
+            "bdf_answer_seconds_behind",
+            "age of the first region version an answer's map did not hold (0: current)",
+            buckets=(0, *LATENCY_BUCKETS, 60, 300),
+            registry=self.registry,
+        )
+        self.registry.register(_MapsCollector(maps))
+
+    def answered(self, versions_behind: int, seconds_behind: float) -> None:
+        self.versions_behind.observe(versions_behind)
+        self.seconds_behind.observe(seconds_behind)
 
     def upload_applied(self, result: dict) -> None:
         if result.get("replayed"):
@@ -64,18 +80,38 @@ class Metrics:
             self.observations.labels(f"rejected_{reason}").inc(count)
 
 
-class _CacheCollector:
-    def __init__(self, cache):
-        self.cache = cache
+class _MapsCollector:
+    """The posterior cache and the refreshes, read at each scrape."""
+
+    def __init__(self, maps):
+        self.maps = maps
 
     def collect(self):
-        hits = CounterMetricFamily("bdf_posterior_cache_hits", "region posteriors served from memory")
-        hits.add_metric([], self.cache.hits)
-        misses = CounterMetricFamily("bdf_posterior_cache_misses", "region posteriors not in memory")
-        misses.add_metric([], self.cache.misses)
-        size = GaugeMetricFamily("bdf_posterior_cache_bytes", "memory held by cached posteriors")
-        size.add_metric([], self.cache.nbytes)
-        yield from (hits, misses, size)
+        cache, refreshes = self.maps.cache, self.maps.stats
+        rows = [
+            (CounterMetricFamily, "bdf_posterior_cache_hits", "region maps served from memory", cache.hits),
+            (CounterMetricFamily, "bdf_posterior_cache_misses", "region maps not in memory", cache.misses),
+            (GaugeMetricFamily, "bdf_posterior_cache_bytes", "memory held by cached maps", cache.nbytes),
+            (CounterMetricFamily, "bdf_map_refreshes", "region maps computed", refreshes.count),
+            (CounterMetricFamily, "bdf_map_refresh_seconds", "time computing region maps", refreshes.seconds),
+            (GaugeMetricFamily, "bdf_map_refresh_last_seconds", "the last map's time", refreshes.last_s),
+            (
+                CounterMetricFamily,
+                "bdf_map_versions_skipped",
+                "region versions never computed: a newer one was written first",
+                refreshes.skipped,
+            ),
+            (
+                CounterMetricFamily,
+                "bdf_map_factorisations",
+                "factorisations of the maps' hyperparameter searches",
+                refreshes.factorisations,
+            ),
+        ]
+        for family, name, doc, value in rows:
+            metric = family(name, doc)
+            metric.add_metric([], value)
+            yield metric
 
 
 class RequestMiddleware:

@@ -1,6 +1,6 @@
 """The MapStore interface, shared by the SQLite and PostgreSQL backends.
 
-What is stored (schema version 3; both backends, same tables):
+What is stored (schema version 4; both backends, same tables):
 
     meta     key, value                          schema_version
     regions  name, region_id, spec (JSON), version, observations, hyper (JSON or NULL),
@@ -8,26 +8,30 @@ What is stored (schema version 3; both backends, same tables):
     tiles    region_id, key "i_j_k", version, count, points, stats (blob), format_version, updated_at,
              checksum (sha256 hex of stats)
     uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
+    versions region_id, version, committed_at                                 (when each was written)
 
 ``tiles.stats`` is :meth:`bdf.stats.SectorEvidence.to_bytes` (little-endian float64, layout in
 :mod:`bdf.stats`, ``format_version`` there). A tile row exists only once data reached the
-tile. Versions: every applied upload or fit bumps the region's version by one and stamps
-every tile it touched with the new version, so ``(region_id, key, version)`` names one
-state of a tile's statistics (``region_id`` is new for every created region, so a
-deleted and re-created name never reuses cache entries).
+tile. Versions: every applied upload, fit or retraction bumps the region's version by one
+and stamps every tile it touched with the new version, so ``(region_id, key, version)``
+names one state of a tile's statistics (``region_id`` is new for every created region, so
+a deleted and re-created name never reuses cache entries); ``versions`` says when each
+version was committed (how stale a map is, :meth:`MapStore.committed_at`).
 
-``regions.hyper`` holds the hyperparameters in force for a spec with "auto" ones:
-``{"alpha": [3], "beta": [3], "log_evidence": [3], "fitted_at": t, "evidence_version": v}``,
-the evidence maximum of the region at version ``v``. A fit (``apply(replace=True)``)
-writes them with its tiles, an upload writes them only where none are set (the region's
-first data), and :meth:`MapStore.set_hyperparameters` replaces them (a new version, since
-the map changes). Schema 1 stored tiles that overlapped (each observation in up to 8
-tiles), which a region-wide field cannot use: such a store is refused with that reason.
+``regions.hyper`` records the hyperparameters last found for a spec with "auto" ones:
+``{"alpha", "beta", "log_evidence", "fitted_at": t, "evidence_version": v}``, the evidence
+maximum of the region's data at version ``v``. It is a record, not an input: the map of
+every version is at that version's own maximum (:mod:`service.maps`); a fit writes it with
+its tiles and a refresh after it (:meth:`MapStore.record_hyperparameters`, never older
+over newer). Schema 1 stored tiles that overlapped (each observation in up to 8 tiles),
+which a region-wide field cannot use: such a store is refused with that reason. Schemas 2
+and 3 are upgraded in place when opened.
 
 Integrity: every read of ``stats`` checks its checksum first, so bytes damaged on disk are
 reported (:class:`CorruptTile`, naming the tile) and never decoded into a map;
-:meth:`MapStore.verify` checks a whole store. Schema 2 (no checksums) is upgraded in place
-when opened: its blobs are trusted once and checksummed.
+:meth:`MapStore.verify` checks a whole store. Schema 2 had no checksums: its blobs are
+trusted once and checksummed; schema 3 had no ``versions`` (its versions' times are
+unknown: ``committed_at`` is None for them).
 
 Exactly once: ``apply`` adds the increments of all tiles, bumps the version and writes
 the ledger row in one transaction, under the region's row lock. A replay of an upload id
@@ -61,7 +65,7 @@ import numpy as np
 from bdf.stats import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence
 from bdf.tiles import Increment, RegionSpec, TileKey, key_str, parse_key
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
 WRITE_CHUNK = 16
 #: Upload ids are client idempotency keys: printable, bounded.
@@ -126,8 +130,8 @@ class RegionInfo:
     hyper: dict | None = None  # the fitted hyperparameters in force (see the module doc)
 
     def hyperparameters(self) -> tuple:
-        """``(alpha, beta)`` in force: the spec's fixed values, else the fitted ones
-        ("auto" where none are fitted yet)."""
+        """``(alpha, beta)``: the spec's fixed values, else the ones last found (recorded
+        at ``hyper["evidence_version"]``; "auto" where none are found yet)."""
         spec, fitted = self.spec, self.hyper or {}
         alpha = fitted.get("alpha", "auto") if spec.alpha == "auto" else spec.alpha
         beta = fitted.get("beta", "auto") if spec.beta == "auto" else spec.beta
@@ -247,19 +251,24 @@ class MapStore(ABC):
                 upload_id TEXT NOT NULL, kind TEXT NOT NULL, digest TEXT NOT NULL,
                 result TEXT NOT NULL, applied_at DOUBLE PRECISION NOT NULL,
                 PRIMARY KEY (region_id, upload_id))""",
+            """CREATE TABLE IF NOT EXISTS versions (
+                region_id TEXT NOT NULL REFERENCES regions (region_id) ON DELETE CASCADE,
+                version BIGINT NOT NULL, committed_at DOUBLE PRECISION NOT NULL,
+                PRIMARY KEY (region_id, version))""",
         ]
 
     def _init_schema(self, q) -> None:
         rows = q("SELECT value FROM meta WHERE key = 'schema_version'")
         if not rows:
             q("INSERT INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-        elif int(rows[0][0]) == 2:  # schema 3 adds checksums: computed once over the stored blobs
-            q("ALTER TABLE tiles ADD COLUMN checksum TEXT")
-            for region_id, key, blob in q("SELECT region_id, key, stats FROM tiles"):
-                q(
-                    "UPDATE tiles SET checksum = ? WHERE region_id = ? AND key = ?",
-                    (checksum(blob), region_id, key),
-                )
+        elif int(rows[0][0]) in (2, 3):  # 4 adds versions (the table exists by now)
+            if int(rows[0][0]) == 2:  # 3 added checksums: computed once over the stored blobs
+                q("ALTER TABLE tiles ADD COLUMN checksum TEXT")
+                for region_id, key, blob in q("SELECT region_id, key, stats FROM tiles"):
+                    q(
+                        "UPDATE tiles SET checksum = ? WHERE region_id = ? AND key = ?",
+                        (checksum(blob), region_id, key),
+                    )
             q("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))
         elif int(rows[0][0]) != SCHEMA_VERSION:
             raise StoreError(
@@ -284,7 +293,19 @@ class MapStore(ABC):
             )
             if not created:
                 raise RegionExists(f"region {spec.name!r} exists")
+            self._committed(q, created[0][0], 0, now)
         return self.region(spec.name)
+
+    @staticmethod
+    def _committed(q, region_id: str, version: int, now: float) -> None:
+        q("INSERT INTO versions (region_id, version, committed_at) VALUES (?, ?, ?)", (region_id, version, now))
+
+    def committed_at(self, region_id: str, version: int) -> float | None:
+        """When the region instance's ``version`` was committed (None if unknown: written
+        before schema 4, or not a version of it)."""
+        with self._read() as q:
+            rows = q("SELECT committed_at FROM versions WHERE region_id = ? AND version = ?", (region_id, version))
+        return float(rows[0][0]) if rows else None
 
     def region(self, name: str) -> RegionInfo:
         with self._read() as q:
@@ -302,6 +323,7 @@ class MapStore(ABC):
                 raise RegionNotFound(f"no region {name!r}")
             q("DELETE FROM tiles WHERE region_id = ?", (rows[0][0],))
             q("DELETE FROM uploads WHERE region_id = ?", (rows[0][0],))
+            q("DELETE FROM versions WHERE region_id = ?", (rows[0][0],))
             q("DELETE FROM regions WHERE name = ?", (name,))
 
     def _region(self, q, name: str) -> RegionInfo:
@@ -408,8 +430,8 @@ class MapStore(ABC):
         """Add ``increments`` to their tiles (``replace``: drop every tile first, a fit),
         bump the version and record ``upload_id`` in the ledger, all in one transaction, if
         the region is still the instance ``region_id`` (else :class:`RegionChanged`).
-        ``hyper``: the fitted hyperparameters (module doc) a fit sets, or an upload sets
-        where the region has none (its first data); ``evidence_version`` is filled in.
+        ``hyper``: the hyperparameters a fit found (module doc; ``evidence_version`` is
+        filled in); a fit without them clears the record.
 
         Returns the result recorded in the ledger (``summary`` plus upload_id,
         region_version, tiles_updated, replayed); a replay returns the first one.
@@ -417,7 +439,7 @@ class MapStore(ABC):
         check_upload_id(upload_id)
         now = time.time()
         with self._write() as q:
-            version, spec, old_hyper = self._locked(q, name, region_id, "version, spec, hyper")
+            version, spec, hyper_text = self._locked(q, name, region_id, "version, spec, hyper")
             version, spec = int(version) + 1, _spec(spec)
             first = self._ledger(q, region_id, upload_id, digest)
             if first is not None:
@@ -443,15 +465,14 @@ class MapStore(ABC):
                 "region_version": version,
                 "tiles_updated": len(increments),
             }
-            if replace or (old_hyper is None and hyper is not None):
-                new_hyper = None if hyper is None else json.dumps({**hyper, "evidence_version": version})
-            else:
-                new_hyper = old_hyper
+            if replace:
+                hyper_text = None if hyper is None else json.dumps({**hyper, "evidence_version": version})
             q(
                 "UPDATE regions SET version = ?, updated_at = ?, hyper = ?,"
                 f" observations = {'' if replace else 'observations + '}? WHERE region_id = ?",
-                (version, now, new_hyper, int(observations), region_id),
+                (version, now, hyper_text, int(observations), region_id),
             )
+            self._committed(q, region_id, version, now)
             q(
                 "INSERT INTO uploads (region_id, upload_id, kind, digest, result, applied_at)"
                 " VALUES (?, ?, ?, ?, ?, ?)",
@@ -489,24 +510,20 @@ class MapStore(ABC):
             checksum(blob),
         )
 
-    def set_hyperparameters(
-        self, name: str, region_id: str, hyper: Mapping, evidence_version: int
-    ) -> RegionInfo:
-        """Make ``hyper`` (fitted on the evidence at ``evidence_version``) the hyperparameters
-        in force of the region instance ``region_id``: the map changes, so the region's
-        version goes up by one."""
+    def record_hyperparameters(self, name: str, region_id: str, hyper: Mapping, evidence_version: int) -> bool:
+        """Record ``hyper``, found at the evidence maximum of the region instance
+        ``region_id`` at ``evidence_version`` (module doc), unless the record is of a newer
+        version already. The map does not change (no new version). Returns whether it was
+        written."""
         with self._write() as q:
-            (version,) = self._locked(q, name, region_id)
+            (stored,) = self._locked(q, name, region_id, "hyper")
+            if stored is not None and json.loads(stored).get("evidence_version", -1) >= evidence_version:
+                return False
             q(
-                "UPDATE regions SET version = ?, updated_at = ?, hyper = ? WHERE region_id = ?",
-                (
-                    int(version) + 1,
-                    time.time(),
-                    json.dumps({**hyper, "evidence_version": int(evidence_version)}),
-                    region_id,
-                ),
+                "UPDATE regions SET hyper = ? WHERE region_id = ?",
+                (json.dumps({**hyper, "evidence_version": int(evidence_version)}), region_id),
             )
-        return self.region(name)
+        return True
 
     def retract(
         self,
@@ -578,6 +595,7 @@ class MapStore(ABC):
                 " WHERE region_id = ?",
                 (version, now, int(observations), region_id),
             )
+            self._committed(q, region_id, version, now)
             q(
                 "UPDATE uploads SET kind = 'retracted', result = ? WHERE region_id = ? AND upload_id = ?",
                 (json.dumps({**applied, "retraction": result}), region_id, upload_id),

@@ -27,3 +27,10 @@ def dense_features(X, hinges, gamma, noise_std=None):
         return np.exp(-(diff2 * gamma).sum(-1))
     spread = 1 + 2 * gamma * noise_std[:, None, :] ** 2
     return np.prod(spread**-0.5 * np.exp(-gamma * diff2 / spread), axis=-1)
+
+
+def dense_weight(X, Q, gamma, sample_weight=None):
+    """The data's weight within the kernel's reach of each query point, directly:
+    ``sum_i w_i exp(-sum_d gamma_d (q_d - x_id)^2)``."""
+    w = np.ones(len(X)) if sample_weight is None else np.asarray(sample_weight, float)
+    return np.array([w @ np.exp(-(((q - X) ** 2) @ np.asarray(gamma, float))) for q in Q])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bdf import BayesianDynamicField, tuning
+from bdf import BayesianDynamicField
 from bdf.directions import Sectors, mixture_moments
 from bdf.tiles import RegionSpec
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER, dense_features
@@ -90,7 +90,7 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
                 LOWER, UPPER, SPACING, GAMMA, post.alpha[1 + c] * f, post.beta[1 + c]
             )
             moved.fit(Xc, Vc - P @ w0, sample_weight=wc)
-            assert moved.log_evidence_.sum() < best + tuning.EVIDENCE_TOLERANCE
+            assert moved.log_evidence_.sum() < best + 1.0
     # where no northbound traffic flies, its mode is still northbound (its prior), at about
     # the class's speed (15 m/s; a zero prior gave it ~0 here)
     south = (Q[:, 1] < 2.5) & (np.abs(Q[:, 0] - 5) < 2) & (np.abs(Q[:, 2] - 3) < 1.5)
@@ -183,7 +183,7 @@ def test_a_directional_region_is_one_directional_field():
     post = spec.posterior(evidence)
     ref = spec.field(post.alpha, post.beta).fit(X, V)
     Q = rng.uniform(spec.lower, spec.upper, (500, 3))
-    mean, std, _ = spec.predict(Q, post, increments)
+    mean, std, _ = spec.predict(Q, post)
     ref_mean, ref_std = ref.predict(Q, return_std=True)
     assert_close(mean, ref_mean, 1e-6, "region mixture mean")
     assert_close(std, ref_std, 1e-6, "region mixture std")

@@ -155,7 +155,7 @@ def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
     band = evidence.gram_band(stencil)
     floor = tuning.FLOOR_PER_CUTOFF * 1e-12 * np.mean(band[0])
     with mock.patch.object(tuning, "solve", wraps=tuning.solve) as solve:
-        alpha, beta, _ = tuning.fit_evidence(
+        alpha, beta, _, _ = tuning.fit_evidence(
             stencil, band, evidence.proj, evidence.v_sq, evidence.count, "auto", "auto", start=1e-20
         )
         seen = [call.args[4] for call in solve.call_args_list]
