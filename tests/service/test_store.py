@@ -170,10 +170,8 @@ def test_fit_replaces_the_map(store, spec):
 
 def assert_map_is_the_field(maps, spec, X, V, version):
     """The served map at ``version`` equals one field over the region's lattice fitted on
-    (X, V) at the region's hyperparameters in force, everywhere (empty places included)."""
-    info = maps.store.region("town")
-    alpha, beta = info.hyperparameters()
-    field = spec.field(alpha, beta).fit(X, V)
+    (X, V) at once ("auto": its evidence maximum), everywhere (empty places included)."""
+    field = spec.field().fit(X, V)
     Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (400, 3))
     got = maps.predict("town", Q, min_version=version)
     mean, std = field.predict(Q, return_std=True)
@@ -187,6 +185,10 @@ def assert_map_is_the_field(maps, spec, X, V, version):
     mean, std = field.predict(mesh, return_std=True)
     np.testing.assert_allclose(grid.mean.reshape(-1, 3), mean, rtol=0, atol=1e-6 * climate.min())
     np.testing.assert_allclose(grid.std.reshape(-1, 3), std, rtol=1e-6)
+    hyper = maps.store.region("town").hyper  # the record of what this version's map found
+    assert hyper["evidence_version"] == version
+    np.testing.assert_allclose(hyper["alpha"], field.alpha_, rtol=1e-6)
+    np.testing.assert_allclose(hyper["beta"], field.beta_, rtol=1e-6)
     return got
 
 
@@ -198,8 +200,6 @@ def test_the_served_map_is_one_field_through_uploads_replays_and_refits(store, s
     X, V = data(7, n=400)
     left = X[:, 0] < 150  # the right half of the region stays empty
     maps.upload("town", "a", X[left], V[left])
-    hyper = store.region("town").hyper  # the region's first data fit "auto"
-    assert hyper["evidence_version"] == 1 and len(hyper["alpha"]) == 3
     got = assert_map_is_the_field(maps, spec, X[left], V[left], 1)
     assert got.known[Q[:, 0] < 100].all() and not got.known[Q[:, 0] > 280].any()
     misses, snapshots = maps.cache.misses, []
@@ -212,15 +212,13 @@ def test_the_served_map_is_one_field_through_uploads_replays_and_refits(store, s
     X2, V2 = data(8, n=100)
     maps.upload("town", "b", X2, V2)
     assert maps.upload("town", "b", X2, V2)["replayed"]
-    assert store.region("town").hyper == hyper  # uploads keep the hyperparameters in force
     both_X, both_V = np.vstack([X[left], X2]), np.vstack([V[left], V2])
-    assert_map_is_the_field(maps, spec, both_X, both_V, 2)
-    info = maps.fit_hyperparameters("town")  # refit on request: a new version, same evidence
-    assert info.version == 3 and info.hyper["evidence_version"] == 2 and info.hyper != hyper
-    assert_map_is_the_field(maps, spec, both_X, both_V, 3)
-    maps.upload("town", "fit", X, V, replace=True)  # a fit refits
-    assert store.region("town").hyper["evidence_version"] == 4
-    assert_map_is_the_field(maps, spec, X, V, 4)
+    assert_map_is_the_field(maps, spec, both_X, both_V, 2)  # "auto" found again, on both
+    info = maps.fit_hyperparameters("town")  # the synchronous form: the map of version 2
+    assert info.version == 2 and info.hyper["evidence_version"] == 2
+    maps.upload("town", "fit", X, V, replace=True)  # a fit replaces the data, and finds them
+    assert store.region("town").hyper["evidence_version"] == 3
+    assert_map_is_the_field(maps, spec, X, V, 3)
     with pytest.raises(ValueError, match="outside region"):
         maps.predict("town", [[400.0, 0.0, 0.0]])
 
@@ -229,16 +227,17 @@ def test_queries_answer_from_the_previous_version_until_the_new_one_is_ready(sto
     maps = RegionMaps(store, cache_mb=64)
     X, V = data(3, n=300)
     maps.upload("town", "a", X, V)
-    first = maps.predict("town", X[:5])
+    first = maps.predict("town", X[:5], min_version=1)
     gate = threading.Event()
-    compute = maps._compute
-    maps._compute = lambda region: gate.wait(30) and compute(region)  # the refresh is slow
+    posterior = maps._posterior
+    maps._posterior = lambda *a, **k: gate.wait(30) and posterior(*a, **k)  # the refresh is slow
     maps.upload("town", "b", *data(4, n=50))
-    stale = maps.predict("town", X[:5])  # answers at once, from version 1
+    stale = maps.predict("town", X[:5])  # answers at once, from version 1, and says so
     assert stale.version == 1 and np.array_equal(stale.mean, first.mean)
+    assert stale.behind == 1 and stale.behind_s >= 0
     gate.set()
     fresh = maps.predict("town", X[:5], min_version=2)
-    assert fresh.version == 2 and not np.allclose(fresh.mean, first.mean)
+    assert fresh.version == 2 and not np.allclose(fresh.mean, first.mean) and fresh.behind == 0
 
 
 def test_a_fit_that_cannot_be_solved_stores_nothing(store, spec):

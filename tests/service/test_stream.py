@@ -1,0 +1,108 @@
+"""Maps under a stream of uploads: "auto" is the evidence maximum of the data in force,
+whatever uploads brought them; refreshes keep up (one per region, of the newest version)
+and say how far behind an answer is."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from bdf.tiles import RegionSpec
+from bdf.tuning import LOG_TOLERANCE
+from service.maps import RegionMaps
+from tests.service.test_store import SPEC
+
+
+def lanes(n: int, seed: int = 0):
+    """Traffic over the town: four lanes flying east, west, north and south (so a map of 8
+    heading sectors has several modes), with track-like weights."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform([0, 0, 0], [300, 200, 60], (n, 3))
+    lane = rng.integers(0, 4, n)
+    heading = np.radians(np.array([90.0, 270.0, 0.0, 180.0])[lane])
+    speed = 20.0 + 0.05 * X[:, 2] + 3.0 * np.sin(X[:, 0] / 50.0)
+    V = np.stack([speed * np.sin(heading), speed * np.cos(heading), 0.02 * (X[:, 2] - 30.0)], axis=1)
+    V += rng.standard_normal(V.shape) * np.array([1.0, 1.0, 0.3])
+    weight = rng.uniform(0.2, 1.0, n)
+    return X, V, weight
+
+
+@pytest.mark.parametrize("directions", [1, 8])
+def test_a_map_built_by_many_uploads_is_the_single_fit(store, directions):
+    """The same data as 1, 10 and 100 uploads of random sizes in shuffled orders: once the
+    newest version is served, hyperparameters, means and stds are those of one fit of all
+    the data (the search's tolerance; 1e-6 of the climatology std; 1e-6 relative; shares to
+    1e-6)."""
+    X, V, w = lanes(3000)
+    one = RegionSpec.model_validate({**SPEC, "directions": directions})
+    field = one.field().fit(X, V, sample_weight=w)
+    Q = np.random.default_rng(7).uniform([0, 0, 0], [300, 200, 60], (500, 3))
+    want = field.predict_modes(Q)
+    climate = np.sqrt((V**2).mean(0))
+    for uploads in (1, 10, 100):
+        name = f"town{uploads}"
+        spec = RegionSpec.model_validate({**SPEC, "name": name, "directions": directions})
+        store.create_region(spec)
+        maps = RegionMaps(store, cache_mb=64)
+        rng = np.random.default_rng(uploads)
+        order = rng.permutation(len(X))
+        cuts = np.sort(rng.choice(np.arange(1, len(X)), uploads - 1, replace=False))
+        for k, rows in enumerate(np.split(order, cuts)):
+            maps.upload(name, f"u{k}", X[rows], V[rows], sample_weight=w[rows])
+        info = store.region(name)
+        assert info.version == uploads
+        got = maps.predict(name, Q, min_version=uploads, modes=True)
+        assert got.version == uploads and got.behind == 0
+        post = maps.refresh(name).posterior
+        np.testing.assert_allclose(np.log(post.alpha / post.beta), np.log(field.alpha_ / field.beta_), atol=10 * LOG_TOLERANCE)
+        np.testing.assert_allclose(post.beta, field.beta_, rtol=1e-6)
+        np.testing.assert_allclose(got.modes.mean, want.mean, rtol=0, atol=1e-6 * climate.min())
+        np.testing.assert_allclose(got.modes.std, want.std, rtol=1e-6)
+        np.testing.assert_allclose(got.modes.share, want.share, rtol=0, atol=1e-6)
+        recorded = store.region(name).hyper  # the region view's record: this version's
+        assert recorded["evidence_version"] == uploads
+        np.testing.assert_allclose(recorded["alpha"], field.alpha_, rtol=1e-6)
+        maps.close()
+
+
+def test_refreshes_run_one_at_a_time_per_region_and_skip_to_the_newest_version(store):
+    """While a refresh runs, 20 uploads arrive: the next refresh computes the newest version
+    (the 19 between are skipped, never queued), readers are answered at once from the map
+    they have and told how far behind it is, and a reader of the newest version waits."""
+    spec = RegionSpec.model_validate(SPEC)
+    store.create_region(spec)
+    maps = RegionMaps(store, cache_mb=64)
+    X, V, w = lanes(2100, seed=3)
+    maps.upload("town", "first", X[:100], V[:100])
+    assert maps.predict("town", X[:3], min_version=1).version == 1
+    gate, computed, running, most = threading.Event(), [], [0], [0]
+    posterior, lock = maps._posterior, threading.Lock()
+
+    def slow(spec, evidence, *args, **kwargs):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        gate.wait(30)
+        try:
+            out = posterior(spec, evidence, *args, **kwargs)
+            computed.append(evidence.count)
+            return out
+        finally:
+            with lock:
+                running[0] -= 1
+
+    maps._posterior = slow
+    for k in range(20):
+        maps.upload("town", f"u{k}", X[100 + 100 * k : 200 + 100 * k], V[100 + 100 * k : 200 + 100 * k])
+    stale = maps.predict("town", X[:3])
+    assert stale.version == 1 and stale.behind == 20 and stale.behind_s >= 0
+    newest = threading.Thread(target=lambda: computed.append(maps.predict("town", X[:3], min_version=21).version))
+    newest.start()
+    gate.set()
+    newest.join(60)
+    maps.close()
+    assert computed[-1] == 21  # the reader got the newest version
+    # one computation (of version 2, started before the burst) and one of the newest, at most
+    assert len(computed) <= 3 and most[0] == 1
+    assert maps.stats.skipped >= 18
+    assert maps.predict("town", X[:3]).version == 21
