@@ -14,7 +14,6 @@ from bdf.directions import Sectors, mixture_moments
 from bdf.grid import HingeGrid
 from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence, stencil_of
 
-
 #: ``known``: the data within the kernel's reach weigh at least this (:func:`known`): one
 #: observation of weight 1 at the kernel's 1 % reach, or a track's unit of weight
 #: (:func:`bdf.ingest.track_weights`) passing there.
@@ -76,6 +75,7 @@ class Posterior:
         noise_prior=None,
         start=None,
         prior_weights=None,
+        anchor=None,
     ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
@@ -95,7 +95,7 @@ class Posterior:
             v_sq = v_sq - 2.0 * np.einsum("mc,mc->c", w0, proj) + np.einsum("mc,mc->c", w0, G_w0)
             proj = proj - G_w0
         self.alpha, self.beta, sols, self.factorisations = tuning.fit_evidence(
-            self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start
+            self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start, anchor
         )
         self.log_evidence = np.array(
             [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
@@ -203,7 +203,11 @@ class Posterior:
     @property
     def nbytes(self) -> int:
         """Memory held by the arrays of this posterior."""
-        held = self.weights.nbytes + self._density.nbytes + (0 if self._moments is None else self._moments.nbytes)
+        held = (
+            self.weights.nbytes
+            + self._density.nbytes
+            + (0 if self._moments is None else self._moments.nbytes)
+        )
         if self._variance is not None:
             held += self._variance[0].nbytes
         if self._solutions is not None:
@@ -252,7 +256,9 @@ def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
     h = grid.step[d] / 2.0
     lo, hi = grid.origin[d] - h / 2, grid.origin[d] + (grid.shape[d] - 1) * grid.step[d] + h / 2
     root = 2.0 * np.sqrt(g)
-    return np.sqrt(np.pi / (4.0 * g)) / h * 0.5 * (special.erf(root * (hi - x)) + special.erf(root * (x - lo)))
+    return (
+        np.sqrt(np.pi / (4.0 * g)) / h * 0.5 * (special.erf(root * (hi - x)) + special.erf(root * (x - lo)))
+    )
 
 
 def _layer_prior(evidence: Evidence, grid: HingeGrid, gamma) -> np.ndarray:
@@ -324,8 +330,7 @@ class Mixture:
         total = evidence.total()
         starts = [None] * (1 + C) if start is None else list(np.broadcast_to(start, (1 + C, 3)))
         self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest, start=starts[0])
-        if start is None:  # each mode's search starts at the total's optimum
-            starts[1:] = [self.total.alpha / self.total.beta] * C
+        anchor = float(np.mean(self.total.alpha / self.total.beta))  # a mode's cold start
 
         def mode(c):
             e = evidence.classes[c]
@@ -338,6 +343,7 @@ class Mixture:
                 *rest,
                 start=starts[1 + c],
                 prior_weights=_layer_prior(e, grid, gamma),
+                anchor=anchor,
             )
             post.variance_table()
             return post

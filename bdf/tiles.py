@@ -453,7 +453,9 @@ class RegionSpec(BaseModel):
                 post = field.set_evidence(evidence, start=start).posterior_.compact()
             except NotPositiveDefinite:
                 continue
-            log.warning("region %s: served at alpha x 1e%d: its fixed alpha does not factor", self.name, power)
+            log.warning(
+                "region %s: served at alpha x 1e%d: its fixed alpha does not factor", self.name, power
+            )
             return post
         raise NotPositiveDefinite(f"region {self.name}: no alpha up to 1e12 times the spec's factors")
 

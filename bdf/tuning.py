@@ -59,6 +59,17 @@ FLOOR_PER_CUTOFF = 1e4
 #: different starts (one fit, or a refresh after many uploads) agree to about 1e-7 of
 #: their velocities' scale.
 LOG_TOLERANCE = 1e-7
+#: Within this (in ln lam) above the range's floor the slopes are least reliable: a
+#: previous optimum there is not a start, and a search ending there is made again
+#: (:func:`fit_evidence`), so that "auto" does not depend on where the search started.
+NEAR_FLOOR = np.log(1e3)
+#: A converged search whose optimum has this much less evidence (nats) than a point it saw
+#: was misled by the slope's estimate (:func:`fit_evidence`); about a nat is its noise.
+MISLED_NATS = 10.0
+#: A loose search (the last resort, :func:`_search`) stops where its next step would gain
+#: less than this (nats, by the local quadratic): below one nat two hyperparameters are not
+#: told apart (Kass and Raftery's "not worth more than a bare mention").
+EVIDENCE_TOLERANCE = 1.0
 #: The search's longest step (in ln lam), and its most factorisations.
 MAX_STEP, MAX_EVALUATIONS = 4.0, 40
 #: Random sign vectors of the trace estimate (fixed: the search is deterministic).
@@ -169,7 +180,7 @@ def _derivatives(sol: Solution, a, b, count, comps, tied, profiled, probes) -> t
     return -0.5 * float(np.sum(rise)), -0.5 * float(np.sum(drise)), float(np.log(max(fixed, 1e-300)))
 
 
-def _search(evaluate, x: float, bounds: tuple[float, float]) -> tuple[float, int]:
+def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False) -> tuple[float, int, bool]:
     """Find the optimum of ``x = ln lam`` from ``x``, within ``bounds``.
 
     ``evaluate(x)`` returns the cost's slope (NaN where the factorisation fails) and
@@ -177,8 +188,10 @@ def _search(evaluate, x: float, bounds: tuple[float, float]) -> tuple[float, int
     the fixed point where it is not or goes further the same way (far from the optimum,
     where the curvature changes, it is the better guess), inside the bracket the slopes
     have shown (bisecting it where a step would leave it), until a step is below
-    :data:`LOG_TOLERANCE`. Returns the last point evaluated (the optimum) and the number
-    of evaluations.
+    :data:`LOG_TOLERANCE` (``loose``: or until Newton's step would gain less than
+    :data:`EVIDENCE_TOLERANCE`). Returns the last point evaluated, the number of
+    evaluations, and whether it converged there: a minimum of the cost (positive
+    curvature) or a bound, not a maximum nor :data:`MAX_EVALUATIONS` spent.
     """
     lo, hi = -np.inf, np.inf
     for evaluations in range(1, MAX_EVALUATIONS + 1):
@@ -199,14 +212,17 @@ def _search(evaluate, x: float, bounds: tuple[float, float]) -> tuple[float, int
         if not lo < proposal < hi:
             proposal = (lo + hi) / 2 if np.isfinite(lo + hi) else x - np.sign(slope) * MAX_STEP
         proposal = float(np.clip(proposal, *bounds))
-        if abs(proposal - x) < LOG_TOLERANCE:
-            return x, evaluations
+        newton = curvature > 0 and proposal == x - slope / curvature
+        if abs(proposal - x) < LOG_TOLERANCE or (
+            loose and newton and slope**2 / (2 * curvature) < EVIDENCE_TOLERANCE
+        ):
+            return x, evaluations, curvature > 0 or x in bounds
         x = proposal
-    return x, MAX_EVALUATIONS
+    return x, MAX_EVALUATIONS, False
 
 
 def fit_evidence(
-    stencil, band, proj, v_sq, count, alpha, beta, start=None
+    stencil, band, proj, v_sq, count, alpha, beta, start=None, anchor=None
 ) -> tuple[np.ndarray, np.ndarray, list, int]:
     """alpha (3,), beta (3,), the factorisation(s) serving component 0, 1, 2, and how
     many factorisations it took.
@@ -216,7 +232,9 @@ def fit_evidence(
     with "auto" beta searches each component on its own.
     ``start``: a ratio alpha / beta near the optimum, one or per component, if one is
     known (the previous optimum of a map refreshed: the search starts there; the optimum
-    found is the same to :data:`LOG_TOLERANCE`).
+    found is the same to :data:`LOG_TOLERANCE`). ``anchor``: where a search without it
+    starts (a ratio fixed by the evidence alone: a mode's, its map's; default the mean of
+    ``G``'s diagonal).
     """
     auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
     if (auto_a or auto_b) and count <= 0:
@@ -238,37 +256,71 @@ def fit_evidence(
     starts = None if start is None else np.broadcast_to(np.asarray(start, float), (3,))
     alpha_v, beta_v, sols, factorisations = np.empty(3), np.empty(3), [None] * 3, 0
     for comps in groups:
-        solved: dict[float, Solution] = {}
-
-        def evaluate(x, comps=comps, solved=solved):
-            try:
-                sol = solve(stencil, band, proj, v_sq, scale * np.exp(x))
-            except linalg.NotPositiveDefinite:
-                return np.nan, np.nan, np.nan  # rounding at the smallest ratios: move up
-            solved.clear()  # only the latest is the answer
-            solved[x] = sol
-            a, b = _hyper_for(sol, alpha, beta, count)
-            profiled = auto_a & auto_b & (b < MAX_AUTO_BETA)
-            slope, curvature, fixed_point = _derivatives(sol, a, b, count, comps, tied, profiled, probes)
-            return slope, curvature, fixed_point - np.log(scale)
-
-        x0 = 0.0 if starts is None else float(np.log(np.mean(starts[comps]) / scale))
         span = bounds
         if tied:  # beta = alpha / lam stays below its cap, so alpha stays the fixed one
             fixed = np.broadcast_to(np.asarray(alpha, float), (3,))[comps]
             least = float(np.log(fixed.min() / MAX_AUTO_BETA / scale))
             span = (max(bounds[0], least), max(bounds[1], least))
-        x, evaluations = _search(evaluate, float(np.clip(x0, *span)), span)
-        if not solved:  # no ratio in the range could be factored
+
+        def search(x0, loose=False, comps=comps, span=span):
+            """One search from ``x0``: its last solution, the best it saw by the evidence
+            (value, solution), its evaluations, whether it converged, and where it ended."""
+            latest, best = [None], [np.inf, None]
+
+            def evaluate(x):
+                try:
+                    sol = solve(stencil, band, proj, v_sq, scale * np.exp(x))
+                except linalg.NotPositiveDefinite:
+                    return np.nan, np.nan, np.nan  # rounding at the smallest ratios: move up
+                latest[0] = sol
+                a, b = _hyper_for(sol, alpha, beta, count)
+                value = -float(np.sum(log_evidence(sol, a, b, count)[comps]))
+                if value < best[0]:
+                    best[:] = value, sol
+                profiled = auto_a & auto_b & (b < MAX_AUTO_BETA)
+                slope, curvature, fixed_point = _derivatives(sol, a, b, count, comps, tied, profiled, probes)
+                return slope, curvature, fixed_point - np.log(scale)
+
+            x, evaluations, converged = _search(evaluate, x0, span, loose)
+            # the slope's estimate can mislead the search (truncation noise at the smallest
+            # ratios) to far less evidence than it saw: not converged then
+            if converged and latest[0] is not best[1]:
+                a, b = _hyper_for(latest[0], alpha, beta, count)
+                value = -float(np.sum(log_evidence(latest[0], a, b, count)[comps]))
+                converged = value < best[0] + MISLED_NATS
+            return latest[0], best, evaluations, converged, x
+
+        # From the previous optimum (warm), else from ``anchor`` (cold): the optimum they
+        # converge to is the same. Near the floor the slopes are truncation noise: a warm
+        # start there is not taken, a search that ends there is made again from the anchor,
+        # and where no search converges away from it, the anchor's loose search (its best
+        # evidence, stopping where a step gains less than a nat) is the answer.
+        low = bounds[0] + NEAR_FLOOR
+        cold = float(np.clip(0.0 if anchor is None else np.log(anchor / scale), *span))
+        tries = [cold]
+        if starts is not None:
+            warm = float(np.clip(np.log(np.mean(starts[comps]) / scale), *span))
+            tries = [warm, cold] if warm >= low and warm != cold else tries
+        factored, sol = False, None
+        for x0 in tries:
+            found, best, evaluations, converged, x = search(x0)
+            factorisations += evaluations
+            factored = factored or best[1] is not None
+            if converged and x >= low:
+                sol = found
+                break
+        if sol is None and factored:
+            _, best, evaluations, _, _ = search(cold, loose=True)
+            factorisations += evaluations
+            sol = best[1]
+        if sol is None:  # no ratio in the range could be factored
             raise linalg.NotPositiveDefinite(
                 f"the precision matrix is not positive definite at any alpha/beta in "
                 f"[{scale * np.exp(bounds[0]):.3g}, {scale * np.exp(bounds[1]):.3g}]"
             )
-        (sol,) = solved.values()
         a, b = _hyper_for(sol, alpha, beta, count)
         alpha_v[comps], beta_v[comps] = a[comps], b[comps]
         for c in comps:
             sols[c] = sol
-        log.debug("evidence fit for components %s: lam=%.6g in %d steps", comps, sol.lam, evaluations)
-        factorisations += evaluations
+        log.debug("evidence fit for components %s: lam=%.6g", comps, sol.lam)
     return alpha_v, beta_v, sols, factorisations

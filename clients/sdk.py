@@ -60,7 +60,7 @@ class Region:
     tiles: int
     created_at: float
     updated_at: float
-    hyperparameters: dict  # alpha, beta in force ("auto" until fitted), fitted_at, evidence_version
+    hyperparameters: dict  # alpha, beta (the latest found; "auto" until then), fitted_at, evidence_version
 
 
 @dataclass(frozen=True)
@@ -343,8 +343,9 @@ class _Endpoints:
         return self._run(self._json("DELETE", f"/v1/regions/{name}", parse=lambda js: None))
 
     def fit_hyperparameters(self, name: str) -> Region:
-        """Refit the region's "auto" alpha and beta at the evidence maximum of all its data
-        (uploads keep the values in force until then); returns the region."""
+        """The region's map at its current version, now: its "auto" alpha and beta at the
+        evidence maximum of all its data (every refresh after an upload finds them too);
+        returns the region, which records them."""
         region = self._run(self._json("POST", f"/v1/regions/{name}/hyperparameters", parse=_region))
         self._wrote(name, region.version)
         return region

@@ -32,7 +32,7 @@ import numpy as np
 
 from bdf._validate import noise_std_rows, rows_all
 from bdf.posterior import Mixture, Modes, Posterior
-from bdf.tiles import RegionSpec, TileKey
+from bdf.tiles import Increment, RegionSpec, TileKey
 from service.store import (
     MapStore,
     RegionChanged,
@@ -265,7 +265,10 @@ class RegionMaps:
         if not info.tiles:
             raise Unprocessable(f"region {region!r} has no data to fit its hyperparameters on")
         self._compute(region, info.version)
-        return self.store.region(region)
+        now = self.store.region(region)
+        if now.region_id != info.region_id:
+            raise RegionChanged(f"region {region!r} was deleted or re-created while its map was computed")
+        return now
 
     def predict(
         self,
@@ -289,7 +292,9 @@ class RegionMaps:
         X = np.asarray(X, float)
         per_class = state.spec.predict_modes(X, state.posterior) if modes else None
         mean, std, known = state.spec.predict(X, state.posterior, heading_deg, per_class)
-        return Prediction(mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state))
+        return Prediction(
+            mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
+        )
 
     def predict_grid(
         self, region: str, axes, info: RegionInfo | None = None, min_version: int = 0, *, modes: bool = False
@@ -300,7 +305,9 @@ class RegionMaps:
         state = self._state(region, info, min_version)
         per_class = state.spec.predict_grid_modes(axes, state.posterior) if modes else None
         mean, std, known = state.spec.predict_grid(axes, state.posterior, per_class)
-        return Prediction(mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state))
+        return Prediction(
+            mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
+        )
 
     def refresh(self, region: str) -> MapState:
         """The map state of the region's current version, computed now if need be."""
@@ -374,7 +381,9 @@ class RegionMaps:
         region_id = self.store.region(region).region_id
         with self._lock:
             kept = self._evidence.pop(region_id, {})
-        snap = self.store.snapshot(region, need=lambda rid, key, version: kept.get(key, (None,))[0] != version)
+        snap = self.store.snapshot(
+            region, need=lambda rid, key, version: kept.get(key, (None,))[0] != version
+        )
         if snap.region.region_id != region_id:  # re-created meanwhile
             kept = {}
             snap = self.store.snapshot(region)
@@ -412,7 +421,9 @@ class RegionMaps:
         try:
             self.store.record_hyperparameters(region, state.region_id, fitted(state.posterior), state.version)
         except (StoreUnavailable, RegionChanged, RegionNotFound) as exc:
-            log.warning("region %s: hyperparameters of version %d not recorded: %s", region, state.version, exc)
+            log.warning(
+                "region %s: hyperparameters of version %d not recorded: %s", region, state.version, exc
+            )
 
     def _publish(self, state: MapState) -> None:
         self.cache.put((state.region_id, state.version), state)
@@ -431,7 +442,9 @@ class RegionMaps:
                 self._refreshing[region] = True
                 return
             self._refreshing[region] = False
-            thread = threading.Thread(target=self._refresh_loop, args=(region,), name=f"refresh-{region}", daemon=True)
+            thread = threading.Thread(
+                target=self._refresh_loop, args=(region,), name=f"refresh-{region}", daemon=True
+            )
             self._threads[region] = thread
         thread.start()
 

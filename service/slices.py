@@ -135,9 +135,10 @@ def render_slice(
 
 def _mode_arrows(ax, x, y, share, share_std, mode_mean, mode_known, min_share):
     """An arrow per class and cell (every k-th cell) with at least ``min_share`` of the
-    traffic and data of its own (``mode_known``): along the mode's horizontal mean, coloured by heading, wider as its share
-    grows (three widths: below 0.2, to 0.5, above), faint unless the share is at least one
-    std above ``min_share``. Returns whether any was drawn."""
+    traffic and data of its own (``mode_known``): along the mode's horizontal mean,
+    coloured by heading, wider as its share grows (three widths: below 0.2, to 0.5, above),
+    faint unless the share is at least one std above ``min_share``. Returns whether any was
+    drawn."""
     drawn = False
     k = max(1, int(np.ceil(max(len(x), len(y)) / ARROWS_PER_SIDE)))
     xs, ys = np.meshgrid(x[::k] / 1e3, y[::k] / 1e3, indexing="ij")

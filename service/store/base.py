@@ -127,7 +127,7 @@ class RegionInfo:
     tiles: int
     created_at: float
     updated_at: float
-    hyper: dict | None = None  # the fitted hyperparameters in force (see the module doc)
+    hyper: dict | None = None  # the record of the hyperparameters last found (module doc)
 
     def hyperparameters(self) -> tuple:
         """``(alpha, beta)``: the spec's fixed values, else the ones last found (recorded
@@ -298,13 +298,18 @@ class MapStore(ABC):
 
     @staticmethod
     def _committed(q, region_id: str, version: int, now: float) -> None:
-        q("INSERT INTO versions (region_id, version, committed_at) VALUES (?, ?, ?)", (region_id, version, now))
+        q(
+            "INSERT INTO versions (region_id, version, committed_at) VALUES (?, ?, ?)",
+            (region_id, version, now),
+        )
 
     def committed_at(self, region_id: str, version: int) -> float | None:
         """When the region instance's ``version`` was committed (None if unknown: written
         before schema 4, or not a version of it)."""
         with self._read() as q:
-            rows = q("SELECT committed_at FROM versions WHERE region_id = ? AND version = ?", (region_id, version))
+            rows = q(
+                "SELECT committed_at FROM versions WHERE region_id = ? AND version = ?", (region_id, version)
+            )
         return float(rows[0][0]) if rows else None
 
     def region(self, name: str) -> RegionInfo:
@@ -510,7 +515,9 @@ class MapStore(ABC):
             checksum(blob),
         )
 
-    def record_hyperparameters(self, name: str, region_id: str, hyper: Mapping, evidence_version: int) -> bool:
+    def record_hyperparameters(
+        self, name: str, region_id: str, hyper: Mapping, evidence_version: int
+    ) -> bool:
         """Record ``hyper``, found at the evidence maximum of the region instance
         ``region_id`` at ``evidence_version`` (module doc), unless the record is of a newer
         version already. The map does not change (no new version). Returns whether it was

@@ -43,7 +43,7 @@ def test_chunked_upload_query_grid_tubes_equal_the_library_and_a_rerun_applies_n
     assert bdf.region(NAME).observations == 900 and bdf.region(NAME).version == 3
 
     Xq = data(1, n=50)[0]
-    mean, std, _ = library(spec, X, V, Xq, bdf.region(NAME))
+    mean, std, _ = library(spec, X, V, Xq)
     for transport in ("arrow", "json"):
         pred = bdf.query(NAME, Xq, transport=transport)
         np.testing.assert_allclose(pred.mean, mean, rtol=0, atol=1e-6)
@@ -53,7 +53,7 @@ def test_chunked_upload_query_grid_tubes_equal_the_library_and_a_rerun_applies_n
     grid = bdf.grid(NAME, step=[50, 50, 20], bbox=[0, 0, 0, 300, 200, 60])
     assert grid.mean.shape == (7, 5, 4, 3)
     mesh = np.stack(np.meshgrid(*grid.axes, indexing="ij"), -1).reshape(-1, 3)
-    g_mean, g_std, _ = library(spec, X, V, mesh, bdf.region(NAME))
+    g_mean, g_std, _ = library(spec, X, V, mesh)
     np.testing.assert_allclose(grid.mean.reshape(-1, 3), g_mean, rtol=0, atol=1e-6)
     np.testing.assert_allclose(grid.std.reshape(-1, 3), g_std, rtol=1e-6)
 
@@ -156,10 +156,10 @@ def test_sample_weights_travel_with_the_upload(bdf):
     assert bdf.upload(NAME, X, V, sample_weight=w).accepted == 400
     Xq = data(9, n=30)[0]
     pred = bdf.query(NAME, Xq)
-    mean, std, _ = library(spec, X, V, Xq, bdf.region(NAME), sample_weight=w)
+    mean, std, _ = library(spec, X, V, Xq, sample_weight=w)
     np.testing.assert_allclose(pred.mean, mean, rtol=0, atol=1e-6)
     np.testing.assert_allclose(pred.std, std, rtol=1e-6)
-    unweighted, _, _ = library(spec, X, V, Xq, bdf.region(NAME))
+    unweighted, _, _ = library(spec, X, V, Xq)
     assert np.abs(unweighted - mean).max() > 1e-3  # the weights changed the answer
 
 
@@ -177,9 +177,9 @@ def test_a_retraction_undoes_a_chunked_upload_exactly_and_once(bdf):
     again = bdf.retract(NAME, Xb, Vb + 30, sample_weight=weight, chunk_size=100)
     assert (again.replayed_chunks, bdf.region(NAME).version) == (3, 9)
     assert bdf.region(NAME).observations == 300
-    after = bdf.query(NAME, Xq)
-    np.testing.assert_allclose(after.mean, before.mean, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(after.std, before.std, rtol=1e-9)
+    after = bdf.query(NAME, Xq)  # the same data's map: "auto" found again, from another start
+    np.testing.assert_allclose(after.mean, before.mean, rtol=0, atol=1e-6 * np.abs(before.mean).max())
+    np.testing.assert_allclose(after.std, before.std, rtol=1e-6)
     with pytest.raises(BDFError) as err:
         bdf.retract(NAME, Xb, Vb, chunk_size=100)  # not the rows of any upload
     assert err.value.status == 404

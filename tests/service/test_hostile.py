@@ -57,13 +57,15 @@ def client(app):
 
 
 def state(c) -> dict:
-    """What a hostile request must not change: the stored totals and a query's answer."""
-    view = c.get(f"/v1/regions/{NAME}", headers=READ).json()
-    tiles = c.get(f"/v1/regions/{NAME}/tiles", headers=READ).json()["tiles"]
-    at = {"min_version": view["version"]}  # this version's map, not one before
+    """What a hostile request must not change: the stored totals, a query's answer and the
+    hyperparameters that version's map found (recorded once its map is computed)."""
+    version = c.get(f"/v1/regions/{NAME}", headers=READ).json()["version"]
+    at = {"min_version": version}  # this version's map, not one before
     answer = c.post(
         f"/v1/regions/{NAME}/query", params=at, json={"points": PROBE.tolist()}, headers=READ
     ).json()
+    view = c.get(f"/v1/regions/{NAME}", headers=READ).json()
+    tiles = c.get(f"/v1/regions/{NAME}/tiles", headers=READ).json()["tiles"]
     return {
         "version": view["version"],
         "observations": view["observations"],
@@ -246,6 +248,8 @@ def test_row_07_a_hyperparameter_fit_of_a_region_recreated_meanwhile_is_a_409(cl
         app.state.maps.store.create_region(RegionSpec.model_validate(SPEC))
         return out
 
+    monkeypatch.setattr(app.state.maps, "_schedule", lambda region: None)  # no refresh of version 2
+    assert post_obs(client, rows(*data(8, n=20)), "b").status_code == 200
     monkeypatch.setattr(app.state.maps, "_posterior", recreate_then)
     problem(client.post(f"/v1/regions/{NAME}/hyperparameters", headers=WRITE), 409, "re-created")
     view = client.get(f"/v1/regions/{NAME}", headers=READ).json()

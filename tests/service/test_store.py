@@ -416,8 +416,8 @@ def test_a_writer_killed_mid_upload_leaves_all_or_nothing(store_url):
 
 @pytest.mark.parametrize("directions", [1, 4])
 def test_a_retraction_leaves_exactly_the_map_without_that_upload(store, spec, directions):
-    """A broken sensor's upload, retracted: the stored statistics, the tiles and the map
-    equal those of the same region built without it (1e-9), once per upload id."""
+    """A broken sensor's upload, retracted: the stored statistics (1e-9), the tiles and the
+    map (1e-6) equal those of the same region built without it, once per upload id."""
     body = {**SPEC, "name": "town", "directions": directions}
     if directions > 1:
         store.delete_region("town")
@@ -441,12 +441,8 @@ def test_a_retraction_leaves_exactly_the_map_without_that_upload(store, spec, di
     assert maps.upload("town", "b", Xb, Vb + 20, sample_weight=weight, input_noise_std=noise)["replayed"]
     after = store.snapshot("town")
     assert after.region.version == 4 and after.region.observations == 300
-    hyper = after.region.hyper
-    # the same region built without the broken upload, at the same hyperparameters
-    fixed = {**body, "name": "clean", "alpha": hyper["alpha"], "beta": hyper["beta"]}
-    if directions > 1:  # per-class values are not a spec's: compare at the map's evidence
-        fixed = {**body, "name": "clean"}
-    clean = RegionSpec.model_validate(fixed)
+    # the same region built without the broken upload ("auto": its evidence maximum)
+    clean = RegionSpec.model_validate({**body, "name": "clean"})
     store.create_region(clean)
     maps.upload("clean", "a", Xa, Va)
     maps.upload("clean", "c", Xc, Vc)
@@ -455,13 +451,10 @@ def test_a_retraction_leaves_exactly_the_map_without_that_upload(store, spec, di
     assert_evidence_equal(after.evidence, expected.evidence, rtol=1e-9)
     assert [t.points for t in after.tiles.values()] == [t.points for t in expected.tiles.values()]
     Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (300, 3))
-    if directions == 1:
-        got, want = maps.predict("town", Q, min_version=4), maps.predict("clean", Q, min_version=2)
-    else:  # both at the evidence maximum of their (equal) evidence
-        got = maps.predict("town", Q, min_version=maps.fit_hyperparameters("town").version)
-        want = maps.predict("clean", Q, min_version=maps.fit_hyperparameters("clean").version)
-    np.testing.assert_allclose(got.mean, want.mean, rtol=1e-9, atol=1e-9 * np.abs(want.mean).max())
-    np.testing.assert_allclose(got.std, want.std, rtol=1e-9)
+    got, want = maps.predict("town", Q, min_version=4), maps.predict("clean", Q, min_version=2)
+    # the same evidence to rounding, its maximum found from other starts: the acceptance's 1e-6
+    np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-6 * np.abs(want.mean).max())
+    np.testing.assert_allclose(got.std, want.std, rtol=1e-6)
     np.testing.assert_array_equal(got.known, want.known)
 
 

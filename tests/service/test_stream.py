@@ -54,7 +54,9 @@ def test_a_map_built_by_many_uploads_is_the_single_fit(store, directions):
         got = maps.predict(name, Q, min_version=uploads, modes=True)
         assert got.version == uploads and got.behind == 0
         post = maps.refresh(name).posterior
-        np.testing.assert_allclose(np.log(post.alpha / post.beta), np.log(field.alpha_ / field.beta_), atol=10 * LOG_TOLERANCE)
+        np.testing.assert_allclose(
+            np.log(post.alpha / post.beta), np.log(field.alpha_ / field.beta_), atol=10 * LOG_TOLERANCE
+        )
         np.testing.assert_allclose(post.beta, field.beta_, rtol=1e-6)
         np.testing.assert_allclose(got.modes.mean, want.mean, rtol=0, atol=1e-6 * climate.min())
         np.testing.assert_allclose(got.modes.std, want.std, rtol=1e-6)
@@ -72,7 +74,7 @@ def test_refreshes_run_one_at_a_time_per_region_and_skip_to_the_newest_version(s
     spec = RegionSpec.model_validate(SPEC)
     store.create_region(spec)
     maps = RegionMaps(store, cache_mb=64)
-    X, V, w = lanes(2100, seed=3)
+    X, V, _ = lanes(2100, seed=3)
     maps.upload("town", "first", X[:100], V[:100])
     assert maps.predict("town", X[:3], min_version=1).version == 1
     gate, computed, running, most = threading.Event(), [], [0], [0]
@@ -96,7 +98,9 @@ def test_refreshes_run_one_at_a_time_per_region_and_skip_to_the_newest_version(s
         maps.upload("town", f"u{k}", X[100 + 100 * k : 200 + 100 * k], V[100 + 100 * k : 200 + 100 * k])
     stale = maps.predict("town", X[:3])
     assert stale.version == 1 and stale.behind == 20 and stale.behind_s >= 0
-    newest = threading.Thread(target=lambda: computed.append(maps.predict("town", X[:3], min_version=21).version))
+    newest = threading.Thread(
+        target=lambda: computed.append(maps.predict("town", X[:3], min_version=21).version)
+    )
     newest.start()
     gate.set()
     newest.join(60)

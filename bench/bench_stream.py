@@ -1,0 +1,303 @@
+"""Maps under a stream of uploads, on real ADS-B traffic around Paris (issue 35).
+
+    .venv/bin/python bench/bench_stream.py [--directions 1,8] [--uploads 1,10,100]
+        [--seconds 30] [--no-append]
+
+Data: the flight split of the core benchmark (`bdf.ingest.load_paris`: 20 % of whole
+flights held out, seed 0), track weights (`bdf.ingest.track_weights` on the demo's 2 km
+lattice cells). Region: the demo's (`bdf.ingest.paris_demo_region`, 2 km x 2 km x 1 km
+hinges, cutoff 1e-9), with 1 and with 8 heading sectors.
+
+1. Calibration: the region built in process through `RegionMaps` on SQLite from the
+   training flights as 1, 10 and 100 uploads (flights in a shuffled order, cut at random
+   sizes), the newest version served; against one `BayesianDynamicField` fitted on all the
+   data at once (the single fit): held-out 95 % coverage per component, MSLL, and for the
+   directional map the mixture's MSLL and the conditional coverage and RMSE (each test
+   point's own heading sector); the largest difference of the means from the single fit's
+   (over the climatology std) and of ln(alpha / beta).
+2. Refreshes: a cold map (a new `RegionMaps` and fresh caches: every tile decoded, the
+   support's symbolic analysis, the search from nothing) against the refresh after a
+   1,000-row upload (warm: only the changed tiles decoded, the search from the previous
+   optimum); seconds and factorisations, and the warm one as a fraction of the cold one.
+3. Staleness: `bdf serve` (SQLite, defaults) holding the 8-sector map; 8 uploaders post
+   1,000-row batches and 8 readers query 1,000 points, for ``--seconds``; every answer's
+   X-Region-Versions-Behind and X-Region-Seconds-Behind, and the refreshes' times
+   (/metrics). Target: at most one refresh behind (seconds behind within about one
+   refresh's time plus the upload that started it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import datetime
+import platform
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_core import publish  # bench/ is on the path when run as a script
+from bench_service import arrow_points
+
+from bdf import ingest, linalg, metrics
+from bdf.ingest import PARIS_REGION_SPACING_M
+from clients.local import LocalService
+from service.maps import RegionMaps
+from service.store import open_store
+
+ARROW = "application/vnd.apache.arrow.stream"
+
+
+def split():
+    obs, lower, upper = ingest.load_paris()
+    test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
+    train = obs.subset(~test)
+    weight = ingest.track_weights(train, PARIS_REGION_SPACING_M)
+    return train, weight, obs.subset(test), lower, upper
+
+
+def held_out(spec, post, train, test) -> dict:
+    """Held-out accuracy of a posterior (the served map's, or the single fit's)."""
+    modes = spec.predict_modes(test.X, post)
+    mean, std, _ = spec.predict(test.X, post, modes=modes)
+    cov = metrics.coverage(test.V, mean, std, axis=0)
+    row = {
+        "cov95 e": cov[0],
+        "cov95 n": cov[1],
+        "cov95 u": cov[2],
+        "MSLL": float(metrics.msll(test.V, mean, std, train.V.mean(0), train.V.std(0))),
+    }
+    if spec.directions > 1:
+        own = spec.sectors.classify(test.V)
+        rows = np.arange(len(test.V))
+        row["mixture MSLL"] = metrics.mixture_msll(
+            test.V, modes.share, modes.mean, modes.std, train.V.mean(0), train.V.std(0)
+        )
+        row["cond. cov95"] = float(metrics.coverage(test.V, modes.mean[rows, own], modes.std[rows, own]))
+        row["cond. RMSE"] = float(metrics.rmse(test.V, modes.mean[rows, own]))
+    return row
+
+
+def calibration(directions, counts, train, weight, test, lower, upper, tmp) -> tuple[list[dict], dict]:
+    spec = ingest.paris_demo_region(lower, upper, directions=directions)
+    t0 = time.perf_counter()
+    single = spec.field().fit(train.X, train.V, sample_weight=weight).posterior_
+    single_s = time.perf_counter() - t0
+    climate = np.sqrt((train.V**2).mean(0))
+    probe = np.random.default_rng(2).uniform(spec.lower, spec.upper, (20_000, 3))
+    want = spec.predict(probe, single)[0]
+    rows = [{"directions": directions, "built by": "single fit", **held_out(spec, single, train, test)}]
+    timing = {"single fit [s]": single_s}
+    flights = np.unique(train.flight)
+    for uploads in counts:
+        store = open_store(f"sqlite:///{tmp}/d{directions}-u{uploads}")
+        store.create_region(spec)
+        maps = RegionMaps(store, cache_mb=2048)
+        rng = np.random.default_rng(uploads)
+        order = rng.permutation(flights)
+        cuts = np.sort(rng.choice(np.arange(1, len(order)), uploads - 1, replace=False))
+        t0 = time.perf_counter()
+        for k, part in enumerate(np.split(order, cuts)):
+            rows_k = np.isin(train.flight, part)
+            maps.upload(spec.name, f"u{k}", train.X[rows_k], train.V[rows_k], sample_weight=weight[rows_k])
+        state = maps.refresh(spec.name)
+        build_s = time.perf_counter() - t0
+        post = state.posterior
+        got = spec.predict(probe, post)[0]
+        lam = np.log(post.alpha / post.beta) - np.log(single.alpha / single.beta)
+        rows.append(
+            {
+                "directions": directions,
+                "built by": f"{uploads} uploads",
+                **held_out(spec, post, train, test),
+                "max |mean - single| / clim. std": float(np.max(np.abs(got - want) / climate)),
+                "max |ln lam - single|": float(np.abs(lam).max()),
+                "refreshes": maps.stats.count,
+                "skipped versions": maps.stats.skipped,
+                "build [s]": build_s,
+            }
+        )
+        maps.close()
+        store.close()
+    return rows, timing
+
+
+def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
+    """Cold map against warm refreshes after 1,000-row uploads (medians over ``rounds``)."""
+    spec = ingest.paris_demo_region(lower, upper, directions=directions)
+    store = open_store(f"sqlite:///{tmp}/refresh-d{directions}")
+    store.create_region(spec)
+    rng = np.random.default_rng(5)
+    extra = rng.permutation(len(train.X))[: 1000 * rounds]
+    keep = np.ones(len(train.X), bool)
+    keep[extra] = False
+    RegionMaps(store).upload(spec.name, "base", train.X[keep], train.V[keep], sample_weight=weight[keep])
+    cold, cold_f = [], []
+    for _ in range(rounds):
+        linalg.stencil.cache_clear()  # a new process: no analysis, no decoded tiles, no optimum
+        maps = RegionMaps(store, cache_mb=2048)
+        maps._start = lambda *a: None  # nor the store's record of the optimum
+        t0 = time.perf_counter()
+        state = maps.refresh(spec.name)
+        cold.append(time.perf_counter() - t0)
+        cold_f.append(state.posterior.factorisations)
+        maps.close()
+    maps = RegionMaps(store, cache_mb=2048)
+    maps.refresh(spec.name)
+    warm, warm_f, upload = [], [], []
+    for r in range(rounds):
+        rows = extra[1000 * r : 1000 * (r + 1)]
+        t0 = time.perf_counter()
+        maps.upload(spec.name, f"extra{r}", train.X[rows], train.V[rows], sample_weight=weight[rows])
+        upload.append(time.perf_counter() - t0)
+        time.sleep(0.1)
+        t0 = time.perf_counter()
+        state = maps.refresh(spec.name)  # waits for the refresh the upload started
+        warm.append(time.perf_counter() - t0 + 0.1)
+        warm_f.append(state.posterior.factorisations)
+    maps.close()
+    store.close()
+    return {
+        "directions": directions,
+        "hinges": spec.grid.size,
+        "cold map [s]": float(np.median(cold)),
+        "cold factorisations": int(np.median(cold_f)),
+        "upload of 1,000 rows [s]": float(np.median(upload)),
+        "refresh after it [s]": float(np.median(warm)),
+        "warm factorisations": int(np.median(warm_f)),
+        "refresh / cold": float(np.median(warm) / np.median(cold)),
+    }
+
+
+async def staleness(url, train, weight, seconds, uploaders=8, readers=8) -> dict:
+    rng = np.random.default_rng(11)
+    queries = arrow_points(rng.uniform(*QUERY_BOX, (1000, 3)))
+    behind, behind_s, versions = [], [], []
+    stop = time.monotonic() + seconds
+    async with httpx.AsyncClient(base_url=url, timeout=600) as c:
+
+        async def upload(k):
+            j = 0
+            while time.monotonic() < stop:
+                rows = rng.integers(0, len(train.X), 1000)
+                r = await c.post(
+                    "/v1/regions/paris/observations",
+                    content=arrow_points(train.X[rows], train.V[rows]),
+                    headers={"Content-Type": ARROW, "Idempotency-Key": f"stream-{k}-{j}"},
+                )
+                assert r.status_code == 200, r.text
+                j += 1
+
+        async def read():
+            while time.monotonic() < stop:
+                r = await c.post(
+                    "/v1/regions/paris/query",
+                    content=queries,
+                    headers={"Content-Type": ARROW, "Accept": ARROW},
+                )
+                assert r.status_code == 200, r.text
+                behind.append(int(r.headers["X-Region-Versions-Behind"]))
+                behind_s.append(float(r.headers["X-Region-Seconds-Behind"]))
+                versions.append(int(r.headers["X-Region-Version"]))
+
+        await asyncio.gather(*(upload(k) for k in range(uploaders)), *(read() for _ in range(readers)))
+        text = (await c.get("/metrics")).text
+    value = {m[0]: float(m[1]) for m in re.findall(r"^(bdf_map_\w+?)(?:_total)? ([0-9.e+-]+)$", text, re.M)}
+    refresh_s = value.get("bdf_map_refresh_seconds", 0) / max(value.get("bdf_map_refreshes", 1), 1)
+    return {
+        "answers": len(behind),
+        "versions written": max(versions, default=0) + max(behind[-1:], default=0),
+        "versions behind p50": float(np.percentile(behind, 50)),
+        "versions behind p95": float(np.percentile(behind, 95)),
+        "seconds behind p50": float(np.percentile(behind_s, 50)),
+        "seconds behind p95": float(np.percentile(behind_s, 95)),
+        "seconds behind max": float(np.max(behind_s)),
+        "refreshes": int(value.get("bdf_map_refreshes", 0)),
+        "mean refresh [s]": refresh_s,
+        "versions skipped": int(value.get("bdf_map_versions_skipped", 0)),
+    }
+
+
+QUERY_BOX = ([-30_000.0, -30_000.0, 0.0], [30_000.0, 30_000.0, 5_000.0])
+
+
+def table(rows: list[dict]) -> list[str]:
+    cols = list(dict.fromkeys(k for r in rows for k in r))
+    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        cells = []
+        for c in cols:
+            v = r.get(c, "")
+            if isinstance(v, float):
+                v = f"{v:.3g}" if abs(v) < 1e-2 and v != 0 else f"{v:.3f}"
+            cells.append(str(v))
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--directions", default="1,8")
+    parser.add_argument("--uploads", default="1,10,100")
+    parser.add_argument("--seconds", type=float, default=30.0)
+    parser.add_argument("--no-append", action="store_true")
+    args = parser.parse_args(argv)
+    directions = [int(d) for d in args.directions.split(",")]
+    counts = [int(u) for u in args.uploads.split(",")]
+    train, weight, test, lower, upper = split()
+    report = [
+        f"\n## Calibrated under a stream of uploads ({datetime.date.today()}, {platform.machine()}, "
+        f"bench/bench_stream.py)\n",
+        f"Command: `.venv/bin/python bench/bench_stream.py --directions {args.directions} "
+        f"--uploads {args.uploads} --seconds {args.seconds:g}`. Paris flight split: {len(train.X)} training, "
+        f"{len(test.X)} held-out points; the demo's region.\n",
+    ]
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = []
+        for d in directions:
+            part, timing = calibration(d, counts, train, weight, test, lower, upper, tmp)
+            rows += part
+            print("\n".join(table(part)), timing, flush=True)
+        report += ["Held-out accuracy of the served map, built by uploads, against the single fit:", ""]
+        report += table(rows)
+        timing_rows = [refreshes(d, train, weight, lower, upper, tmp) for d in directions]
+        print("\n".join(table(timing_rows)), flush=True)
+        report += ["", "Refresh after a 1,000-row upload against a cold map (medians of 3):", ""]
+        report += table(timing_rows)
+        data = Path(tmp) / "serve"
+        spec = ingest.paris_demo_region(lower, upper, directions=max(directions))
+        with LocalService(data) as svc:
+            with httpx.Client(base_url=svc.url, timeout=900) as c:
+                c.post("/v1/regions", json=spec.model_dump(mode="json")).raise_for_status()
+                c.post(
+                    "/v1/regions/paris/observations",
+                    content=arrow_points(train.X, train.V),
+                    headers={"Content-Type": ARROW, "Idempotency-Key": "base"},
+                ).raise_for_status()
+                c.post(
+                    "/v1/regions/paris/query?min_version=1",
+                    content=arrow_points(train.X[:10]),
+                    headers={"Content-Type": ARROW},
+                ).raise_for_status()
+            stale = asyncio.run(staleness(svc.url, train, weight, args.seconds))
+        print(stale, flush=True)
+        report += [
+            "",
+            f"Staleness under 8 uploaders (1,000 rows each) and 8 readers (1,000 points) for "
+            f"{args.seconds:g} s, `bdf serve` on SQLite, {max(directions)} sectors:",
+            "",
+            *table([stale]),
+        ]
+    publish(report, not args.no_append)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
