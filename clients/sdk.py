@@ -85,6 +85,8 @@ class Prediction:
     std: np.ndarray
     known: np.ndarray
     region_version: int
+    versions_behind: int = 0  # region versions written that the answer's map did not hold yet
+    seconds_behind: float = 0.0  # since the first of them was written
 
 
 @dataclass(frozen=True)
@@ -208,6 +210,11 @@ def _npz(body: bytes) -> dict[str, np.ndarray]:
 
 def _version(response: httpx.Response) -> int:
     return int(response.headers["x-region-version"])
+
+
+def _lag(response: httpx.Response) -> tuple[int, float]:
+    """How far the answer's map was behind the region (versions, seconds)."""
+    return int(response.headers["x-region-versions-behind"]), float(response.headers["x-region-seconds-behind"])
 
 
 def _json_body(body) -> dict:
@@ -566,6 +573,7 @@ class _Endpoints:
                 np.array(js["std"], float).reshape(-1, 3),
                 np.array(js["known"], bool),
                 js["region_version"],
+                *_lag(response),
             )
         if transport != "arrow":
             raise ValueError(f"transport must be 'arrow' or 'json', got {transport!r}")
@@ -586,6 +594,7 @@ class _Endpoints:
             _stack(table, ("std_e", "std_n", "std_u")),
             table.column("known").to_numpy(zero_copy_only=False).astype(bool),
             _version(response),
+            *_lag(response),
         )
 
     def _grid(self, name, step, bbox, modes) -> Call:

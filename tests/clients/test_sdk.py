@@ -49,6 +49,7 @@ def test_chunked_upload_query_grid_tubes_equal_the_library_and_a_rerun_applies_n
         np.testing.assert_allclose(pred.mean, mean, rtol=0, atol=1e-6)
         np.testing.assert_allclose(pred.std, std, rtol=1e-6)
         assert pred.known.all() and pred.region_version == 3
+        assert (pred.versions_behind, pred.seconds_behind) == (0, 0.0)  # it reads its own writes
 
     grid = bdf.grid(NAME, step=[50, 50, 20], bbox=[0, 0, 0, 300, 200, 60])
     assert grid.mean.shape == (7, 5, 4, 3)
