@@ -214,7 +214,9 @@ def _version(response: httpx.Response) -> int:
 
 def _lag(response: httpx.Response) -> tuple[int, float]:
     """How far the answer's map was behind the region (versions, seconds)."""
-    return int(response.headers["x-region-versions-behind"]), float(response.headers["x-region-seconds-behind"])
+    return int(response.headers["x-region-versions-behind"]), float(
+        response.headers["x-region-seconds-behind"]
+    )
 
 
 def _json_body(body) -> dict:
