@@ -9,22 +9,22 @@ split of the core benchmark (20 % of whole flights held out, seed 0), track-weig
 Everything runs in process through `RegionMaps` on SQLite in a temporary directory.
 
 Per lattice: the fit (increments, the evidence maximum of the whole region, one
-transaction), a refresh after a 1,000-row upload (the posterior of the new version at the
-hyperparameters in force), a cold 10,000-point query (fresh caches, the stencil's too: its
-pattern, ordering and symbolic analysis, then the posterior from the stored evidence, as in
-a new process) and a warm one; the factorisation's multiply-adds against this machine's
-measured dense GEMM rate, the dense Cholesky's (M^3 / 6) at that rate, and CHOLMOD's of
-the same matrix in the same order; a support's first factorisation (with its symbolic
-analysis and the layout of its blocks); the factor's work in our nested-dissection order
-against CHOLMOD's METIS order (and METIS's time);
+transaction), a refresh after a 1,000-row upload (the posterior of the new version, its
+"auto" found again from the previous optimum), a cold 10,000-point query (fresh caches,
+the stencil's too: its pattern, ordering and symbolic analysis, then the posterior from
+the stored evidence, as in a new process) and a warm one; the factorisation's multiply-
+adds against this machine's measured dense GEMM rate, the dense Cholesky's (M^3 / 6) at
+that rate, and CHOLMOD's of the same matrix in the same order; a support's first
+factorisation (with its symbolic analysis and the layout of its blocks); the factor's
+work in our nested-dissection order against CHOLMOD's METIS order (and METIS's time);
 held-out accuracy of the served map and of one `BayesianDynamicField` over the region's
 lattice (largest difference of the means); plausibility on the 500 m grid at 500-5,500 m
 (largest horizontal mean speed over the fastest observed in its 1 km band, and the voxels
-above it; with ``--directions``, the same for every mode with at least 5 % of the traffic;
-largest std over the climatology std, the root mean square of the training velocities per
-component);
-seam ratios: the mean absolute step between neighbouring 500 m cells that straddle a tile
-border, over the same between cells that do not (1.0: borders invisible).
+above it; with ``--directions``, the same for every mode with at least 5 % of the
+traffic; largest std over the climatology std, the root mean square of the training
+velocities per component); seam ratios: the mean absolute step between neighbouring 500 m
+cells that straddle a tile border, over the same between cells that do not (1.0: borders
+invisible).
 
 With ``--cutoffs``: the error of a looser kernel cutoff (the precision's stencil) on the
 first lattice, against the default 1e-12 at the same hyperparameters, with the cost of

@@ -535,8 +535,7 @@ def test_no_accepted_rows_in_any_order_can_break_a_map(uploads, directions, hype
                 served = assert_serves(maps, spec)
             fresh = RegionMaps(store)  # what a new process computes from the store
             again = assert_serves(fresh, spec)
-            # at the values in force, the same map; where they no longer factor (rounding of
-            # another support at a ratio on the edge), the refound maximum is still finite
+            # at fixed values, the same map ("auto": the maximum found again, still finite)
             if not fresh.refresh(NAME).posterior.fitted:
                 np.testing.assert_allclose(again, served, rtol=1e-7, atol=1e-9)
             assert store.verify() == {NAME: []}
