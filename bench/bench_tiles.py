@@ -12,9 +12,9 @@ Per lattice: the fit (increments, the evidence maximum of the whole region, one
 transaction), a refresh after a 1,000-row upload (the posterior of the new version, its
 "auto" found again from the previous optimum), a cold 10,000-point query (fresh caches,
 the stencil's too: its pattern, ordering and symbolic analysis, then the posterior from
-the stored evidence, as in a new process) and a warm one; the factorisation's multiply-
-adds against this machine's measured dense GEMM rate, the dense Cholesky's (M^3 / 6) at
-that rate, and CHOLMOD's of the same matrix in the same order; a support's first
+the stored evidence, as in a new process) and a warm one; the factorisation's
+multiply-adds against this machine's measured dense GEMM rate, the dense Cholesky's (M^3
+/ 6) at that rate, and CHOLMOD's of the same matrix in the same order; a support's first
 factorisation (with its symbolic analysis and the layout of its blocks); the factor's
 work in our nested-dissection order against CHOLMOD's METIS order (and METIS's time);
 held-out accuracy of the served map and of one `BayesianDynamicField` over the region's
