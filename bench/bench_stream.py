@@ -1,7 +1,7 @@
 """Maps under a stream of uploads, on real ADS-B traffic around Paris (issue 35).
 
     .venv/bin/python bench/bench_stream.py [--directions 1,8] [--uploads 1,10,100]
-        [--seconds 30] [--parts calibration,refresh,staleness] [--no-append]
+        [--seconds 30] [--parts calibration,refresh,staleness] [--uploaders 8] [--no-append]
 
 Data: the flight split of the core benchmark (`bdf.ingest.load_paris`: 20 % of whole
 flights held out, seed 0), track weights (`bdf.ingest.track_weights` on the core
@@ -241,7 +241,7 @@ def _map_metrics(text: str) -> dict:
     return {m[0]: float(m[1]) for m in re.findall(r"^(bdf_map_\w+?)(?:_total)? ([0-9.e+-]+)$", text, re.M)}
 
 
-def served(directions, train, weight, lower, upper, data, seconds) -> dict:
+def served(directions, train, weight, lower, upper, data, seconds, uploaders=8) -> dict:
     """:func:`staleness` on a service holding the region of ``directions`` built from the
     training data (its first map computed before the load starts)."""
     spec = ingest.paris_demo_region(lower, upper, directions=directions)
@@ -259,7 +259,11 @@ def served(directions, train, weight, lower, upper, data, seconds) -> dict:
                 content=arrow_points(train.X[:10]),
                 headers={"Content-Type": ARROW},
             ).raise_for_status()
-        return {"directions": directions, **asyncio.run(staleness(svc.url, train, weight, seconds))}
+        return {
+            "directions": directions,
+            "uploaders": uploaders,
+            **asyncio.run(staleness(svc.url, train, weight, seconds, uploaders)),
+        }
 
 
 QUERY_BOX = ([-30_000.0, -30_000.0, 0.0], [30_000.0, 30_000.0, 5_000.0])
@@ -285,6 +289,7 @@ def main(argv=None) -> int:
     parser.add_argument("--uploads", default="1,10,100")
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--parts", default="calibration,refresh,staleness")
+    parser.add_argument("--uploaders", type=int, default=8)
     parser.add_argument("--no-append", action="store_true")
     args = parser.parse_args(argv)
     parts = args.parts.split(",")
@@ -314,14 +319,14 @@ def main(argv=None) -> int:
             report += table(timing_rows)
         if "staleness" in parts:
             stale = [
-                served(d, train, weight, lower, upper, Path(tmp) / f"serve{d}", args.seconds)
+                served(d, train, weight, lower, upper, Path(tmp) / f"serve{d}", args.seconds, args.uploaders)
                 for d in directions
             ]
             print("\n".join(table(stale)), flush=True)
             report += [
                 "",
-                f"Staleness under 8 uploaders (1,000 rows each) and 8 readers (1,000 points) for "
-                f"{args.seconds:g} s, `bdf serve` on SQLite (defaults):",
+                f"Staleness under {args.uploaders} uploaders (1,000 rows each) and 8 readers (1,000 "
+                f"points) for {args.seconds:g} s, `bdf serve` on SQLite (defaults):",
                 "",
                 *table(stale),
             ]
