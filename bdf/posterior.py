@@ -203,11 +203,7 @@ class Posterior:
     @property
     def nbytes(self) -> int:
         """Memory held by the arrays of this posterior."""
-        held = (
-            self.weights.nbytes
-            + self._density.nbytes
-            + (0 if self._moments is None else self._moments.nbytes)
-        )
+        held = self.weights.nbytes + sum(a.nbytes for a in (self._density, self._moments) if a is not None)
         if self._variance is not None:
             held += self._variance[0].nbytes
         if self._solutions is not None:
@@ -356,9 +352,11 @@ class Mixture:
         )
         of_class = dict(zip(by_count, fitted, strict=True))
         self.modes = [of_class[c] for c in range(C)]
-        for mode in self.modes:  # the classes' densities are kept side by side (one gather)
-            mode._density = mode._density[:0]
+        # the classes' data densities side by side (one gather for all): the map's with one
+        # class and the modes' own are not read
         self._densities = np.stack([e.density for e in evidence.classes], axis=-1)
+        for post in (self.total, *self.modes):
+            post._density = None
         self.fitted = self.total.fitted
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])

@@ -94,7 +94,12 @@ def rows_table(rows: list[dict]) -> str:
         for c in cols:
             v = r.get(c, "")
             v = "(not run)" if isinstance(v, float) and np.isnan(v) else v
-            cells.append(v if isinstance(v, str) else f"{v:d}" if isinstance(v, int) else f"{v:.3f}")
+            if isinstance(v, str):
+                cells.append(v)
+            elif isinstance(v, int):
+                cells.append(f"{v:d}")
+            else:  # small values keep their digits (differences from a reference)
+                cells.append(f"{v:.3g}" if v and abs(v) < 1e-2 else f"{v:.3f}")
         out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out)
 

@@ -46,7 +46,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_core import publish  # bench/ is on the path when run as a script
+from bench_core import publish, rows_table  # bench/ is on the path when run as a script
 from bench_service import arrow_points
 
 from bdf import ingest, linalg, metrics
@@ -269,20 +269,6 @@ def served(directions, train, weight, lower, upper, data, seconds, uploaders=8) 
 QUERY_BOX = ([-30_000.0, -30_000.0, 0.0], [30_000.0, 30_000.0, 5_000.0])
 
 
-def table(rows: list[dict]) -> list[str]:
-    cols = list(dict.fromkeys(k for r in rows for k in r))
-    out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    for r in rows:
-        cells = []
-        for c in cols:
-            v = r.get(c, "")
-            if isinstance(v, float):
-                v = f"{v:.3g}" if abs(v) < 1e-2 and v != 0 else f"{v:.3f}"
-            cells.append(str(v))
-        out.append("| " + " | ".join(cells) + " |")
-    return out
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--directions", default="1,8")
@@ -309,26 +295,26 @@ def main(argv=None) -> int:
             for d in directions:
                 part, timing = calibration(d, counts, train, weight, test, lower, upper, tmp)
                 rows += part
-                print("\n".join(table(part)), timing, flush=True)
+                print(rows_table(part), timing, flush=True)
             report += ["Held-out accuracy of the served map, built by uploads, against the single fit:", ""]
-            report += table(rows)
+            report += rows_table(rows).splitlines()
         if "refresh" in parts:
             timing_rows = [refreshes(d, train, weight, lower, upper, tmp) for d in directions]
-            print("\n".join(table(timing_rows)), flush=True)
+            print(rows_table(timing_rows), flush=True)
             report += ["", "Refresh after a 1,000-row upload against a cold map (medians of 3):", ""]
-            report += table(timing_rows)
+            report += rows_table(timing_rows).splitlines()
         if "staleness" in parts:
             stale = [
                 served(d, train, weight, lower, upper, Path(tmp) / f"serve{d}", args.seconds, args.uploaders)
                 for d in directions
             ]
-            print("\n".join(table(stale)), flush=True)
+            print(rows_table(stale), flush=True)
             report += [
                 "",
                 f"Staleness under {args.uploaders} uploaders (1,000 rows each) and 8 readers (1,000 "
                 f"points) for {args.seconds:g} s, `bdf serve` on SQLite (defaults):",
                 "",
-                *table(stale),
+                *rows_table(stale).splitlines(),
             ]
     publish(report, not args.no_append)
     return 0

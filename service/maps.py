@@ -351,7 +351,7 @@ class RegionMaps:
             if newest is not None and newest.version >= at_least and newest.spec == info.spec:
                 return newest
             started = time.perf_counter()
-            snap, evidence = self._snapshot_evidence(region)
+            snap, evidence = self._snapshot_evidence(region, info.region_id)
             spec = snap.region.spec
             post = self._posterior(spec, spec.region_evidence(evidence), self._start(snap.region, newest))
             state = MapState(spec, snap.region.region_id, snap.region.version, post)
@@ -375,10 +375,9 @@ class RegionMaps:
                 self._record(region, state)
             return state
 
-    def _snapshot_evidence(self, region: str):
+    def _snapshot_evidence(self, region: str, region_id: str):
         """The region's snapshot and every tile's evidence, decoding only the tiles whose
-        version changed since the last refresh here."""
-        region_id = self.store.region(region).region_id
+        version changed since the last refresh here (of the instance ``region_id``)."""
         with self._lock:
             kept = self._evidence.pop(region_id, {})
         snap = self.store.snapshot(
