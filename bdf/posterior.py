@@ -76,10 +76,12 @@ class Posterior:
         start=None,
         prior_weights=None,
         anchor=None,
+        density=True,
     ):
         self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
-        self._density = evidence.density  # where the data are (:meth:`data_weight`)
+        # where the data are (:meth:`data_weight`); a mixture keeps its classes' itself
+        self._density = evidence.density if density else None
         self.stencil = stencil_of(grid, gamma, cutoff)
         #: alpha or beta came from evidence maximisation ("auto" and some data)
         self.fitted = (isinstance(alpha, str) or isinstance(beta, str)) and evidence.count > 0
@@ -110,7 +112,7 @@ class Posterior:
         the kernel's 1 % reach. From the data's density (the statistics' ``density``, of the
         points without input noise), gathered on its lattice: ``k`` is its kernel's
         convolution with itself."""
-        return data_weight(self.grid, self.gamma, self.cutoff, self._density[..., None], X)
+        return self._midpoints(X)[1]
 
     def data_weight_grid(self, axes) -> np.ndarray:
         """:meth:`data_weight` on the grid ``axes``, (nx, ny, nz, 1)."""
@@ -122,23 +124,23 @@ class Posterior:
 
     def variance_table(self) -> tuple[np.ndarray, list[int]]:
         """The variance densities on the midpoint lattice (one per distinct factorisation)
-        and the one each component uses; ``phi^T Sigma_c phi`` is their gather over beta_c."""
+        and the one each component uses; ``phi^T Sigma_c phi`` is their gather over beta_c.
+        The data's density is the table's last column (one gather answers both)."""
         if self._variance is None:
-            self._variance = self._variance_density()
+            densities, columns = self._variance_density()
+            if self._density is not None:
+                densities = np.concatenate([densities, self._density[..., None]], axis=-1)
+            self._variance = densities, columns
         return self._variance
 
-    def epistemic_variance(self, X: np.ndarray) -> np.ndarray:
-        """``phi(x)^T Sigma_c phi(x)`` per component, (N, 3), via the variance density."""
+    def _midpoints(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One gather of the midpoint lattice at ``X``: ``phi(x)^T Sigma_c phi(x)`` per
+        component (n, 3), and :meth:`data_weight` (n, 1)."""
         densities, columns = self.variance_table()
-        var = features.gather(
-            self.grid.midpoints(),
-            X,
-            densities,
-            2.0 * self.gamma,
-            cutoff=self.cutoff,
-            block=MIDPOINT_BLOCK,
+        at = features.gather(
+            self.grid.midpoints(), X, densities, 2.0 * self.gamma, cutoff=self.cutoff, block=MIDPOINT_BLOCK
         )
-        return np.maximum(var[:, columns] / self.beta, 0.0)
+        return np.maximum(at[:, columns] / self.beta, 0.0), _normalised(self.grid, self.gamma, at[:, -1:], X)
 
     def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
         """Mean and variance (predictive, or epistemic without the noise) on the grid
@@ -172,19 +174,22 @@ class Posterior:
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """Mean (N, 3), and the std if asked: predictive, or epistemic without ``1/beta``."""
+        return self.answer(X, include_noise)[:2] if return_std else self.mean(X)
+
+    def answer(self, X: np.ndarray, include_noise=True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mean and std (n, 3), as :meth:`predict`, and :meth:`data_weight` (n, 1): each
+        lattice gathered once."""
         mean = self.mean(X)
-        if not return_std:
-            return mean
-        var = self.epistemic_variance(X)
+        var, weight = self._midpoints(X)
         if include_noise:
             var = var + self.noise_variance(X, mean)
-        return mean, np.sqrt(var)
+        return mean, np.sqrt(var), weight
 
     def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
         """The one mode of a map of one class."""
-        mean, std = self.predict(X, True, include_noise)
+        mean, std, weight = self.answer(X, include_noise)
         n = len(X)
-        return Modes(np.ones((n, 1)), np.zeros(n), mean[:, None], std[:, None], self.data_weight(X))
+        return Modes(np.ones((n, 1)), np.zeros(n), mean[:, None], std[:, None], weight)
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """The one mode of a map of one class, on the grid ``axes``."""
@@ -222,15 +227,12 @@ class Posterior:
         return np.stack(list(densities.values()), axis=-1), columns
 
 
-def data_weight(grid: HingeGrid, gamma, cutoff, densities: np.ndarray, X: np.ndarray) -> np.ndarray:
+def _normalised(grid: HingeGrid, gamma, at: np.ndarray, X: np.ndarray) -> np.ndarray:
     """``sum_i w_i exp(-sum_d gamma_d (x_d - x_id)^2)`` (n, C) from data densities on the
-    midpoint lattice (kernel ``2 gamma``, :mod:`bdf.stats`; C of them): gathered with the
-    same kernel, each pair of an observation and ``x`` meets at their midpoint with the
-    lattice's sum of ``exp(-4 gamma (g - midpoint)^2)``, which :func:`_lattice_sum` divides
-    out (near ``x``: it falls to half at the lattice's edge)."""
-    at = features.gather(
-        grid.midpoints(), X, densities, 2.0 * np.asarray(gamma), cutoff=cutoff, block=MIDPOINT_BLOCK
-    )
+    midpoint lattice (kernel ``2 gamma``, :mod:`bdf.stats`; C of them) gathered at ``X``
+    with the same kernel (``at``): each pair of an observation and ``x`` meets at their
+    midpoint with the lattice's sum of ``exp(-4 gamma (g - midpoint)^2)``, which
+    :func:`_lattice_sum` divides out (near ``x``: it falls to half at the lattice's edge)."""
     norm = np.prod([_lattice_sum(grid, gamma, d, X[:, d]) for d in range(3)], axis=0)[:, None]
     return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)  # 0 far outside
 
@@ -325,7 +327,7 @@ class Mixture:
         rest = (cutoff, noise_lattice, noise_prior)
         total = evidence.total()
         starts = [None] * (1 + C) if start is None else list(np.broadcast_to(start, (1 + C, 3)))
-        self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest, start=starts[0])
+        self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest, start=starts[0], density=False)
         anchor = float(np.mean(self.total.alpha / self.total.beta))  # a mode's cold start
 
         def mode(c):
@@ -340,6 +342,7 @@ class Mixture:
                 start=starts[1 + c],
                 prior_weights=_layer_prior(e, grid, gamma),
                 anchor=anchor,
+                density=False,
             )
             post.variance_table()
             return post
@@ -352,11 +355,8 @@ class Mixture:
         )
         of_class = dict(zip(by_count, fitted, strict=True))
         self.modes = [of_class[c] for c in range(C)]
-        # the classes' data densities side by side (one gather for all): the map's with one
-        # class and the modes' own are not read
+        # the classes' data densities side by side, gathered with the variance densities
         self._densities = np.stack([e.density for e in evidence.classes], axis=-1)
-        for post in (self.total, *self.modes):
-            post._density = None
         self.fitted = self.total.fitted
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])
@@ -398,7 +398,8 @@ class Mixture:
     def _gather_tables(self):
         """Every mode's weights and the share weights side by side on the hinge lattice,
         and every variance density on the midpoint lattice (the modes', then the map's with
-        one class), with each one's columns: a query gathers each lattice once."""
+        one class, then the classes' data densities), with each one's columns: a query
+        gathers each lattice once."""
         if self._tables is None:
             weights = np.concatenate([*(m.weights for m in self.modes), self.share_weights], axis=1)
             densities, columns, offset = [], [], 0
@@ -409,7 +410,7 @@ class Mixture:
                 offset += d.shape[-1]
             self._tables = (
                 weights.reshape(*self.grid.shape, -1),
-                np.concatenate(densities, axis=-1),
+                np.concatenate([*densities, self._densities], axis=-1),
                 columns,
             )
         return self._tables
@@ -466,11 +467,11 @@ class Mixture:
             std[:, c] = np.sqrt(v)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
         share, share_std = self._share(at[:, 3 * C :], var[:, columns[-1][0]])
-        return Modes(share, share_std, mean, std, self.data_weight(X))
+        return Modes(share, share_std, mean, std, _normalised(self.grid, self.gamma, var[:, -C:], X))
 
     def data_weight(self, X: np.ndarray) -> np.ndarray:
         """(n, C): each class's data within the kernel's reach (:meth:`Posterior.data_weight`)."""
-        return data_weight(self.grid, self.gamma, self.cutoff, self._densities, X)
+        return self.predict_modes(X).weight
 
     def data_weight_grid(self, axes) -> np.ndarray:
         return data_weight_grid(self.grid, self.gamma, self.cutoff, self._densities, axes)

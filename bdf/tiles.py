@@ -470,8 +470,7 @@ class RegionSpec(BaseModel):
         if heading_deg is not None:
             heading_deg = as_headings(heading_deg, len(X))
         if modes is None and self.directions == 1:
-            mean, std = posterior.predict(X, return_std=True)
-            weight = posterior.data_weight(X)
+            mean, std, weight = posterior.answer(X)
         else:
             modes = posterior.predict_modes(X) if modes is None else modes
             mean, std = modes.answer(self.sectors, heading_deg)

@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import datetime
+import logging
 import platform
 import re
 import sys
@@ -132,6 +133,21 @@ def calibration(directions, counts, train, weight, test, lower, upper, tmp) -> t
     return rows, timing
 
 
+class _SearchPoints(logging.Handler):
+    """The points ``x = ln lam`` the first search evaluated (:mod:`bdf.tuning`'s debug log,
+    up to its end: the map with one class's)."""
+
+    def __init__(self):
+        super().__init__(logging.DEBUG)
+        self.x, self.ended = [], False
+
+    def emit(self, record):
+        if record.msg.startswith("evidence fit"):
+            self.ended = True
+        elif record.msg.startswith("x=") and not self.ended:
+            self.x.append(record.args[0])
+
+
 def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
     """Cold map against warm refreshes after 1,000-row uploads (medians over ``rounds``)."""
     spec = ingest.paris_demo_region(lower, upper, directions=directions)
@@ -154,16 +170,21 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
         maps.close()
     maps = RegionMaps(store, cache_mb=2048)
     maps.refresh(spec.name)
+    maps._schedule = lambda region: None  # each refresh is timed here, not in the background
     warm, warm_f, upload, fixed = [], [], [], []
+    search = logging.getLogger("bdf.tuning")
     for r in range(rounds):
         rows = extra[1000 * r : 1000 * (r + 1)]
         t0 = time.perf_counter()
         maps.upload(spec.name, f"extra{r}", train.X[rows], train.V[rows], sample_weight=weight[rows])
         upload.append(time.perf_counter() - t0)
-        time.sleep(0.1)
+        points = _SearchPoints()  # the first search's points (the map with one class)
+        search.addHandler(points)
+        search.setLevel(logging.DEBUG)
         t0 = time.perf_counter()
-        state = maps.refresh(spec.name)  # waits for the refresh the upload started
-        warm.append(time.perf_counter() - t0 + 0.1)
+        state = maps.refresh(spec.name)
+        warm.append(time.perf_counter() - t0)
+        search.removeHandler(points)
         warm_f.append(state.posterior.factorisations)
         # the same map at the optimum found, given: what a refresh without the search costs
         post = state.posterior
@@ -181,6 +202,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
         "upload of 1,000 rows [s]": float(np.median(upload)),
         "refresh after it [s]": float(np.median(warm)),
         "warm factorisations": int(np.median(warm_f)),
+        "last warm search's steps (ln lam)": " ".join(f"{s:.2g}" for s in np.abs(np.diff(points.x))),
         "refresh / cold": float(np.median(warm) / np.median(cold)),
         "at the optimum given [s]": float(np.median(fixed)),
         "refresh / at the optimum given": float(np.median(warm) / np.median(fixed)),
