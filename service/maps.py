@@ -133,6 +133,8 @@ class RegionMaps:
 
     #: Regions whose decoded tile evidence is kept for the next refresh (most recent).
     EVIDENCE_REGIONS = 8
+    #: Commit times of versions kept for the answers' lag (most recent).
+    COMMITTED_TIMES = 256
 
     def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False):
         """``isolate``: compute posteriors in a child process (the service does). A
@@ -149,6 +151,7 @@ class RegionMaps:
         self._refreshing: dict[str, bool] = {}  # region name -> written again since it started
         self._threads: dict[str, threading.Thread] = {}
         self._evidence: OrderedDict[str, dict] = OrderedDict()  # region_id -> key -> (version, evidence)
+        self._committed: OrderedDict[tuple, float] = OrderedDict()  # (region_id, version) -> time
         self._closed = False
         store.on_close(self.close)
 
@@ -319,7 +322,17 @@ class RegionMaps:
         behind = info.version - state.version if info.region_id == state.region_id else 0
         if behind <= 0:
             return 0, 0.0
-        since = self.store.committed_at(info.region_id, state.version + 1) or info.updated_at
+        key = (info.region_id, state.version + 1)
+        since = self._committed.get(key)  # a version's time never changes: read it once
+        if since is None:
+            since = self.store.committed_at(*key)
+            if since is None:  # written before the store kept versions' times
+                since = info.updated_at
+            else:
+                with self._lock:
+                    self._committed[key] = since
+                    while len(self._committed) > self.COMMITTED_TIMES:
+                        self._committed.popitem(last=False)
         return behind, max(time.time() - since, 0.0)
 
     def _state(self, region: str, info: RegionInfo, min_version: int) -> MapState:

@@ -517,20 +517,17 @@ class MapStore(ABC):
 
     def record_hyperparameters(
         self, name: str, region_id: str, hyper: Mapping, evidence_version: int
-    ) -> bool:
+    ) -> None:
         """Record ``hyper``, found at the evidence maximum of the region instance
         ``region_id`` at ``evidence_version`` (module doc), unless the record is of a newer
-        version already. The map does not change (no new version). Returns whether it was
-        written."""
+        version already. The map does not change (no new version)."""
         with self._write() as q:
             (stored,) = self._locked(q, name, region_id, "hyper")
-            if stored is not None and json.loads(stored).get("evidence_version", -1) >= evidence_version:
-                return False
-            q(
-                "UPDATE regions SET hyper = ? WHERE region_id = ?",
-                (json.dumps({**hyper, "evidence_version": int(evidence_version)}), region_id),
-            )
-        return True
+            if stored is None or json.loads(stored).get("evidence_version", -1) < evidence_version:
+                q(
+                    "UPDATE regions SET hyper = ? WHERE region_id = ?",
+                    (json.dumps({**hyper, "evidence_version": int(evidence_version)}), region_id),
+                )
 
     def retract(
         self,
