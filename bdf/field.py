@@ -227,7 +227,7 @@ class BayesianDynamicField:
 
     def _warm_start(self) -> None:
         """Before the evidence changes: the next "auto" search starts at the current
-        optimum (the same optimum, found in a step or two instead of a search)."""
+        optimum (the same optimum, found in fewer factorisations than from nowhere)."""
         post = getattr(self, "_posterior", None)
         if post is not None and post.fitted:
             self._start = post.alpha / post.beta

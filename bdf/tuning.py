@@ -25,7 +25,7 @@ probes fixed, the curvature is the exact derivative of the estimated slope, so N
 method converges quadratically to the slope's root, and that root is "auto": a function of
 the evidence alone, the same (to :data:`LOG_TOLERANCE`) from any start. A map refreshed
 after an upload starts at its previous optimum: three factorisations reach the new one
-(the first step's error is the curvature's change over it, about 2e-5 in ``ln lam`` after
+(the first step's error is the curvature's change over it, about 1e-5 in ``ln lam`` after
 a 1,000-row upload to the Paris map; bench/RESULTS.md, "Calibrated under a stream of
 uploads"), two more than a map at given values.
 """
