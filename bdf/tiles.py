@@ -252,6 +252,11 @@ class RegionSpec(BaseModel):
         return tuple(int(c) for c in n)
 
     @property
+    def posteriors(self) -> int:
+        """Posteriors its map holds: one, or (directional) the total and each class's."""
+        return 1 if self.directions == 1 else 1 + self.sectors.classes
+
+    @property
     def grid(self) -> HingeGrid:
         """The region's hinge lattice: ``bounds.min + i * spacing`` up to ``bounds.max``."""
         return _grid(tuple(self.bounds_m.min), tuple(self.bounds_m.max), tuple(self.spacing_m))

@@ -3,7 +3,9 @@
 Routes stay thin: decoding and encoding live in :mod:`service.formats`, the maps in
 :mod:`service.maps` and :mod:`bdf.tiles`, storage in :mod:`service.store`. Every route
 declares its scope (``x-scope`` in the OpenAPI document). Work that takes CPU or the
-database runs in the thread pool, never on the event loop.
+database runs in a lane's threads (:mod:`service.lanes`: light or heavy, bounded, shed
+when full), never on the event loop; ``/healthz`` and ``/metrics`` answer from the event
+loop alone, so they never wait behind work.
 """
 
 from __future__ import annotations
@@ -15,13 +17,13 @@ from contextlib import asynccontextmanager
 from typing import Annotated, Literal
 
 import anyio
+import anyio.to_thread
 import numpy as np
 from fastapi import APIRouter, FastAPI, Header, Path, Query, Request, Response
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
-from starlette.concurrency import run_in_threadpool
 
 from bdf import directions
 from bdf.tiles import RegionSpec, key_str
@@ -29,6 +31,7 @@ from service import formats, problems, slices
 from service.auth import PUBLIC, require
 from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET
 from service.jobs import Jobs
+from service.lanes import Heavy, Lanes
 from service.maps import RegionMaps
 from service.problems import Problem
 from service.settings import Settings
@@ -231,6 +234,35 @@ def _mesh(axes) -> np.ndarray:
     return np.stack([m.ravel() for m in mesh], axis=1)
 
 
+async def _run(request: Request, step, heavy: bool = False):
+    """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy``; a light
+    step that returns :class:`Heavy` goes on in the heavy lane."""
+    return await request.app.state.lanes.run(step, heavy)
+
+
+def _light_or_heavy(app, info: RegionInfo, min_version: int, rows: int, work):
+    """``work()`` now if it is light (``rows`` points or voxels times the map's posteriors
+    within ``light_cost``, on a map that is ready), else handed on to the heavy lane."""
+    light = rows * info.spec.posteriors <= app.state.settings.light_cost
+    return work() if light and app.state.maps.ready(info, min_version) else Heavy(work)
+
+
+def _within_budget(app, spec: RegionSpec, rows: int, modes: bool, media: str, what: str) -> None:
+    """422 unless the answer of ``rows`` points or voxels (every class's too with
+    ``modes``) fits the memory one request may take, before any work."""
+    need = formats.answer_bytes(rows, spec.sectors.classes, modes, media)
+    budget = app.state.settings.request_memory_mb * 2**20
+    if need > budget:
+        classes = f" x {spec.sectors.classes} traffic classes" if modes else ""
+        raise Problem(
+            422,
+            f"{rows} {what}{classes} as {media} takes about {need / 2**20:.0f} MiB to answer, more than "
+            f"the {budget / 2**20:.0f} MiB one request may take: ask for fewer {what}"
+            + (", without modes" if modes else "")
+            + ("" if media != JSON else f", or as {ARROW}"),
+        )
+
+
 router = APIRouter(prefix="/v1")
 
 
@@ -247,23 +279,24 @@ async def create_region(request: Request):
     if formats.media_type(request.headers.get("content-type")) not in (JSON, ""):
         raise Problem(415, f"send the region spec as {JSON}")
     spec = RegionSpec.model_validate_json(formats.json_body(body, _limits(request.app, 0)))
-    info = await run_in_threadpool(request.app.state.maps.store.create_region, spec)
+    info = await _run(request, lambda: request.app.state.maps.store.create_region(spec))
     return JSONResponse(_view(info), status_code=201)
 
 
 @router.get("/regions", response_model=list[RegionView], **scoped("read"))
-def list_regions(request: Request):
-    return [_view(info) for info in request.app.state.maps.store.list_regions()]
+async def list_regions(request: Request):
+    store = request.app.state.maps.store
+    return await _run(request, lambda: [_view(info) for info in store.list_regions()])
 
 
 @router.get("/regions/{name}", response_model=RegionView, **scoped("read"))
-def get_region(name: RegionName, request: Request):
-    return _view(request.app.state.maps.store.region(name))
+async def get_region(name: RegionName, request: Request):
+    return await _run(request, lambda: _view(request.app.state.maps.store.region(name)))
 
 
 @router.delete("/regions/{name}", status_code=204, **scoped("admin"))
-def delete_region(name: RegionName, request: Request):
-    request.app.state.maps.store.delete_region(name)
+async def delete_region(name: RegionName, request: Request):
+    await _run(request, lambda: request.app.state.maps.store.delete_region(name))
     return Response(status_code=204)
 
 
@@ -293,7 +326,13 @@ async def post_observations(name: RegionName, request: Request, upload_id: Idemp
         _, obs = _observations(app, name, body, request.headers.get("content-type"))
         return _apply(app, name, upload_id, obs)
 
-    return await run_in_threadpool(work)
+    return await _run(request, work, heavy=_heavy_body(app, body))
+
+
+def _heavy_body(app, body: bytes) -> bool:
+    """An upload whose body is larger than ``light_body_mb`` decodes and learns in the
+    heavy lane."""
+    return len(body) > app.state.settings.light_body_mb * 2**20
 
 
 def _observations(app, name: str, body: bytes, content_type: str | None):
@@ -339,7 +378,10 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     answering queries until the new one commits."""
     body = await request.body()
     app = request.app
-    spec, obs = await run_in_threadpool(_observations, app, name, body, request.headers.get("content-type"))
+    content_type = request.headers.get("content-type")
+    spec, obs = await _run(
+        request, lambda: _observations(app, name, body, content_type), _heavy_body(app, body)
+    )
 
     def fit(progress=None):
         return _apply(app, name, upload_id, obs, replace=True, progress=progress)
@@ -347,7 +389,7 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     settings: Settings = app.state.settings
     search = spec.grid.size * spec.sectors.classes  # a fit's cost grows with it, whatever the rows
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
-        return await run_in_threadpool(fit)
+        return await _run(request, fit, heavy=True)
     job = app.state.jobs.submit(name, upload_id, fit)
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
@@ -368,19 +410,20 @@ async def post_retraction(name: RegionName, request: Request, upload_id: Idempot
         _, obs = _observations(app, name, body, request.headers.get("content-type"))
         return _apply(app, name, upload_id, obs, retract=True)
 
-    return await run_in_threadpool(work)
+    return await _run(request, work, heavy=_heavy_body(app, body))
 
 
 @router.post("/regions/{name}/hyperparameters", response_model=RegionView, **scoped("write"))
-def post_hyperparameters(name: RegionName, request: Request):
-    """The region's map at its current version, now (each refresh after a write does the
-    same in the background): its "auto" alpha and beta at the evidence maximum of all its
-    data, recorded in the region view, which this answers."""
-    return _view(request.app.state.maps.fit_hyperparameters(name))
+async def post_hyperparameters(name: RegionName, request: Request):
+    """The region's map at its current version (each refresh after a write does the same in
+    the background): its "auto" alpha and beta at the evidence maximum of all its data,
+    recorded in the region view, which this answers. It waits for the refresh, until the
+    request's deadline (503 past it; the refresh goes on, and a retry finds its map)."""
+    return await _run(request, lambda: _view(request.app.state.maps.fit_hyperparameters(name)), heavy=True)
 
 
 @router.get("/jobs/{job_id}", response_model=JobView, **scoped("write"))
-def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Request):
+async def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Request):
     job = request.app.state.jobs.get(job_id)
     if job is None:
         raise Problem(404, f"no job {job_id!r} on this server (jobs are kept in memory per replica)")
@@ -403,7 +446,7 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
     out = formats.negotiate(request.headers.get("accept"), [JSON, ARROW])
     app = request.app
 
-    def work():
+    def step():
         info, not_modified = _region_or_304(request, name, body)
         if not_modified:
             return not_modified
@@ -414,6 +457,10 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
             _limits(app, app.state.settings.max_query_points),
             modes,
         )
+        _within_budget(app, info.spec, len(q.X), q.modes, out, "points")
+        return _light_or_heavy(app, info, min_version, len(q.X), lambda: answer(info, q))
+
+    def answer(info: RegionInfo, q: formats.PointQuery):
         pred = app.state.maps.predict(name, q.X, info, min_version, heading_deg=q.heading_deg, modes=q.modes)
         headers = _answer_headers(request, pred, body)
         m = pred.modes
@@ -448,19 +495,43 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
             }
         return JSONResponse(content, headers=headers)
 
-    return await run_in_threadpool(work)
+    return await _run(request, step)
 
 
-def _grid_prediction(
-    request: Request, name: str, bbox: str | None, step: str, min_version: int, modes: bool = False
+def _grid_step(
+    request: Request,
+    name: str,
+    bbox: str | None,
+    step: str,
+    min_version: int,
+    modes: bool,
+    media: str,
+    encode,
 ):
-    """(spec, axes, prediction on the grid), or (None, None, a 304 response)."""
+    """The light step of a grid answer: the region (or a 304), the axes and the memory
+    budget; then ``encode(spec, axes, prediction on the grid)``, now or in the heavy lane."""
     app = request.app
-    info, not_modified = _region_or_304(request, name)
-    if not_modified:
-        return None, None, not_modified
-    axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
-    return info.spec, axes, app.state.maps.predict_grid(name, axes, info, min_version, modes=modes)
+
+    def light():
+        info, not_modified = _region_or_304(request, name)
+        if not_modified:
+            return not_modified
+        axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
+        return _grid_answer(app, name, info, axes, min_version, modes, media, encode)
+
+    return light
+
+
+def _grid_answer(app, name: str, info: RegionInfo, axes, min_version: int, modes: bool, media: str, encode):
+    """``encode(spec, axes, prediction)`` on ``axes`` if it fits the budget: now if light."""
+    voxels = int(np.prod([len(a) for a in axes]))
+    _within_budget(app, info.spec, voxels, modes, media, "voxels")
+
+    def work():
+        pred = app.state.maps.predict_grid(name, axes, info, min_version, modes=modes)
+        return encode(info.spec, axes, pred)
+
+    return _light_or_heavy(app, info, min_version, voxels, work)
 
 
 #: a number as the comma-separated query parameters take it (two exponent digits: finite)
@@ -491,7 +562,7 @@ Step = Annotated[
     "/regions/{name}/grid",
     **scoped("read", responses={200: {"content": {NPZ: {}, ARROW: {}}}}),
 )
-def grid(
+async def grid(
     name: RegionName,
     request: Request,
     step: Step,
@@ -509,9 +580,13 @@ def grid(
     out = formats.negotiate(request.headers.get("accept"), [JSON, NPZ, ARROW])
     if modes and out != NPZ:
         raise Problem(422, f"modes on a grid come as npz: ask for Accept: {NPZ}")
-    spec, axes, pred = _grid_prediction(request, name, bbox, step, min_version, modes)
-    if axes is None:
-        return pred
+    light = _grid_step(
+        request, name, bbox, step, min_version, modes, out, lambda *a: _encode_grid(request, out, *a)
+    )
+    return await _run(request, light)
+
+
+def _encode_grid(request: Request, out: str, spec: RegionSpec, axes, pred):
     shape = pred.known.shape
     headers = _answer_headers(request, pred)
     if out == NPZ:
@@ -569,7 +644,7 @@ def _json_size(voxels: int, settings: Settings) -> None:
     "/regions/{name}/tubes",
     **scoped("read", responses={200: {"content": {GEOJSON: {}, NPZ: {}, ARROW: {}}}}),
 )
-def tubes(
+async def tubes(
     name: RegionName,
     request: Request,
     max_std_mps: Annotated[
@@ -596,9 +671,17 @@ def tubes(
     npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow. With ``heading_deg``,
     mean and std are the mode of that heading's sector, and its share bounds the tube too."""
     out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
-    spec, axes, pred = _grid_prediction(request, name, bbox, step, min_version, heading_deg is not None)
-    if axes is None:
-        return pred
+
+    def encode(spec: RegionSpec, axes, pred):
+        return _encode_tube(request, out, spec, axes, pred, max_std_mps, component, heading_deg, min_share)
+
+    modes = heading_deg is not None
+    return await _run(request, _grid_step(request, name, bbox, step, min_version, modes, out, encode))
+
+
+def _encode_tube(
+    request: Request, out: str, spec: RegionSpec, axes, pred, max_std_mps, component, heading_deg, min_share
+):
     mean_grid, std_grid, wide = pred.mean, pred.std, pred.known
     if heading_deg is not None:
         sector = int(spec.sectors.sector_of_heading(heading_deg))  # 0 in a region of one direction
@@ -652,7 +735,7 @@ def tubes(
     response_class=Response,
     **scoped("read", responses={200: {"content": {PNG: {}}}}),
 )
-def slice_png(
+async def slice_png(
     name: RegionName,
     request: Request,
     alt_m: Annotated[
@@ -677,21 +760,35 @@ def slice_png(
 ):
     """A PNG of one horizontal slice with its colour scale and units (the viewer's image).
     ``modes`` draws each traffic class's arrows, ``share`` the largest class's share."""
-    info, not_modified = _region_or_304(request, name)
-    if not_modified:
-        return not_modified
-    spec = info.spec
-    if not spec.lower[2] <= alt_m <= spec.upper[2]:
-        raise Problem(422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m")
-    box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
-    try:
-        x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
-    except ValueError as exc:  # a bbox or step the slice cannot have
-        raise Problem(422, str(exc)) from None
     with_modes = layer in ("modes", "share")
-    pred = request.app.state.maps.predict_grid(
-        name, [x, y, np.array([alt_m])], info, min_version, modes=with_modes
-    )
+
+    def light():
+        info, not_modified = _region_or_304(request, name)
+        if not_modified:
+            return not_modified
+        spec = info.spec
+        if not spec.lower[2] <= alt_m <= spec.upper[2]:
+            raise Problem(
+                422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m"
+            )
+        box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
+        try:
+            x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
+        except ValueError as exc:  # a bbox or step the slice cannot have
+            raise Problem(422, str(exc)) from None
+        axes = [x, y, np.array([alt_m])]
+        return _grid_answer(app, name, info, axes, min_version, with_modes, PNG, encode)
+
+    def encode(spec: RegionSpec, axes, pred):
+        return _encode_slice(request, name, axes, pred, alt_m, layer, component, max_std_mps, min_share)
+
+    app = request.app
+    return await _run(request, light)
+
+
+def _encode_slice(request: Request, name: str, axes, pred, alt_m, layer, component, max_std_mps, min_share):
+    x, y, _ = axes
+    with_modes = pred.modes is not None
     per_class = {}
     if with_modes:
         per_class = dict(
@@ -719,9 +816,12 @@ def slice_png(
 
 
 @router.get("/regions/{name}/tiles", **scoped("read"))
-def tiles(name: RegionName, request: Request):
+async def tiles(name: RegionName, request: Request):
     """The region's tiles that hold data: key, version, weighted count, points, bytes."""
-    snap = request.app.state.maps.store.snapshot(name, keys=())
+    return await _run(request, lambda: _tiles(request.app.state.maps.store.snapshot(name, keys=())))
+
+
+def _tiles(snap) -> dict:
     return {
         "region_version": snap.region.version,
         "tiles": [
@@ -742,23 +842,37 @@ ops = APIRouter()
 
 
 @ops.get("/healthz", **scoped(PUBLIC))
-def healthz():
-    """Liveness: the process answers."""
+async def healthz():
+    """Liveness: the process answers (from the event loop: never behind work)."""
     return {"status": "ok"}
 
 
 @ops.get("/readyz", **scoped(PUBLIC))
-def readyz(request: Request):
-    """Readiness: the store answers."""
-    try:
-        request.app.state.maps.store.ping()
-    except Exception as exc:
-        raise Problem(503, f"the store is unreachable: {type(exc).__name__}") from exc
+async def readyz(request: Request):
+    """Readiness: the store answers within ``ready_timeout_s``, in a thread of its own (at
+    most one check at a time: while one hangs, the next answers 503 at once)."""
+    app = request.app
+    limiter: anyio.CapacityLimiter = app.state.ready_limiter
+    if limiter.borrowed_tokens:
+        raise Problem(503, "the store did not answer the last readiness check yet", {"Retry-After": "1"})
+    with anyio.move_on_after(app.state.settings.ready_timeout_s) as waited:
+        try:
+            await anyio.to_thread.run_sync(app.state.maps.store.ping, limiter=limiter, abandon_on_cancel=True)
+        except Exception as exc:
+            raise Problem(
+                503, f"the store is unreachable: {type(exc).__name__}", {"Retry-After": "5"}
+            ) from exc
+    if waited.cancelled_caught:
+        raise Problem(
+            503,
+            f"the store did not answer within {app.state.settings.ready_timeout_s:g} s",
+            {"Retry-After": "5"},
+        )
     return {"status": "ready"}
 
 
 @ops.get("/viewer", response_class=HTMLResponse, **scoped(PUBLIC))
-def viewer():
+async def viewer():
     """The map viewer: region, altitude slider, component and layer, drawn from slice.png.
     The page itself is public; its requests carry the token typed into it, if any."""
     return HTMLResponse(VIEWER_HTML, headers={"Content-Security-Policy": VIEWER_POLICY})
@@ -769,8 +883,9 @@ def viewer():
     response_class=Response,
     **scoped(PUBLIC, responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}}),
 )
-def metrics(request: Request):
-    """Prometheus text format: requests and latency per route, cache, uploads."""
+async def metrics(request: Request):
+    """Prometheus text format: requests and latency per route, lanes, cache, refreshes,
+    uploads (from the event loop: it reads counters only, never the store)."""
     return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
 
@@ -780,8 +895,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        # requests compute in this many threads at once; more only fight over the GIL
-        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.threads
+        app.state.ready_limiter = anyio.CapacityLimiter(1)
         yield
         app.state.jobs.shutdown()  # graceful: running fits finish and commit
         app.state.maps.store.close()
@@ -796,7 +910,8 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     app.state.settings = settings
     app.state.maps = maps
     app.state.jobs = Jobs()
-    app.state.metrics = Metrics(maps)
+    app.state.lanes = Lanes(settings.threads, settings.queue, settings.heavy_threads, settings.heavy_queue)
+    app.state.metrics = Metrics(maps, app.state.lanes)
     problems.install(app, PATTERNS)
     if settings.cors_origins:  # off unless configured: browsers on other origins get no access
         app.add_middleware(
@@ -815,7 +930,10 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
             ],
         )
     app.add_middleware(
-        RequestMiddleware, max_body_bytes=int(settings.max_body_mb * 2**20), metrics=app.state.metrics
+        RequestMiddleware,
+        max_body_bytes=int(settings.max_body_mb * 2**20),
+        metrics=app.state.metrics,
+        timeout_s=settings.request_timeout_s,
     )
     app.include_router(router)
     app.include_router(ops)

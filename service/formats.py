@@ -416,5 +416,19 @@ def npz_bytes(**arrays: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
+#: peak memory per number an answer holds, bytes (measured: bench/bench_isolation.py):
+#: a binary answer holds its arrays, the classes' intermediates and the encoded body; JSON
+#: adds a Python float and its text per number; a PNG the figure's raster per cell
+BYTES_PER_NUMBER = {JSON: 100, GEOJSON: 100, NPZ: 40, ARROW: 40, "image/png": 200}
+
+
+def answer_bytes(rows: int, classes: int, modes: bool, media: str) -> float:
+    """What answering ``rows`` points or voxels takes in memory, estimated before any work:
+    mean, std and known per row, with ``modes`` each class's share, mean, std and prior
+    flag, and the shares' std."""
+    numbers = 7 + (8 * classes + 1 if modes else 0)
+    return float(rows) * numbers * BYTES_PER_NUMBER[media]
+
+
 def vector_columns(prefix: str, values: np.ndarray, names=("e", "n", "u")) -> dict[str, np.ndarray]:
     return {f"{prefix}{n}": np.ascontiguousarray(values[:, i]) for i, n in enumerate(names)}

@@ -17,6 +17,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
+from service.lanes import Overloaded
+
 log = logging.getLogger("bdf.service")
 #: Finished jobs kept for status queries.
 KEEP_FINISHED = 1000
@@ -39,9 +41,11 @@ class Job:
 
 
 class Jobs:
-    """A queue of fit jobs run one at a time (a fit uses the cores it is given)."""
+    """A queue of fit jobs run one at a time (a fit uses the cores it is given), at most
+    ``max_queued`` waiting (:class:`service.lanes.Overloaded` beyond)."""
 
-    def __init__(self):
+    def __init__(self, max_queued: int = 8):
+        self.max_queued = max_queued
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bdf-fit")
         self._jobs: dict[str, Job] = {}
         self._by_upload: dict[tuple[str, str], str] = {}
@@ -54,6 +58,8 @@ class Jobs:
             known = self._jobs.get(self._by_upload.get((region, upload_id), ""))
             if known is not None and known.state in ("queued", "running"):
                 return known
+            if sum(j.state == "queued" for j in self._jobs.values()) >= self.max_queued:
+                raise Overloaded(f"{self.max_queued} fit jobs are queued already; retry later", 60)
             job = Job(uuid.uuid4().hex, region, upload_id)
             self._jobs[job.id] = job
             self._by_upload[(region, upload_id)] = job.id

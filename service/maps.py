@@ -12,11 +12,14 @@ tiles' decoded evidence whose version has not changed, the previous optimum as t
 search's start, the symbolic analysis of an unchanged support in the posterior process).
 Until it is ready, queries answer from the newest map this process has, and each answer
 says which version it is and how far behind (:class:`Prediction`); a query that asks for
-at least a version (``min_version``: read your own writes) waits for it.
+at least a version (``min_version``: read your own writes) waits for the refresh, until
+its deadline (:mod:`service.lanes`). Only refreshes compute a version's map, so a reader
+that gives up wastes nothing: the map it waited for is ready for the next.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 import multiprocessing
 import os
@@ -33,6 +36,7 @@ import numpy as np
 from bdf._validate import noise_std_rows, rows_all
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.tiles import Increment, RegionSpec, TileKey
+from service import lanes
 from service.store import (
     MapStore,
     RegionChanged,
@@ -125,6 +129,7 @@ class RefreshStats:
     skipped: int = 0  # versions never computed: a newer one was written first
     factorisations: int = 0  # of their hyperparameter searches (and fixed values)
     last_s: float = 0.0
+    failed: int = 0  # refreshes that raised (the previous map kept answering)
 
 
 class RegionMaps:
@@ -135,6 +140,8 @@ class RegionMaps:
     EVIDENCE_REGIONS = 8
     #: Commit times of versions kept for the answers' lag (most recent).
     COMMITTED_TIMES = 256
+    #: Points (or grid slabs of about as many voxels) computed between deadline checks.
+    CHUNK = 16384
 
     def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False):
         """``isolate``: compute posteriors in a child process (the service does). A
@@ -149,6 +156,10 @@ class RegionMaps:
         self._lock = threading.Lock()
         self._building: dict[str, threading.Lock] = {}  # region name -> one computation at a time
         self._refreshing: dict[str, bool] = {}  # region name -> written again since it started
+        self._done = threading.Condition(self._lock)  # a refresh ended (waiters look again)
+        self._attempts: dict[str, int] = {}  # region name -> refreshes ended
+        self._failure: dict[str, tuple[int, Exception]] = {}  # region name -> (attempt, error)
+        self._computed: dict[str, str] = {}  # region name -> region_id of its last refresh
         self._threads: dict[str, threading.Thread] = {}
         self._evidence: OrderedDict[str, dict] = OrderedDict()  # region_id -> key -> (version, evidence)
         self._committed: OrderedDict[tuple, float] = OrderedDict()  # (region_id, version) -> time
@@ -176,7 +187,12 @@ class RegionMaps:
                     self._pool = _posterior_process()
                 pool = self._pool
             try:
-                return pool.submit(_compute_posterior, spec, evidence, start, stored).result()
+                future = pool.submit(_compute_posterior, spec, evidence, start, stored)
+                return future.result(timeout=lanes.wait_timeout())
+            except concurrent.futures.TimeoutError:
+                raise lanes.DeadlineExceeded(
+                    "the request's deadline passed while its map was computed; nothing was stored"
+                ) from None
             except BrokenProcessPool:  # the child died (killed, out of memory): start another
                 if attempt:
                     raise
@@ -215,12 +231,13 @@ class RegionMaps:
             return first
         info = self.store.region(region)
         spec = info.spec
-        increments, summary = _evidence(spec, X, V, noise, weight, progress)
+        increments, summary = _evidence(spec, X, V, noise, weight, _checkpoint(progress))
         require_accepted(summary, "fit" if replace else "upload")
         post = None
         if replace:
             evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
             post = self._posterior(spec, evidence, self._start(info), stored=False)
+        lanes.check()  # past the deadline the client has its 503: store nothing
         result = self.store.apply(
             region,
             info.region_id,
@@ -245,7 +262,8 @@ class RegionMaps:
         ``retract``); once per upload id, a retry replays the result."""
         X, V, noise, weight = _checked(X, V, input_noise_std, sample_weight)
         info = self.store.region(region)
-        increments, summary = _evidence(info.spec, X, V, noise, weight, None)
+        increments, summary = _evidence(info.spec, X, V, noise, weight, _checkpoint(None))
+        lanes.check()
         result = self.store.retract(
             region,
             info.region_id,
@@ -258,16 +276,16 @@ class RegionMaps:
         return result
 
     def fit_hyperparameters(self, region: str) -> RegionInfo:
-        """The region's map at its current version, now: its "auto" hyperparameters are that
-        version's evidence maximum (every refresh finds them; this waits for it). Returns
-        the region with them. :class:`Unprocessable` if the spec fixes both or the region
+        """The region's map at its current version: its "auto" hyperparameters are that
+        version's evidence maximum (every refresh finds them; this waits for it, until the
+        deadline). Returns the region with them. :class:`Unprocessable` if the spec fixes both or the region
         has no data."""
         info = self.store.region(region)
         if not info.spec.auto:
             raise Unprocessable(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
         if not info.tiles:
             raise Unprocessable(f"region {region!r} has no data to fit its hyperparameters on")
-        self._compute(region, info.version)
+        self._wait(region, info, info.version)
         now = self.store.region(region)
         if now.region_id != info.region_id:
             raise RegionChanged(f"region {region!r} was deleted or re-created while its map was computed")
@@ -293,8 +311,16 @@ class RegionMaps:
         info = info or self.store.region(region)
         state = self._state(region, info, min_version)
         X = np.asarray(X, float)
-        per_class = state.spec.predict_modes(X, state.posterior) if modes else None
-        mean, std, known = state.spec.predict(X, state.posterior, heading_deg, per_class)
+        if heading_deg is not None and np.ndim(heading_deg):
+            heading_deg = np.asarray(heading_deg, float)
+        parts = []
+        for lo in range(0, max(len(X), 1), self.CHUNK):  # a deadline check between chunks
+            lanes.check()
+            part = slice(lo, lo + self.CHUNK)
+            heading = heading_deg[part] if heading_deg is not None and np.ndim(heading_deg) else heading_deg
+            per_class = state.spec.predict_modes(X[part], state.posterior) if modes else None
+            parts.append((*state.spec.predict(X[part], state.posterior, heading, per_class), per_class))
+        mean, std, known, per_class = _joined(parts, axis=0)
         return Prediction(
             mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
         )
@@ -306,15 +332,32 @@ class RegionMaps:
         (nx, ny, nz, 3) and (nx, ny, nz), the modes' (nx, ny, nz, C, ...)."""
         info = info or self.store.region(region)
         state = self._state(region, info, min_version)
-        per_class = state.spec.predict_grid_modes(axes, state.posterior) if modes else None
-        mean, std, known = state.spec.predict_grid(axes, state.posterior, per_class)
+        x, rest = np.asarray(axes[0], float), [np.asarray(a, float) for a in axes[1:]]
+        slab = max(1, self.CHUNK // max(rest[0].size * rest[1].size, 1))
+        parts = []
+        for lo in range(0, max(x.size, 1), slab):  # a deadline check between slabs of x
+            lanes.check()
+            sub = [x[lo : lo + slab], *rest]
+            per_class = state.spec.predict_grid_modes(sub, state.posterior) if modes else None
+            parts.append((*state.spec.predict_grid(sub, state.posterior, per_class), per_class))
+        mean, std, known, per_class = _joined(parts, axis=0)
         return Prediction(
             mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
         )
 
     def refresh(self, region: str) -> MapState:
-        """The map state of the region's current version, computed now if need be."""
+        """The map state of the region's current version, computed now if need be (in the
+        caller's thread: builds and tests; the service's readers wait for refreshes)."""
         return self._compute(region, self.store.region(region).version)
+
+    def ready(self, info: RegionInfo, min_version: int = 0) -> bool:
+        """A query of the region as read (``info``) would be answered without waiting for
+        a map to be computed."""
+        if self.cache.get((info.region_id, info.version)) is not None:
+            return True
+        with self._lock:
+            newest = self._newest.get(info.region_id)
+        return newest is not None and newest.version >= min_version and newest.spec == info.spec
 
     def _lag(self, info: RegionInfo, state: MapState) -> tuple[int, float]:
         """How far ``state`` is behind the region as read (``info``): versions, and the
@@ -346,7 +389,34 @@ class RegionMaps:
         if newest is not None and newest.version >= min_version and newest.spec == info.spec:
             self._schedule(region)
             return newest
-        return self._compute(region, max(min_version, 1 if info.version else 0))
+        return self._wait(region, info, max(min_version, 1 if info.version else 0))
+
+    def _wait(self, region: str, info: RegionInfo, at_least: int) -> MapState:
+        """A map of the region instance ``info`` at version ``at_least`` or newer (at most
+        the version read: no later one is known to exist), waiting for the refreshes to
+        compute it (one is scheduled), until the deadline. A refresh that fails raises its
+        error here."""
+        at_least = min(at_least, info.version)
+        with self._done:
+            attempt = self._attempts.get(region, 0)
+            self._schedule_locked(region)
+            while True:
+                newest = self._newest.get(info.region_id)
+                if newest is not None and newest.version >= at_least and newest.spec == info.spec:
+                    return newest
+                if self._attempts.get(region, 0) > attempt:  # a refresh ended short of it
+                    failed, error = self._failure.get(region, (0, None))
+                    if failed > attempt:
+                        raise error
+                    if self._computed.get(region) != info.region_id:
+                        raise RegionChanged(f"region {region!r} was deleted or re-created meanwhile")
+                    attempt = self._attempts[region]
+                    self._schedule_locked(region)
+                if not self._done.wait(timeout=lanes.wait_timeout()) and lanes.remaining() <= 0:
+                    raise lanes.DeadlineExceeded(
+                        f"the deadline passed while region {region!r}'s map of version {at_least} "
+                        "was computed; it will be ready for a retry"
+                    )
 
     def _compute(self, region: str, at_least: int) -> MapState:
         """A map of the region at version ``at_least`` or newer: one computed meanwhile (a
@@ -417,7 +487,7 @@ class RegionMaps:
         if newest is not None and newest.spec == info.spec and newest.posterior.fitted:
             return newest.posterior.alpha / newest.posterior.beta
         hyper = info.hyper or {}
-        rows = 1 if info.spec.directions == 1 else 1 + info.spec.sectors.classes
+        rows = info.spec.posteriors
         try:
             start = np.asarray(hyper["alpha"], float) / np.asarray(hyper["beta"], float)
         except (KeyError, TypeError, ValueError):
@@ -448,33 +518,73 @@ class RegionMaps:
         """Refresh the region's map in the background: one refresh per region at a time; a
         write during one makes it run once more, for the newest version then."""
         with self._lock:
-            if self._closed:
-                return
-            if region in self._refreshing:
-                self._refreshing[region] = True
-                return
-            self._refreshing[region] = False
-            thread = threading.Thread(
-                target=self._refresh_loop, args=(region,), name=f"refresh-{region}", daemon=True
-            )
-            self._threads[region] = thread
+            self._schedule_locked(region)
+
+    def _schedule_locked(self, region: str) -> None:
+        """:meth:`_schedule`, holding ``self._lock``."""
+        if self._closed:
+            return
+        if region in self._refreshing:
+            self._refreshing[region] = True
+            return
+        self._refreshing[region] = False
+        thread = threading.Thread(
+            target=self._refresh_loop, args=(region,), name=f"refresh-{region}", daemon=True
+        )
+        self._threads[region] = thread
         thread.start()
 
     def _refresh_loop(self, region: str) -> None:
         while True:
+            error = computed = None
             try:
-                self._compute(region, self.store.region(region).version)
-            except RegionNotFound:
-                pass
-            except Exception:  # the previous version keeps answering
-                log.exception("refreshing region %s failed; its previous version keeps answering", region)
-            with self._lock:
+                computed = self._compute(region, self.store.region(region).version).region_id
+            except RegionNotFound as exc:
+                error = exc
+            except Exception as exc:  # the previous version keeps answering
+                error = exc
+                log.error(
+                    "refreshing region %s failed (%s: %s); its previous version keeps answering",
+                    region,
+                    type(exc).__name__,
+                    exc,
+                    exc_info=not isinstance(exc, StoreUnavailable),
+                )
+            with self._done:
+                attempt = self._attempts[region] = self._attempts.get(region, 0) + 1
+                self._computed[region] = computed
+                if error is not None:
+                    self._failure[region] = (attempt, error)
+                    self.stats.failed += not isinstance(error, RegionNotFound)
+                self._done.notify_all()
                 if self._refreshing.get(region) and not self._closed:
                     self._refreshing[region] = False
                     continue
                 self._refreshing.pop(region, None)
                 self._threads.pop(region, None)
                 return
+
+
+def _checkpoint(progress: Callable[[float], None] | None) -> Callable[[float], None]:
+    """``progress``, checking the deadline at each step (per tile) of the work."""
+
+    def step(fraction: float) -> None:
+        lanes.check()
+        if progress is not None:
+            progress(fraction)
+
+    return step
+
+
+def _joined(parts: list[tuple], axis: int) -> tuple:
+    """Chunks' (mean, std, known, modes) joined along ``axis`` (the points, or x)."""
+    if len(parts) == 1:
+        return parts[0]
+    mean, std, known = (np.concatenate([p[i] for p in parts], axis=axis) for i in range(3))
+    modes = parts[0][3]
+    if modes is not None:
+        modes = Modes(*(np.concatenate([p[3][i] for p in parts], axis=axis) for i in range(len(modes))))
+    return mean, std, known, modes
 
 
 def _compute_posterior(spec: RegionSpec, evidence, start, stored):

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException
 from starlette.requests import ClientDisconnect
 
+from service.lanes import DeadlineExceeded, Overloaded
 from service.maps import Unprocessable
 from service.store import (
     RegionChanged,
@@ -173,11 +174,15 @@ def install(app: FastAPI, patterns: dict[str, str] | None = None) -> None:
         log.error("store error: %s", exc)
         return 500, f"the map store failed: {exc}", None
 
-    async def internal(request: Request, exc: Exception):
-        log.exception("unhandled error in request %s", request_id_of(request.scope))
-        return problem(500, "internal error (logged on the server with this request id)", request.scope)
+    on(Overloaded)(lambda e: (503, str(e), {"Retry-After": str(e.retry_after_s)}))
+    on(DeadlineExceeded)(
+        lambda e: (503, str(e), {"Retry-After": str(DEADLINE_RETRY_S), "Connection": "close"})
+    )
+    # any other error is ours: service.telemetry.RequestMiddleware answers it (500), once
 
-    app.add_exception_handler(Exception, internal)
+
+#: what a client whose request ran out of time is told to wait before retrying (s)
+DEADLINE_RETRY_S = 5
 
 
 def _allowed(request: Request) -> list[str]:

@@ -40,8 +40,43 @@ class Settings(BaseSettings):
         None, description="sqlite:///dir or postgresql://...; default: SQLite in data_dir"
     )
     threads: int = Field(
-        2, ge=1, le=256, description="requests computing at once per worker (more queue, not thrash)"
+        2, ge=1, le=256, description="light requests (region reads, small queries) at work at once per worker"
     )
+    queue: int = Field(32, ge=0, le=10_000, description="light requests waiting for a thread (503 beyond)")
+    heavy_threads: int = Field(
+        1,
+        ge=1,
+        le=256,
+        description="heavy requests (fits, large queries, grids, uploads, waits for a map) at work at once",
+    )
+    heavy_queue: int = Field(
+        4, ge=0, le=10_000, description="heavy requests waiting for a thread (503 beyond)"
+    )
+    light_cost: int = Field(
+        50_000,
+        ge=0,
+        description="points or voxels x the map's posteriors (1, or 2 + directions) a light request may ask",
+    )
+    light_body_mb: float = Field(1.0, ge=0, description="uploads with larger bodies are heavy")
+    request_timeout_s: float = Field(
+        30.0, gt=0, description="every request's deadline: 503 past it, and its work stops where it can"
+    )
+    request_memory_mb: float = Field(
+        1024.0, gt=0, description="what one answer may take in memory, estimated before any work (422 above)"
+    )
+    store_timeout_s: float = Field(
+        5.0, gt=0, description="longest wait for one database statement or lock (503 past it)"
+    )
+    ready_timeout_s: float = Field(2.0, gt=0, description="/readyz: longest wait for the store")
+    max_connections: int = Field(
+        1000, ge=1, description="open client connections per worker (the oldest idle one is dropped beyond)"
+    )
+    header_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="a request's line and headers must arrive within this (else the connection closes)",
+    )
+    keep_alive_s: float = Field(5.0, gt=0, description="an idle keep-alive connection closes after this")
     cache_mb: float = Field(512.0, gt=0, description="memory for cached tile posteriors, per worker")
     tokens: dict[SecretStr, list[Scope]] = Field(default_factory=dict, description="bearer token -> scopes")
     max_body_mb: float = Field(256.0, gt=0, description="largest request body (413 above)")

@@ -1,6 +1,7 @@
-"""Per-request bookkeeping as one ASGI middleware: body size limit, Prometheus metrics,
-request ids, security headers, and one structured log line per request (route, status,
-duration, region, request id; never other headers, so never tokens).
+"""Per-request bookkeeping as one ASGI middleware: body size limit, deadline, Prometheus
+metrics, request ids, security headers, the answer to an error of ours, and one structured
+log line per request (route, status, duration, region, request id; never other headers,
+so never tokens).
 """
 
 from __future__ import annotations
@@ -10,10 +11,12 @@ import logging
 import re
 import time
 
+import anyio
 from prometheus_client import CollectorRegistry, Counter, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from service.problems import REQUEST_ID_HEADER, Problem, new_request_id, problem
+from service import lanes
+from service.problems import DEADLINE_RETRY_S, REQUEST_ID_HEADER, Problem, new_request_id, problem
 
 #: a client's request id is kept if it is a plain token (it goes into logs and headers)
 REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")
@@ -26,13 +29,14 @@ SECURITY_HEADERS = [
 ]
 disable_created_metrics()  # the *_created series only add noise to every scrape
 access_log = logging.getLogger("bdf.access")
+log = logging.getLogger("bdf.service")
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
 
 
 class Metrics:
     """The service's Prometheus registry (one per app, so tests can build several apps)."""
 
-    def __init__(self, maps):
+    def __init__(self, maps, lanes: lanes.Lanes):
         self.registry = CollectorRegistry()
         self.requests = Counter(
             "bdf_http_requests", "HTTP requests", ["route", "method", "status"], registry=self.registry
@@ -62,7 +66,10 @@ class Metrics:
             buckets=(0, *LATENCY_BUCKETS, 60, 300),
             registry=self.registry,
         )
-        self.registry.register(_MapsCollector(maps))
+        self.deadlines = Counter(
+            "bdf_request_deadlines", "requests answered 503 at their deadline", registry=self.registry
+        )
+        self.registry.register(_StateCollector(maps, lanes))
 
     def answered(self, versions_behind: int, seconds_behind: float) -> None:
         self.versions_behind.observe(versions_behind)
@@ -80,13 +87,42 @@ class Metrics:
             self.observations.labels(f"rejected_{reason}").inc(count)
 
 
-class _MapsCollector:
-    """The posterior cache and the refreshes, read at each scrape."""
+class _StateCollector:
+    """The lanes, the posterior cache and the refreshes, read at each scrape."""
 
-    def __init__(self, maps):
-        self.maps = maps
+    def __init__(self, maps, lanes: lanes.Lanes):
+        self.maps, self.lanes = maps, lanes
 
     def collect(self):
+        families = (
+            (GaugeMetricFamily, "bdf_lane_busy", "threads at work per lane", lambda st: st.busy),
+            (
+                GaugeMetricFamily,
+                "bdf_lane_waiting",
+                "requests waiting for a thread per lane",
+                lambda st: max(st.admitted - st.busy, 0),
+            ),
+            (
+                CounterMetricFamily,
+                "bdf_lane_shed",
+                "requests refused at once: lane full (503)",
+                lambda st: st.shed,
+            ),
+            (
+                CounterMetricFamily,
+                "bdf_lane_expired",
+                "requests whose deadline passed while waiting for a thread (503)",
+                lambda st: st.expired,
+            ),
+        )
+        for family, name, doc, value in families:
+            metric = family(name, doc, labels=["lane"])
+            for lane in (self.lanes.light, self.lanes.heavy):
+                metric.add_metric([lane.name], value(lane.stats))
+            yield metric
+        yield from self._maps()
+
+    def _maps(self):
         cache, refreshes = self.maps.cache, self.maps.stats
         rows = [
             (CounterMetricFamily, "bdf_posterior_cache_hits", "region maps served from memory", cache.hits),
@@ -107,6 +143,7 @@ class _MapsCollector:
                 "factorisations of the maps' hyperparameter searches",
                 refreshes.factorisations,
             ),
+            (CounterMetricFamily, "bdf_map_refresh_failures", "refreshes that failed", refreshes.failed),
         ]
         for family, name, doc, value in rows:
             metric = family(name, doc)
@@ -117,16 +154,18 @@ class _MapsCollector:
 class RequestMiddleware:
     """Gives every request an id (the client's ``X-Request-ID`` when it is a plain token, else
     a new one), returned in that header and in every problem body; adds the headers every
-    response carries (:data:`SECURITY_HEADERS`); bounds the body; counts and logs."""
+    response carries (:data:`SECURITY_HEADERS`); bounds the body; sets the deadline
+    (``timeout_s``: 503 past it, :mod:`service.lanes`); answers an error of ours (500, one
+    log line with its traceback, ``Connection: close``); counts and logs."""
 
-    def __init__(self, app, max_body_bytes: int, metrics: Metrics):
-        self.app, self.max_body_bytes, self.metrics = app, max_body_bytes, metrics
+    def __init__(self, app, max_body_bytes: int, metrics: Metrics, timeout_s: float = 30.0):
+        self.app, self.max_body_bytes, self.metrics, self.timeout_s = app, max_body_bytes, metrics, timeout_s
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         start = time.perf_counter()
-        status = 500
+        status, started = 500, False
         headers = dict(scope["headers"])
         given = headers.get(b"x-request-id", b"").decode("latin-1")
         request_id = given if REQUEST_ID.fullmatch(given) else new_request_id()
@@ -134,8 +173,9 @@ class RequestMiddleware:
         extra = [(REQUEST_ID_HEADER.lower().encode(), request_id.encode()), *SECURITY_HEADERS]
 
         async def send_with_headers(message):
-            nonlocal status
+            nonlocal status, started
             if message["type"] == "http.response.start":
+                started = True
                 status = message["status"]
                 present = {name.lower() for name, _ in message.get("headers", ())}
                 message["headers"] = [*message.get("headers", ()), *(h for h in extra if h[0] not in present)]
@@ -155,7 +195,21 @@ class RequestMiddleware:
                     raise Problem(413, self._too_large())
                 return message
 
-            await self.app(scope, limited_receive, send_with_headers)
+            with lanes.deadline(self.timeout_s), anyio.move_on_after(self.timeout_s) as timer:
+                await self.app(scope, limited_receive, send_with_headers)
+            if timer.cancelled_caught:
+                self.metrics.deadlines.inc()
+                if not started:
+                    detail = (
+                        f"no answer within the request deadline of {self.timeout_s:g} s; nothing was stored"
+                    )
+                    headers = {"Retry-After": str(DEADLINE_RETRY_S), "Connection": "close"}
+                    await problem(503, detail, scope, headers)(scope, receive, send_with_headers)
+        except Exception:  # ours: logged once here (the server never sees it), answered 500
+            log.exception("request %s (%s %s) failed", request_id, scope["method"], scope["path"])
+            if not started:
+                detail = "internal error (logged on the server with this request id)"
+                await problem(500, detail, scope, {"Connection": "close"})(scope, receive, send_with_headers)
         finally:
             self._record(scope, status, time.perf_counter() - start, request_id)
 

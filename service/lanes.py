@@ -1,0 +1,165 @@
+"""Lanes and deadlines: one kind of work never starves another, and no request runs forever.
+
+Work runs in two lanes of threads, each with bounded capacity: *light* (region reads, small
+queries, grids and uploads on a map that is ready) and *heavy* (fits, large queries, grids
+and uploads, and whatever must wait for a map being computed). A burst of heavy requests
+fills only the heavy lane, so small queries keep their threads. A lane holds at most
+``threads`` requests at work and ``queue`` waiting; one more is shed at once (503 with
+``Retry-After``), never queued without bound. A light step that finds its work heavy hands
+it on (:class:`Heavy`).
+
+Every request has a deadline (:func:`deadline`, set once per request by
+:class:`service.telemetry.RequestMiddleware`). Waiting for a lane or a map, and every long
+loop's checkpoint (:func:`check`), raises :class:`DeadlineExceeded` (503) past it, so the
+work stops where it can. The client has its answer at the deadline even while a thread
+finishes a step that cannot stop; that thread keeps its lane slot until it ends, so the
+lane's bound holds for threads, not only for requests.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Callable
+from contextvars import ContextVar
+from dataclasses import dataclass
+from typing import Any
+
+import anyio
+import anyio.to_thread
+
+#: time.monotonic() by which the current request must be answered
+_deadline: ContextVar[float] = ContextVar("deadline", default=math.inf)
+
+
+class Overloaded(Exception):
+    """A lane is full: the client should retry after ``retry_after_s``."""
+
+    def __init__(self, detail: str, retry_after_s: int):
+        super().__init__(detail)
+        self.retry_after_s = retry_after_s
+
+
+class DeadlineExceeded(Exception):
+    """The request's deadline passed before its work ended; nothing was stored."""
+
+
+@contextlib.contextmanager
+def deadline(seconds: float):
+    """Within this block, the current context's work must end within ``seconds`` (or an
+    earlier deadline already set)."""
+    token = _deadline.set(min(_deadline.get(), time.monotonic() + seconds))
+    try:
+        yield
+    finally:
+        _deadline.reset(token)
+
+
+def remaining() -> float:
+    """Seconds left before the current deadline (inf without one)."""
+    return _deadline.get() - time.monotonic()
+
+
+def check() -> None:
+    """A checkpoint of long work: :class:`DeadlineExceeded` once the deadline has passed."""
+    if remaining() <= 0:
+        raise DeadlineExceeded("the request's deadline passed before its work ended; nothing was stored")
+
+
+def wait_timeout() -> float | None:
+    """A blocking wait's timeout: what is left of the deadline (None: no deadline)."""
+    left = remaining()
+    return None if left == math.inf else max(left, 0.0)
+
+
+@dataclass(frozen=True)
+class Heavy:
+    """What a light step returns when the rest of its work belongs in the heavy lane."""
+
+    work: Callable[[], Any]
+
+
+@dataclass
+class LaneStats:
+    admitted: int = 0  # requests in the lane now: at work or waiting for a thread
+    busy: int = 0  # threads at work now (abandoned ones included, until they end)
+    shed: int = 0  # requests refused because the lane was full
+    expired: int = 0  # requests whose deadline passed while waiting for a thread
+
+
+class Lane:
+    """``threads`` at work at once, at most ``queue`` more waiting; beyond that, shed."""
+
+    def __init__(self, name: str, threads: int, queue: int, retry_after_s: int = 1):
+        self.name, self.threads, self.queue, self.retry_after_s = name, threads, queue, retry_after_s
+        self.stats = LaneStats()
+        self._slots = threading.Semaphore(threads)
+        self._lock = threading.Lock()
+        # anyio's own bound only lets every admitted request have a thread to wait in
+        self._limiter = anyio.CapacityLimiter(threads + queue)
+
+    async def run(self, fn: Callable[[], Any]) -> Any:
+        """``fn()`` in one of the lane's threads: :class:`Overloaded` at once if the lane is
+        full, :class:`DeadlineExceeded` if the deadline passes first."""
+        with self._lock:
+            if self.stats.admitted >= self.threads + self.queue:
+                self.stats.shed += 1
+                raise Overloaded(
+                    f"the service is at capacity for {self.name} work; retry in {self.retry_after_s} s",
+                    self.retry_after_s,
+                )
+            self.stats.admitted += 1
+        state = {"started": False, "dropped": False}
+
+        def work():
+            with self._lock:
+                if state["dropped"]:  # the request left before this thread started
+                    return None
+                state["started"] = True
+            try:
+                if not self._slots.acquire(timeout=wait_timeout()):
+                    with self._lock:
+                        self.stats.expired += 1
+                    raise DeadlineExceeded(
+                        f"the request's deadline passed while it waited for a {self.name} thread; "
+                        "nothing was done"
+                    )
+                with self._lock:
+                    self.stats.busy += 1
+                try:
+                    check()
+                    return fn()
+                finally:
+                    with self._lock:
+                        self.stats.busy -= 1
+                    self._slots.release()
+            finally:
+                with self._lock:
+                    self.stats.admitted -= 1
+
+        try:
+            return await anyio.to_thread.run_sync(work, limiter=self._limiter, abandon_on_cancel=True)
+        except anyio.get_cancelled_exc_class():
+            with self._lock:
+                if not state["started"]:
+                    state["dropped"] = True
+                    self.stats.admitted -= 1
+            raise
+
+
+class Lanes:
+    """The light and the heavy lane (module doc)."""
+
+    def __init__(self, light_threads: int, light_queue: int, heavy_threads: int, heavy_queue: int):
+        self.light = Lane("light", light_threads, light_queue)
+        self.heavy = Lane("heavy", heavy_threads, heavy_queue, retry_after_s=5)
+
+    async def run(self, fn: Callable[[], Any], heavy: bool = False) -> Any:
+        """``fn()`` in the light lane (the heavy one if ``heavy``); a :class:`Heavy` it
+        returns runs on in the heavy lane."""
+        result = await (self.heavy if heavy else self.light).run(fn)
+        if isinstance(result, Heavy):
+            result = await self.heavy.run(result.work)
+        return result
