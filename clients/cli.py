@@ -253,8 +253,7 @@ def _serve(args) -> int:
     # worker processes inherit it), so BLAS threads do not compete with request threads.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    import uvicorn
-
+    from service import server
     from service.settings import Settings
 
     if args.config:
@@ -274,16 +273,7 @@ def _serve(args) -> int:
             settings.host,
         )
     log.info("store: %s", settings.store.split("@")[-1] if "@" in settings.store else settings.store)
-    uvicorn.run(
-        "service.app:create_app",
-        factory=True,
-        host=settings.host,
-        port=settings.port,
-        workers=settings.workers,
-        access_log=False,  # one structured line per request comes from the app
-        log_level=settings.log_level,
-        timeout_graceful_shutdown=60,
-    )
+    server.run(settings)
     return 0
 
 

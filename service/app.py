@@ -906,7 +906,11 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
         description="3D velocity maps with calibrated uncertainty, tiled per region.",
         lifespan=lifespan,
     )
-    maps = RegionMaps(store or open_store(settings.store), cache_mb=settings.cache_mb, isolate=True)
+    maps = RegionMaps(
+        store or open_store(settings.store, settings.store_timeout_s),
+        cache_mb=settings.cache_mb,
+        isolate=True,
+    )
     app.state.settings = settings
     app.state.maps = maps
     app.state.jobs = Jobs()

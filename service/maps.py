@@ -157,8 +157,9 @@ class RegionMaps:
         self._building: dict[str, threading.Lock] = {}  # region name -> one computation at a time
         self._refreshing: dict[str, bool] = {}  # region name -> written again since it started
         self._done = threading.Condition(self._lock)  # a refresh ended (waiters look again)
-        self._attempts: dict[str, int] = {}  # region name -> refreshes ended
-        self._failure: dict[str, tuple[int, Exception]] = {}  # region name -> (attempt, error)
+        self._begun: dict[str, int] = {}  # region name -> refreshes begun (they run in order)
+        self._ended: dict[str, int] = {}  # region name -> refreshes ended
+        self._failure: dict[str, tuple[int, Exception]] = {}  # region name -> (refresh, its error)
         self._computed: dict[str, str] = {}  # region name -> region_id of its last refresh
         self._threads: dict[str, threading.Thread] = {}
         self._evidence: OrderedDict[str, dict] = OrderedDict()  # region_id -> key -> (version, evidence)
@@ -398,19 +399,19 @@ class RegionMaps:
         error here."""
         at_least = min(at_least, info.version)
         with self._done:
-            attempt = self._attempts.get(region, 0)
+            mine = self._begun.get(region, 0) + 1  # the first refresh to read the store from now
             self._schedule_locked(region)
             while True:
                 newest = self._newest.get(info.region_id)
                 if newest is not None and newest.version >= at_least and newest.spec == info.spec:
                     return newest
-                if self._attempts.get(region, 0) > attempt:  # a refresh ended short of it
+                if self._ended.get(region, 0) >= mine:  # it ended short of the version
                     failed, error = self._failure.get(region, (0, None))
-                    if failed > attempt:
+                    if failed >= mine:
                         raise error
                     if self._computed.get(region) != info.region_id:
                         raise RegionChanged(f"region {region!r} was deleted or re-created meanwhile")
-                    attempt = self._attempts[region]
+                    mine = self._begun.get(region, 0) + 1
                     self._schedule_locked(region)
                 if not self._done.wait(timeout=lanes.wait_timeout()) and lanes.remaining() <= 0:
                     raise lanes.DeadlineExceeded(
@@ -537,6 +538,8 @@ class RegionMaps:
     def _refresh_loop(self, region: str) -> None:
         while True:
             error = computed = None
+            with self._lock:
+                self._begun[region] = self._begun.get(region, 0) + 1
             try:
                 computed = self._compute(region, self.store.region(region).version).region_id
             except RegionNotFound as exc:
@@ -551,10 +554,10 @@ class RegionMaps:
                     exc_info=not isinstance(exc, StoreUnavailable),
                 )
             with self._done:
-                attempt = self._attempts[region] = self._attempts.get(region, 0) + 1
+                ended = self._ended[region] = self._ended.get(region, 0) + 1
                 self._computed[region] = computed
                 if error is not None:
-                    self._failure[region] = (attempt, error)
+                    self._failure[region] = (ended, error)
                     self.stats.failed += not isinstance(error, RegionNotFound)
                 self._done.notify_all()
                 if self._refreshing.get(region) and not self._closed:

@@ -20,12 +20,14 @@ from service.store.base import (
 )
 
 
-def open_store(url: str) -> MapStore:
-    """``sqlite:///path/to/dir-or-file`` or ``postgresql://user@host:port/db[?schema=name]``."""
+def open_store(url: str, timeout_s: float = 5.0) -> MapStore:
+    """``sqlite:///path/to/dir-or-file`` or ``postgresql://user@host:port/db[?schema=name]``.
+    ``timeout_s``: the longest wait for the database (a connection, a statement, a lock;
+    :class:`StoreUnavailable` past it)."""
     if url.startswith("sqlite:///"):
         from service.store.sqlite import SqliteStore
 
-        return SqliteStore(url.removeprefix("sqlite:///") or ".")
+        return SqliteStore(url.removeprefix("sqlite:///") or ".", busy_timeout_s=timeout_s)
     if url.startswith(("postgresql://", "postgres://")):
         from service.store.postgres import PostgresStore
 
@@ -33,7 +35,7 @@ def open_store(url: str) -> MapStore:
         options = dict(part.split("=", 1) for part in query.split("&") if "=" in part)
         schema = options.pop("schema", "bdf")
         rest = "&".join(f"{k}={v}" for k, v in options.items())
-        return PostgresStore(base + (f"?{rest}" if rest else ""), schema=schema)
+        return PostgresStore(base + (f"?{rest}" if rest else ""), schema=schema, timeout_s=timeout_s)
     raise ValueError(f"a store URL starts with sqlite:/// or postgresql://, got {url!r}")
 
 

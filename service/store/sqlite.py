@@ -19,7 +19,7 @@ FILE_NAME = "maps.sqlite3"
 
 
 class SqliteStore(MapStore):
-    def __init__(self, path, *, busy_timeout_s: float = 60.0):
+    def __init__(self, path, *, busy_timeout_s: float = 5.0):
         """``path``: the database file, or a data directory to hold ``maps.sqlite3``."""
         path = Path(path)
         if path.is_dir() or path.suffix == "":
