@@ -4,6 +4,7 @@ on 127.0.0.1, started on a free port, ready when it returns, stopped with SIGTER
 from __future__ import annotations
 
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -12,6 +13,31 @@ import time
 from pathlib import Path
 
 import httpx
+
+#: where Linux picks the local ports of outgoing connections (the default if unreadable)
+EPHEMERAL = Path("/proc/sys/net/ipv4/ip_local_port_range")
+
+
+def free_port() -> int:
+    """A free port on 127.0.0.1 below the ephemeral range. A port inside it can be taken
+    while the service is down (a restart) by a client connecting to it: a loopback
+    connection to a port nothing listens on may get that very port as its own (TCP
+    simultaneous open), and the restarted server's bind then fails with "address already
+    in use". Ports a service listens on belong outside the range (8000, the default, is)."""
+    try:
+        low = int(EPHEMERAL.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(max(low // 2, 1024), low)
+        with socket.socket() as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free port found below the ephemeral range ({low})")
 
 
 class LocalService:
@@ -30,13 +56,10 @@ class LocalService:
         start_timeout_s: float = 60,
         port: int | None = None,
     ):
-        """``port``: where to listen (default: a free one), e.g. a restart's old port."""
+        """``port``: where to listen (default: a free one, :func:`free_port`), e.g. a
+        restart's old port."""
         data_dir = Path(data_dir)
-        if port is None:
-            with socket.socket() as sock:
-                sock.bind(("127.0.0.1", 0))
-                port = sock.getsockname()[1]
-        self.port = port
+        self.port = free_port() if port is None else port
         self.url = f"http://127.0.0.1:{self.port}"
         self.log_path = Path(log_path or data_dir / f"server-{self.port}.log")
         self.log_path.parent.mkdir(parents=True, exist_ok=True)

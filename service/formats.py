@@ -419,7 +419,7 @@ def npz_bytes(**arrays: np.ndarray) -> bytes:
 #: peak memory per number an answer holds, bytes (measured: bench/bench_isolation.py):
 #: a binary answer holds its arrays, the classes' intermediates and the encoded body; JSON
 #: adds a Python float and its text per number; a PNG the figure's raster per cell
-BYTES_PER_NUMBER = {JSON: 100, GEOJSON: 100, NPZ: 40, ARROW: 40, "image/png": 200}
+BYTES_PER_NUMBER = {JSON: 120, GEOJSON: 120, NPZ: 40, ARROW: 40, "image/png": 40}
 
 
 def answer_bytes(rows: int, classes: int, modes: bool, media: str) -> float:

@@ -1,0 +1,165 @@
+"""Isolation (issue 37): what one request costs in memory, and what the others see while a
+heavy, slow or unlucky request runs.
+
+    .venv/bin/python bench/bench_isolation.py [--parts memory,stress] [--no-append]
+
+``memory``: peak RSS of the serving process answering one request (each in a fresh
+process, over the RSS with the map ready), per number the answer holds, for the answers
+whose size a client chooses: point queries with modes (JSON, Arrow), grids with modes
+(npz), slices. ``service.formats.BYTES_PER_NUMBER`` is set from these figures, with room.
+
+``stress``: ``bdf serve`` (2 light threads, 1 heavy) on loopback; while each stress of the
+issue's table runs, a prober measures ``/healthz`` and a cached 1,000-point query of
+another region (p50, p99, max, and how many were shed with 503), and the peak RSS of the
+server's processes is sampled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import datetime
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_core import publish, rows_table  # bench/ is on the path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: a directional region of 16 sectors (17 classes) where answers are large
+MODES_SPEC = {
+    "name": "modes",
+    "origin": {"lat": 48.0, "lon": 2.0},
+    "bounds_m": {"min": [0, 0, 0], "max": [4000, 4000, 600]},
+    "tile_size_m": [2000, 2000, 600],
+    "spacing_m": [200, 200, 100],
+    "gamma": [1 / 80000, 1 / 80000, 1 / 20000],
+    "directions": 16,
+}
+
+
+def traffic(n: int, seed: int, spec: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Synthetic traffic over the region: eight headings at 30-60 m/s."""
+    rng = np.random.default_rng(seed)
+    hi = np.array(spec["bounds_m"]["max"], float)
+    X = rng.uniform(0, 1, (n, 3)) * hi
+    heading = rng.integers(0, 8, n) * (np.pi / 4)
+    speed = rng.uniform(30, 60, n)
+    V = np.stack([speed * np.sin(heading), speed * np.cos(heading), rng.normal(0, 1, n)], axis=1)
+    return X, V
+
+
+# -- memory -----------------------------------------------------------------------------------
+MEMORY_CASE = r"""
+import json, sys, threading, time, tempfile
+import numpy as np, psutil
+sys.path.insert(0, {root!r}); sys.path.insert(0, {bench!r})
+from fastapi.testclient import TestClient
+from bench_isolation import MODES_SPEC, traffic
+from service.app import create_app
+from service.settings import Settings
+from service.formats import ARROW, NPZ, JSON
+case, size = sys.argv[1], int(sys.argv[2])
+proc = psutil.Process()
+with tempfile.TemporaryDirectory() as tmp:
+    app = create_app(Settings(store_url=f"sqlite:///{{tmp}}", request_memory_mb=1e6, max_query_points=10**7,
+                              max_grid_voxels=10**8, max_json_voxels=10**8, max_json_mb=1e4, request_timeout_s=600))
+    with TestClient(app) as c:
+        c.post("/v1/regions", json=MODES_SPEC).raise_for_status()
+        X, V = traffic(20000, 1, MODES_SPEC)
+        c.post("/v1/regions/modes/observations", json={{"points": X.tolist(), "velocities": V.tolist()}},
+               headers={{"Idempotency-Key": "a"}}).raise_for_status()
+        c.post("/v1/regions/modes/query?min_version=1", json={{"points": X[:10].tolist()}}).raise_for_status()
+        Q = traffic(size, 2, MODES_SPEC)[0]
+        if case.startswith("query"):
+            media = ARROW if case.endswith("arrow") else JSON
+            if media == ARROW:
+                import pyarrow as pa
+                from service.formats import arrow_bytes
+                body = arrow_bytes({{"x": Q[:, 0].copy(), "y": Q[:, 1].copy(), "z": Q[:, 2].copy()}})
+                send = dict(content=body, headers={{"Content-Type": ARROW, "Accept": ARROW}})
+            else:
+                send = dict(json={{"points": Q.tolist()}})
+            del Q
+        base, peak = proc.memory_info().rss, [0]
+        stop = threading.Event()
+        def sample():
+            while not stop.is_set():
+                peak[0] = max(peak[0], proc.memory_info().rss); time.sleep(0.002)
+        t = threading.Thread(target=sample); t.start()
+        if case.startswith("query"):
+            r = c.post("/v1/regions/modes/query?modes=true", **send)
+            rows = size
+        else:
+            n = round(size ** (1 / 3))
+            step = [4000 / n, 4000 / n, 600 / n]
+            r = c.get("/v1/regions/modes/grid", params={{"step": ",".join(map(str, step)), "modes": "true"}},
+                      headers={{"Accept": NPZ}})
+            rows = (n + 1) ** 3
+        stop.set(); t.join()
+        assert r.status_code == 200, r.text
+        print(json.dumps({{"rows": rows, "peak_mb": (peak[0] - base) / 2**20, "body_mb": len(r.content) / 2**20}}))
+"""
+
+
+def memory_rows() -> list[dict]:
+    script = MEMORY_CASE.format(root=str(ROOT), bench=str(ROOT / "bench"))
+    rows = []
+    classes = 17
+    numbers = 7 + 8 * classes + 1
+    for case, size in (
+        ("query-json", 5000),
+        ("query-json", 20000),
+        ("query-arrow", 20000),
+        ("query-arrow", 80000),
+        ("grid-npz", 20000),
+        ("grid-npz", 80000),
+    ):
+        out = subprocess.run([sys.executable, "-c", script, case, str(size)], capture_output=True, text=True)
+        if out.returncode:
+            raise RuntimeError(out.stderr[-3000:])
+        got = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append(
+            {
+                "answer": case,
+                "rows": got["rows"],
+                "numbers": got["rows"] * numbers,
+                "peak MB": round(got["peak_mb"], 1),
+                "body MB": round(got["body_mb"], 1),
+                "peak B/number": round(got["peak_mb"] * 2**20 / (got["rows"] * numbers), 1),
+            }
+        )
+        print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", default="memory,stress")
+    parser.add_argument("--no-append", action="store_true")
+    args = parser.parse_args()
+    parts = args.parts.split(",")
+    sections = []
+    if "memory" in parts:
+        sections.append(("Memory per answer (16 sectors, 17 classes)", rows_table(memory_rows())))
+    report = [
+        f"\n## Isolation, {datetime.date.today().isoformat()} (issue 37)\n",
+        f"`python bench/bench_isolation.py --parts {args.parts}` on {platform.node()} "
+        f"({platform.processor() or platform.machine()}, 2 cores)\n",
+    ]
+    for title, table in sections:
+        report += [f"{title}:\n", table, ""]
+    publish(report, not args.no_append)
+
+
+if __name__ == "__main__":
+    main()

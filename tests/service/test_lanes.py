@@ -1,0 +1,102 @@
+"""Lanes and deadlines (service.lanes): bounded capacity, shedding, deadlines, hand-off.
+Threads are held on events, so every count is exact and no test depends on timing."""
+
+import threading
+
+import anyio
+import pytest
+
+from service import lanes
+from service.lanes import DeadlineExceeded, Heavy, Lane, Lanes, Overloaded
+
+
+def test_a_full_lane_sheds_at_once_and_frees_its_slots_after():
+    lane = Lane("light", threads=2, queue=1)
+    release, started = threading.Event(), threading.Semaphore(0)
+
+    def held():
+        started.release()
+        release.wait(10)
+        return "done"
+
+    async def main():
+        results, refused = [], []
+
+        async def call():
+            try:
+                results.append(await lane.run(held))
+            except Overloaded as exc:
+                refused.append(exc)
+
+        async with anyio.create_task_group() as tg:
+            for _ in range(3):  # two at work, one waiting
+                tg.start_soon(call)
+            for _ in range(2):
+                await anyio.to_thread.run_sync(started.acquire)
+            await anyio.sleep(0.05)
+            assert (lane.stats.admitted, lane.stats.busy) == (3, 2)
+            await call()  # the fourth: refused without waiting
+            assert len(refused) == 1 and refused[0].retry_after_s == 1 and lane.stats.shed == 1
+            release.set()
+        assert results == ["done"] * 3
+        assert (lane.stats.admitted, lane.stats.busy) == (0, 0)
+        assert await lane.run(lambda: 7) == 7  # capacity is back
+
+    anyio.run(main)
+
+
+def test_a_request_past_its_deadline_leaves_but_its_thread_keeps_the_slot_until_it_ends():
+    lane = Lane("heavy", threads=1, queue=1)
+    release, started = threading.Event(), threading.Event()
+
+    def slow():
+        started.set()
+        release.wait(10)
+
+    async def main():
+        with lanes.deadline(0.2), pytest.raises(TimeoutError):
+            with anyio.fail_after(0.2):  # the middleware's cancellation at the deadline
+                await lane.run(slow)
+        assert started.is_set() and lane.stats.busy == 1  # the abandoned thread still works
+        with lanes.deadline(0.2), pytest.raises(DeadlineExceeded, match="waited for a heavy thread"):
+            await lane.run(lambda: None)  # waits for the one slot, then gives up at its deadline
+        assert lane.stats.expired == 1
+        release.set()
+        await anyio.sleep(0.1)
+        assert (lane.stats.busy, lane.stats.admitted) == (0, 0)
+        assert await lane.run(lambda: "free") == "free"
+
+    anyio.run(main)
+
+
+def test_a_light_step_hands_heavy_work_on_and_work_sees_its_deadline():
+    both = Lanes(light_threads=1, light_queue=0, heavy_threads=1, heavy_queue=0)
+    seen = {}
+
+    def heavy_work():
+        seen["heavy_thread"] = threading.current_thread().name
+        seen["left"] = lanes.remaining()
+        return "heavy result"
+
+    def light_step():
+        seen["light_thread"] = threading.current_thread().name
+        return Heavy(heavy_work)
+
+    async def main():
+        with lanes.deadline(50):
+            return await both.run(light_step)
+
+    assert anyio.run(main) == "heavy result"
+    assert 0 < seen["left"] <= 50  # the deadline travelled into the worker thread
+    assert both.light.stats.admitted == both.heavy.stats.admitted == 0
+
+
+def test_check_raises_only_past_the_deadline():
+    lanes.check()  # no deadline: never
+    with lanes.deadline(60):
+        lanes.check()
+        assert 59 < lanes.remaining() <= 60
+        with lanes.deadline(-1):
+            with pytest.raises(DeadlineExceeded):
+                lanes.check()
+        lanes.check()  # the outer deadline again
