@@ -70,6 +70,11 @@ MAX_EXTENT_M = 1e6
 #: 6.9e7).
 MAX_STENCIL = 5000
 MAX_COUPLINGS = 3e8
+#: Peak memory of computing a region's map, per coupling, where data covers the whole
+#: lattice (the factor's fill is largest): 32, 31 and 40 B (peak RSS 563 MB, 1.16 GB,
+#: 3.18 GB) on 2,250, 4,840 and 10,240 hinges x 872 offsets x 9 classes, growing with the
+#: lattice (RELIABILITY.md, "Isolation").
+MAP_BYTES_PER_COUPLING = 45
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -214,15 +219,23 @@ class RegionSpec(BaseModel):
                 f"the kernel couples {np.prod(widths):.6g} hinge offsets ({widths.tolist()} per axis), more "
                 f"than {MAX_STENCIL}: raise gamma or the spacing"
             )
-        offsets = len(self.stencil.offsets)
-        couplings = self.grid.size * offsets * self.sectors.classes
-        if couplings > MAX_COUPLINGS:
+        if self.couplings > MAX_COUPLINGS:
             raise ValueError(
-                f"{self.grid.size} hinges x {offsets} coupled offsets x {self.sectors.classes} "
-                f"traffic classes is {couplings:.3g} couplings, more than {MAX_COUPLINGS:g}: raise the "
-                "spacing or gamma, or take fewer directions"
+                f"{self.grid.size} hinges x {len(self.stencil.offsets)} coupled offsets x "
+                f"{self.sectors.classes} traffic classes is {self.couplings:.3g} couplings, more than "
+                f"{MAX_COUPLINGS:g}: raise the spacing or gamma, or take fewer directions"
             )
         return self
+
+    @property
+    def couplings(self) -> int:
+        """Hinges x the stencil's offsets x traffic classes: what a map's memory grows with."""
+        return self.grid.size * len(self.stencil.offsets) * self.sectors.classes
+
+    @property
+    def map_bytes(self) -> float:
+        """The most memory computing its map may take (data over the whole lattice)."""
+        return float(self.couplings) * MAP_BYTES_PER_COUPLING
 
     # -- geometry ---------------------------------------------------------------------------
     @property

@@ -17,15 +17,12 @@ server's processes is sampled.
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import datetime
 import json
 import platform
 import subprocess
 import sys
 import tempfile
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -71,8 +68,9 @@ from service.formats import ARROW, NPZ, JSON
 case, size = sys.argv[1], int(sys.argv[2])
 proc = psutil.Process()
 with tempfile.TemporaryDirectory() as tmp:
-    app = create_app(Settings(store_url=f"sqlite:///{{tmp}}", request_memory_mb=1e6, max_query_points=10**7,
-                              max_grid_voxels=10**8, max_json_voxels=10**8, max_json_mb=1e4, request_timeout_s=600))
+    app = create_app(Settings(store_url=f"sqlite:///{{tmp}}", request_memory_mb=1e6,
+                              max_query_points=10**7, max_grid_voxels=10**8, max_json_voxels=10**8,
+                              max_json_mb=1e4, request_timeout_s=600))
     with TestClient(app) as c:
         c.post("/v1/regions", json=MODES_SPEC).raise_for_status()
         X, V = traffic(20000, 1, MODES_SPEC)
@@ -107,7 +105,8 @@ with tempfile.TemporaryDirectory() as tmp:
             rows = (n + 1) ** 3
         stop.set(); t.join()
         assert r.status_code == 200, r.text
-        print(json.dumps({{"rows": rows, "peak_mb": (peak[0] - base) / 2**20, "body_mb": len(r.content) / 2**20}}))
+        peak_mb, body_mb = (peak[0] - base) / 2**20, len(r.content) / 2**20
+        print(json.dumps({{"rows": rows, "peak_mb": peak_mb, "body_mb": body_mb}}))
 """
 
 
@@ -142,6 +141,34 @@ def memory_rows() -> list[dict]:
     return rows
 
 
+def _percentiles(seconds: list[float]) -> str:
+    if not seconds:
+        return "(none)"
+    return " / ".join(f"{1e3 * np.percentile(seconds, q):.1f}" for q in (50, 99, 100))
+
+
+def stress_rows() -> list[dict]:
+    """tests/service/test_isolation.py's stresses, with the prober's figures."""
+    from tests.service.test_isolation import STRESSES, run_stress, stress_server
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp, stress_server(Path(tmp)) as (svc, query):
+        for stress in STRESSES:
+            prober, results = run_stress(svc, query, stress)
+            rows.append(
+                {
+                    "stress": stress,
+                    "its answers": ", ".join(f"{r.status_code} in {t:.1f} s" for r, t in results),
+                    "healthz p50 / p99 / max ms": _percentiles(prober.health),
+                    "cached query p50 / p99 / max ms": _percentiles(prober.answers),
+                    "queries answered / shed": f"{len(prober.answers)} / {len(prober.shed)}",
+                    "peak RSS MB": round(prober.rss_mb),
+                }
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--parts", default="memory,stress")
@@ -151,6 +178,8 @@ def main() -> None:
     sections = []
     if "memory" in parts:
         sections.append(("Memory per answer (16 sectors, 17 classes)", rows_table(memory_rows())))
+    if "stress" in parts:
+        sections.append(("What the others see during each stress", rows_table(stress_rows())))
     report = [
         f"\n## Isolation, {datetime.date.today().isoformat()} (issue 37)\n",
         f"`python bench/bench_isolation.py --parts {args.parts}` on {platform.node()} "

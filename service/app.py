@@ -279,6 +279,14 @@ async def create_region(request: Request):
     if formats.media_type(request.headers.get("content-type")) not in (JSON, ""):
         raise Problem(415, f"send the region spec as {JSON}")
     spec = RegionSpec.model_validate_json(formats.json_body(body, _limits(request.app, 0)))
+    budget = request.app.state.settings.map_memory_mb * 2**20
+    if spec.map_bytes > budget:
+        raise Problem(
+            422,
+            f"computing this region's map may take {spec.map_bytes / 2**20:.0f} MiB ({spec.couplings:.3g} "
+            f"couplings), more than this service's {budget / 2**20:.0f} MiB for one map: raise the spacing "
+            "or gamma, or take fewer directions",
+        )
     info = await _run(request, lambda: request.app.state.maps.store.create_region(spec))
     return JSONResponse(_view(info), status_code=201)
 

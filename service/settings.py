@@ -64,6 +64,11 @@ class Settings(BaseSettings):
     request_memory_mb: float = Field(
         1024.0, gt=0, description="what one answer may take in memory, estimated before any work (422 above)"
     )
+    map_memory_mb: float = Field(
+        4096.0,
+        gt=0,
+        description="what computing one region's map may take (a spec needing more is refused, 422)",
+    )
     store_timeout_s: float = Field(
         5.0, gt=0, description="longest wait for one database statement or lock (503 past it)"
     )

@@ -89,7 +89,7 @@ def test_dockerfile_passes_hadolint():
 def test_image_and_compose_command_lines_work_outside_docker(tmp_path):
     image, services = dockerfile(), compose()["services"]
     assert image["ENTRYPOINT"] == ["bdf"] and image["CMD"] == ["serve"] and image["EXPOSE"] == "8000"
-    assert set(services) == {"postgres", "service", "dask-scheduler", "dask-worker", "builder"}
+    assert set(services) == {"postgres", "service", "proxy", "dask-scheduler", "dask-worker", "builder"}
     store_url = os.environ.get("BDF_TEST_POSTGRES_URL")  # compose's store is PostgreSQL
     if store_url:
         store_url += f"?schema=bdf_docker_{os.getpid()}"
