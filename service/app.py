@@ -10,6 +10,7 @@ loop alone, so they never wait behind work.
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import logging
 import pathlib
@@ -21,7 +22,7 @@ import anyio.to_thread
 import numpy as np
 from fastapi import APIRouter, FastAPI, Header, Path, Query, Request, Response
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
@@ -487,21 +488,21 @@ async def query(name: RegionName, request: Request, min_version: MinVersion = 0,
                 columns["share_std"] = m.share_std
             return Response(formats.arrow_body(columns), media_type=ARROW, headers=headers)
         content = {
-            "mean": pred.mean.tolist(),
-            "std": pred.std.tolist(),
-            "known": pred.known.tolist(),
+            "mean": pred.mean,
+            "std": pred.std,
+            "known": pred.known,
             "region_version": pred.version,
         }
         if m is not None:
             content["modes"] = {
                 "heading_deg": formats.class_headings(info.spec),
-                "share": m.share.tolist(),
-                "share_std": m.share_std.tolist(),
-                "mean": m.mean.tolist(),
-                "std": m.std.tolist(),
-                "prior_only": m.prior_only.tolist(),
+                "share": m.share,
+                "share_std": m.share_std,
+                "mean": m.mean,
+                "std": m.std,
+                "prior_only": m.prior_only,
             }
-        return JSONResponse(content, headers=headers)
+        return StreamingResponse(formats.json_chunks(content), media_type=JSON, headers=headers)
 
     return await _run(request, step)
 
@@ -904,6 +905,10 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         app.state.ready_limiter = anyio.CapacityLimiter(1)
+        # what is loaded by now lives as long as the process: out of the collector's sight,
+        # a full collection (triggered by a large JSON body's lists) scans only what requests
+        # made, not the libraries' million objects (it held the GIL ~100 ms; RELIABILITY.md)
+        gc.freeze()
         yield
         app.state.jobs.shutdown()  # graceful: running fits finish and commit
         app.state.maps.store.close()

@@ -10,7 +10,9 @@ their rows.
 
 from __future__ import annotations
 
+import functools
 import io
+import json
 import struct
 from dataclasses import dataclass
 from typing import Annotated, Literal
@@ -414,6 +416,44 @@ def npz_bytes(**arrays: np.ndarray) -> bytes:
     np.savez(buf, **arrays)
     buf.truncate(buf.tell())
     return buf.getvalue()
+
+
+#: rows of an array encoded at once in a JSON answer: each chunk holds the GIL for a few ms
+#: (list conversion and encoding are C loops that never let other threads in), so the
+#: event loop and the other requests run between chunks of a large answer
+JSON_CHUNK_ROWS = 500
+
+
+def json_chunks(content, size: int = 1 << 16):
+    """``content`` (dicts, lists, numbers, strings, numpy arrays) as compact JSON, in pieces
+    of about ``size`` bytes, each array encoded :data:`JSON_CHUNK_ROWS` rows at a time (a
+    streamed answer: its text never lies in memory whole)."""
+    buffered, length = [], 0
+    for part in _json_parts(content):
+        buffered.append(part)
+        length += len(part)
+        if length >= size:
+            yield b"".join(buffered)
+            buffered, length = [], 0
+    yield b"".join(buffered)
+
+
+def _json_parts(content):
+    dumps = functools.partial(json.dumps, ensure_ascii=False, allow_nan=False, separators=(",", ":"))
+    if isinstance(content, dict):
+        yield b"{"
+        for i, (key, value) in enumerate(content.items()):
+            yield (("," if i else "") + dumps(key) + ":").encode()
+            yield from _json_parts(value)
+        yield b"}"
+    elif isinstance(content, np.ndarray) and content.ndim:
+        yield b"["
+        for lo in range(0, len(content), JSON_CHUNK_ROWS):
+            text = dumps(content[lo : lo + JSON_CHUNK_ROWS].tolist())[1:-1]
+            yield (("," if lo else "") + text).encode()
+        yield b"]"
+    else:
+        yield dumps(content.tolist() if isinstance(content, np.generic | np.ndarray) else content).encode()
 
 
 #: peak memory per number an answer holds, bytes (measured: bench/bench_isolation.py):

@@ -141,7 +141,7 @@ class RegionMaps:
     #: Commit times of versions kept for the answers' lag (most recent).
     COMMITTED_TIMES = 256
     #: Points (or grid slabs of about as many voxels) computed between deadline checks.
-    CHUNK = 16384
+    CHUNK = 4096
 
     def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False):
         """``isolate``: compute posteriors in a child process (the service does). A
