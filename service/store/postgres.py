@@ -127,7 +127,8 @@ class PostgresStore(MapStore):
                     stack.enter_context(conn.transaction())
                 return conn
             except psycopg.OperationalError:
-                if attempt or not (conn.closed or conn.broken):
+                # lost while idle, it is replaced once; cut by the watchdog, the server is silent
+                if attempt or self._watchdog.was_cut(conn) or not (conn.closed or conn.broken):
                     raise
         raise AssertionError("unreachable")
 

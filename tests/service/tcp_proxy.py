@@ -69,7 +69,7 @@ class PausableProxy:
                     if not data:
                         return
                     peer[sock].sendall(data)
-        except OSError:
+        except (OSError, ValueError):  # closed by stop(), or by the other side
             return
         finally:
             for sock in (a, b):
