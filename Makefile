@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: install sparse browser wrk test lint audit demo bench clean
+.PHONY: install sparse browser nginx wrk test lint audit demo bench clean
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -36,6 +36,12 @@ browser:
 	  { apt-get install -y -q chromium >/dev/null || { apt-get update -q && apt-get install -y -q chromium >/dev/null; }; }; } || \
 	  echo "chromium is not installed: the viewer test skips (fails under BDF_TEST_BROWSER=required)"
 
+# the production edge's test runs docker/nginx.conf in Debian's nginx; installed here when we may
+nginx:
+	@command -v nginx >/dev/null || [ -x /usr/sbin/nginx ] || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
+	  { apt-get install -y -q nginx-light >/dev/null || { apt-get update -q && apt-get install -y -q nginx-light >/dev/null; }; }; } || \
+	  echo "nginx is not installed: the edge test skips (fails under BDF_TEST_NGINX=required)"
+
 # bench_service drives its load with wrk (a C load generator); installed here when we may
 wrk:
 	@command -v wrk >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \
@@ -51,7 +57,7 @@ lint: install
 audit: install
 	$(VENV)/bin/pip-audit --progress-spinner off --skip-editable
 
-test: lint browser
+test: lint browser nginx
 	$(PY) -m pytest
 
 demo: install

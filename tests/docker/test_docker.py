@@ -7,6 +7,7 @@ import json
 import os
 import re
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
@@ -18,9 +19,11 @@ import httpx
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import pytest
 import yaml
 
 from bdf.tiles import RegionSpec
+from clients.local import LocalService, free_port
 from tests.service.test_api import enu_columns, library
 from tests.service.test_store import SPEC, data
 
@@ -59,12 +62,6 @@ def compose() -> dict:
         return node
 
     return fill(yaml.safe_load((DOCKER / "compose.yaml").read_text()))
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def local(argv: list[str]) -> list[str]:
@@ -176,3 +173,55 @@ def test_image_and_compose_command_lines_work_outside_docker(tmp_path):
             with psycopg.connect(os.environ["BDF_TEST_POSTGRES_URL"], autocommit=True) as conn:
                 conn.execute(f"DROP SCHEMA IF EXISTS bdf_docker_{os.getpid()} CASCADE")
     assert codes[0] == 0, (logs / "service.log").read_text()[-3000:]  # graceful stop
+
+
+@pytest.fixture
+def nginx():
+    """Debian's nginx. Skipped where it is missing, unless ``BDF_TEST_NGINX=required`` (CI),
+    where its absence fails."""
+    path = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx",) if os.path.exists(p)), None)
+    if path is None:
+        if os.environ.get("BDF_TEST_NGINX") == "required":
+            pytest.fail("BDF_TEST_NGINX=required but no nginx (apt-get install nginx-light)")
+        pytest.skip("no nginx: `make nginx` installs Debian's package")
+    return path
+
+
+def test_the_nginx_edge_serves_the_replicas_while_half_open_clients_hold_connections(tmp_path, nginx):
+    """docker/nginx.conf as compose mounts it, its upstream pointed at a local service:
+    nginx accepts it, and authorised requests pass while 200 half-open connections (twice
+    the service's cap behind it) are held at the edge."""
+    with LocalService(tmp_path / "data", {"BDF_MAX_CONNECTIONS": "100"}) as svc:
+        port = free_port()
+        conf = (DOCKER / "nginx.conf").read_text()
+        conf = conf.replace("server service:8000;", f"server 127.0.0.1:{svc.port};")
+        conf = conf.replace("listen 8080;", f"listen 127.0.0.1:{port};")
+        (tmp_path / "logs").mkdir()
+        (tmp_path / "nginx.conf").write_text(conf)
+        argv = [nginx, "-p", str(tmp_path), "-c", str(tmp_path / "nginx.conf")]
+        extra = f"daemon off; pid {tmp_path}/nginx.pid; error_log {tmp_path}/logs/error.log;"
+        check = subprocess.run([*argv, "-t", "-g", extra], capture_output=True, text=True)
+        assert check.returncode == 0, check.stderr
+        proc = subprocess.Popen([*argv, "-g", extra], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        held = []
+        try:
+            url = f"http://127.0.0.1:{port}"
+            wait_until(lambda: _answers(url), "nginx", [proc])
+            for _ in range(200):
+                sock = socket.create_connection(("127.0.0.1", port))
+                sock.sendall(b"GET /v1/regions HTTP/1.1\r\nHost: x\r\n")  # no end of headers
+                held.append(sock)
+            statuses = [httpx.get(f"{url}/v1/regions", timeout=10).status_code for _ in range(20)]
+            assert statuses == [200] * 20
+        finally:
+            for sock in held:
+                sock.close()
+            proc.terminate()
+            proc.wait(30)
+
+
+def _answers(url: str) -> bool:
+    try:
+        return httpx.get(f"{url}/healthz", timeout=1).status_code == 200
+    except httpx.TransportError:
+        return False
