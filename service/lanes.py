@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -29,6 +30,11 @@ from typing import Any
 
 import anyio
 import anyio.to_thread
+
+#: the niceness of the lanes' threads (Linux: per thread): above the event loop's and the
+#: map process's, so that health answers and refreshes keep up while requests fill the cores
+NICE = 5
+_niced = threading.local()
 
 #: time.monotonic() by which the current request must be answered
 _deadline: ContextVar[float] = ContextVar("deadline", default=math.inf)
@@ -114,6 +120,7 @@ class Lane:
         state = {"started": False, "dropped": False}
 
         def work():
+            _lower_priority()
             with self._lock:
                 if state["dropped"]:  # the request left before this thread started
                     return None
@@ -147,6 +154,16 @@ class Lane:
                     state["dropped"] = True
                     self.stats.admitted -= 1
             raise
+
+
+def _lower_priority() -> None:
+    """This thread at :data:`NICE`, once (where the system allows a thread its own)."""
+    if getattr(_niced, "done", False):
+        return
+    _niced.done = True
+    with contextlib.suppress(OSError, AttributeError):
+        current = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), max(current, NICE))
 
 
 class Lanes:

@@ -23,6 +23,7 @@ import concurrent.futures
 import logging
 import multiprocessing
 import os
+import queue
 import threading
 import time
 from collections import OrderedDict
@@ -150,6 +151,7 @@ class RegionMaps:
         request its other threads serve."""
         self.store = store
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
+        self._spawner = _Spawner() if isolate else None
         self.cache = PosteriorCache(cache_mb)
         self.stats = RefreshStats()
         self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
@@ -185,7 +187,7 @@ class RegionMaps:
         for attempt in range(2):
             with self._lock:
                 if self._pool is None:
-                    self._pool = _posterior_process()
+                    self._pool = self._spawner.start()
                 pool = self._pool
             try:
                 future = pool.submit(_compute_posterior, spec, evidence, start, stored)
@@ -609,6 +611,31 @@ def _posterior_process() -> ProcessPoolExecutor:
         initializer=_leave_with_parent,
         initargs=(os.getpid(),),
     )
+
+
+class _Spawner:
+    """Starts posterior processes from a thread of this process's own priority: a process
+    inherits the priority of the thread that starts it, and the lanes' threads run at a
+    lower one (:data:`service.lanes.NICE`) so that maps are computed first."""
+
+    def __init__(self):
+        self._asked: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._run, name="posterior-spawner", daemon=True).start()
+
+    def start(self) -> ProcessPoolExecutor:
+        started: concurrent.futures.Future = concurrent.futures.Future()
+        self._asked.put(started)
+        return started.result()
+
+    def _run(self) -> None:
+        while True:
+            started = self._asked.get()
+            try:
+                pool = _posterior_process()
+                pool.submit(os.getpid)  # the child is spawned now, by this thread
+                started.set_result(pool)
+            except Exception as exc:
+                started.set_exception(exc)
 
 
 def _leave_with_parent(parent: int) -> None:

@@ -1,6 +1,7 @@
 """Lanes and deadlines (service.lanes): bounded capacity, shedding, deadlines, hand-off.
 Threads are held on events, so every count is exact and no test depends on timing."""
 
+import os
 import threading
 
 import anyio
@@ -100,3 +101,14 @@ def test_check_raises_only_past_the_deadline():
             with pytest.raises(DeadlineExceeded):
                 lanes.check()
         lanes.check()  # the outer deadline again
+
+
+def test_lane_threads_run_below_the_event_loop_so_health_and_refreshes_come_first():
+    here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    lane = Lane("light", threads=1, queue=0)
+
+    async def main():
+        return await lane.run(lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    assert anyio.run(main) == max(here, lanes.NICE)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == here  # the caller's is kept

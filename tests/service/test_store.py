@@ -8,10 +8,13 @@ import sys
 import textwrap
 import threading
 
+import anyio
 import numpy as np
+import psutil
 import pytest
 
 from bdf.tiles import RegionSpec
+from service.lanes import Lane
 from service.maps import REJECTED, PosteriorCache, RegionMaps
 from service.store import (
     RegionExists,
@@ -261,7 +264,11 @@ def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(st
     here, there = RegionMaps(store), RegionMaps(store, isolate=True)
     X, V = data(3, n=300)
     V[::3, 0] *= -1  # opposing flows for the directional map
-    there.upload(name, "fit", X, V, replace=True)  # the fit's posterior, computed there
+    # the fit comes from a lane's thread, of lower priority: the child it starts is not
+    fit = lambda: there.upload(name, "fit", X, V, replace=True)  # noqa: E731
+    anyio.run(lambda: Lane("heavy", 1, 0).run(fit))  # the fit's posterior, computed there
+    (child,) = there._pool._processes
+    assert psutil.Process(child).nice() == psutil.Process().nice()
     there.upload(name, "more", *data(4, n=100))  # a refresh, there
     Q = np.random.default_rng(5).uniform([0, 0, 0], [300, 200, 60], (200, 3))
     a, b = here.predict(name, Q), there.predict(name, Q, min_version=2)
