@@ -275,12 +275,17 @@ def served(directions, train, weight, lower, upper, data, seconds, uploaders=8) 
                 content=arrow_points(train.X, train.V),
                 headers={"Content-Type": ARROW, "Idempotency-Key": "base"},
             ).raise_for_status()
-            c.post(
-                "/v1/regions/paris/query",
-                params={"min_version": 1},
-                content=arrow_points(train.X[:10]),
-                headers={"Content-Type": ARROW},
-            ).raise_for_status()
+            while True:  # the first map takes longer than a request's deadline: 503 until it is ready
+                r = c.post(
+                    "/v1/regions/paris/query",
+                    params={"min_version": 1},
+                    content=arrow_points(train.X[:10]),
+                    headers={"Content-Type": ARROW},
+                )
+                if r.status_code != 503:
+                    break
+                time.sleep(float(r.headers["retry-after"]))
+            r.raise_for_status()
         return {
             "directions": directions,
             "uploaders": uploaders,

@@ -456,10 +456,10 @@ def _json_parts(content):
         yield dumps(content.tolist() if isinstance(content, np.generic | np.ndarray) else content).encode()
 
 
-#: peak memory per number an answer holds, bytes (measured: bench/bench_isolation.py):
-#: a binary answer holds its arrays, the classes' intermediates and the encoded body; JSON
-#: adds a Python float and its text per number; a PNG the figure's raster per cell
-BYTES_PER_NUMBER = {JSON: 120, GEOJSON: 120, NPZ: 40, ARROW: 40, "image/png": 40}
+#: peak memory per number an answer holds, bytes, with room (measured 13-32 for streamed
+#: JSON, 18-25 for Arrow and npz: bench/bench_isolation.py): the arrays, the classes'
+#: intermediates of a chunk, the encoded body (JSON: a chunk of it at a time)
+BYTES_PER_NUMBER = {JSON: 60, GEOJSON: 60, NPZ: 40, ARROW: 40, "image/png": 40}
 
 
 def answer_bytes(rows: int, classes: int, modes: bool, media: str) -> float:
