@@ -169,16 +169,26 @@ class RegionMaps:
         self._closed = False
         store.on_close(self.close)
 
+    def open(self) -> None:
+        """Refresh again after :meth:`close` (an app started again after its shutdown)."""
+        with self._lock:
+            self._closed = False
+            if self._isolate and not (self._spawner and self._spawner.alive):
+                self._spawner = _Spawner()  # posterior processes run at this thread's priority
+
     def close(self) -> None:
         """Stop the background refreshes (after the ones under way): the store closes next."""
-        with self._lock:
+        with self._done:
             self._closed, threads = True, list(self._threads.values())
+            self._done.notify_all()
         for thread in threads:
             thread.join(timeout=120)
         with self._lock:
             pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+        if self._spawner is not None:
+            self._spawner.stop()
 
     def _posterior(self, spec: RegionSpec, evidence, start=None, stored=True) -> Posterior | Mixture:
         """``spec.posterior(evidence, start, stored=stored)``, in the child process if isolated."""
@@ -281,8 +291,8 @@ class RegionMaps:
     def fit_hyperparameters(self, region: str) -> RegionInfo:
         """The region's map at its current version: its "auto" hyperparameters are that
         version's evidence maximum (every refresh finds them; this waits for it, until the
-        deadline). Returns the region with them. :class:`Unprocessable` if the spec fixes both or the region
-        has no data."""
+        deadline). Returns the region with them. :class:`Unprocessable` if the spec fixes
+        both or the region has no data."""
         info = self.store.region(region)
         if not info.spec.auto:
             raise Unprocessable(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
@@ -407,6 +417,8 @@ class RegionMaps:
                 newest = self._newest.get(info.region_id)
                 if newest is not None and newest.version >= at_least and newest.spec == info.spec:
                     return newest
+                if self._closed:
+                    raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
                 if self._ended.get(region, 0) >= mine:  # it ended short of the version
                     failed, error = self._failure.get(region, (0, None))
                     if failed >= mine:
@@ -620,16 +632,29 @@ class _Spawner:
 
     def __init__(self):
         self._asked: queue.SimpleQueue = queue.SimpleQueue()
-        threading.Thread(target=self._run, name="posterior-spawner", daemon=True).start()
+        self._thread = threading.Thread(target=self._run, name="posterior-spawner", daemon=True)
+        self._thread.start()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread.is_alive()
 
     def start(self) -> ProcessPoolExecutor:
+        if not self.alive:
+            raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
         started: concurrent.futures.Future = concurrent.futures.Future()
         self._asked.put(started)
         return started.result()
 
+    def stop(self) -> None:
+        self._asked.put(None)
+        self._thread.join(timeout=10)
+
     def _run(self) -> None:
         while True:
             started = self._asked.get()
+            if started is None:
+                return
             try:
                 pool = _posterior_process()
                 pool.submit(os.getpid)  # the child is spawned now, by this thread

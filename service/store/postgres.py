@@ -184,6 +184,9 @@ class _Watchdog:
             time.sleep(self.TICK_S)
             now = time.monotonic()
             with self._lock:
+                if not self._deadlines:  # nothing to watch: the next arm starts another
+                    self._thread = None
+                    return
                 late = [conn for deadline, conn in self._deadlines.values() if deadline < now]
                 for conn in late:
                     del self._deadlines[id(conn)]
