@@ -32,7 +32,7 @@ from service import formats, problems, slices
 from service.auth import PUBLIC, require
 from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET
 from service.jobs import Jobs
-from service.lanes import Heavy, Lanes
+from service.lanes import Heavy, Lanes, Waiting
 from service.maps import RegionMaps
 from service.problems import Problem
 from service.settings import Settings
@@ -243,9 +243,15 @@ async def _run(request: Request, step, heavy: bool = False):
 
 def _light_or_heavy(app, info: RegionInfo, min_version: int, rows: int, work):
     """``work()`` now if it is light (``rows`` points or voxels times the map's posteriors
-    within ``light_cost``, on a map that is ready), else handed on to the heavy lane."""
-    light = rows * info.spec.posteriors <= app.state.settings.light_cost
-    return work() if light and app.state.maps.ready(info, min_version) else Heavy(work)
+    within ``light_cost``), else handed on to the heavy lane; first, if no map of at least
+    ``min_version`` is ready, a wait for it (no lane's thread holds it)."""
+    maps = app.state.maps
+    if not maps.ready(info, min_version):
+        return Waiting(
+            lambda: maps.wait_for(info, min_version),
+            lambda: _light_or_heavy(app, info, min_version, rows, work),
+        )
+    return work() if rows * info.spec.posteriors <= app.state.settings.light_cost else Heavy(work)
 
 
 def _within_budget(app, spec: RegionSpec, rows: int, modes: bool, media: str, what: str) -> None:
@@ -928,7 +934,9 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     app.state.settings = settings
     app.state.maps = maps
     app.state.jobs = Jobs()
-    app.state.lanes = Lanes(settings.threads, settings.queue, settings.heavy_threads, settings.heavy_queue)
+    app.state.lanes = Lanes(
+        settings.threads, settings.queue, settings.heavy_threads, settings.heavy_queue, settings.max_waiting
+    )
     app.state.metrics = Metrics(maps, app.state.lanes)
     problems.install(app, PATTERNS)
     if settings.cors_origins:  # off unless configured: browsers on other origins get no access

@@ -8,6 +8,10 @@ fills only the heavy lane, so small queries keep their threads. A lane holds at 
 ``Retry-After``), never queued without bound. A light step that finds its work heavy hands
 it on (:class:`Heavy`).
 
+A step that must wait for a map being computed hands the wait to a third bound,
+``waiting`` (threads that block without CPU, many of them), and steps again when the map
+is ready: a burst of readers of a new region does not fill the heavy lane with waits.
+
 Every request has a deadline (:func:`deadline`, set once per request by
 :class:`service.telemetry.RequestMiddleware`). Waiting for a lane or a map, and every long
 loop's checkpoint (:func:`check`), raises :class:`DeadlineExceeded` (503) past it, so the
@@ -85,6 +89,16 @@ class Heavy:
     """What a light step returns when the rest of its work belongs in the heavy lane."""
 
     work: Callable[[], Any]
+
+
+@dataclass(frozen=True)
+class Waiting:
+    """What a light step returns when it must wait (for a map being computed) before it
+    can go on: ``wait()`` blocks without using the CPU, then ``then()`` is the light step
+    again."""
+
+    wait: Callable[[], Any]
+    then: Callable[[], Any]
 
 
 @dataclass
@@ -167,16 +181,24 @@ def _lower_priority() -> None:
 
 
 class Lanes:
-    """The light and the heavy lane (module doc)."""
+    """The light and the heavy lane, and the waiters (module doc)."""
 
-    def __init__(self, light_threads: int, light_queue: int, heavy_threads: int, heavy_queue: int):
+    def __init__(
+        self, light_threads: int, light_queue: int, heavy_threads: int, heavy_queue: int, waiters: int = 64
+    ):
         self.light = Lane("light", light_threads, light_queue)
         self.heavy = Lane("heavy", heavy_threads, heavy_queue, retry_after_s=5)
+        # a wait for a map takes a thread but no CPU: many may wait, each until its deadline
+        self.waiting = Lane("waiting", waiters, 0, retry_after_s=5)
 
     async def run(self, fn: Callable[[], Any], heavy: bool = False) -> Any:
         """``fn()`` in the light lane (the heavy one if ``heavy``); a :class:`Heavy` it
-        returns runs on in the heavy lane."""
+        returns runs on in the heavy lane, a :class:`Waiting` waits, then steps again."""
         result = await (self.heavy if heavy else self.light).run(fn)
-        if isinstance(result, Heavy):
-            result = await self.heavy.run(result.work)
+        while isinstance(result, Heavy | Waiting):
+            if isinstance(result, Heavy):
+                result = await self.heavy.run(result.work)
+            else:
+                await self.waiting.run(result.wait)
+                result = await self.light.run(result.then)
         return result

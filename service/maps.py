@@ -363,6 +363,11 @@ class RegionMaps:
         caller's thread: builds and tests; the service's readers wait for refreshes)."""
         return self._compute(region, self.store.region(region).version)
 
+    def wait_for(self, info: RegionInfo, min_version: int = 0) -> MapState:
+        """Wait (until the deadline) for the map a query of ``info`` with ``min_version``
+        needs: after it, :meth:`ready` is true."""
+        return self._wait(info.spec.name, info, max(min_version, 1 if info.version else 0))
+
     def ready(self, info: RegionInfo, min_version: int = 0) -> bool:
         """A query of the region as read (``info``) would be answered without waiting for
         a map to be computed."""
@@ -402,7 +407,7 @@ class RegionMaps:
         if newest is not None and newest.version >= min_version and newest.spec == info.spec:
             self._schedule(region)
             return newest
-        return self._wait(region, info, max(min_version, 1 if info.version else 0))
+        return self.wait_for(info, min_version)
 
     def _wait(self, region: str, info: RegionInfo, at_least: int) -> MapState:
         """A map of the region instance ``info`` at version ``at_least`` or newer (at most

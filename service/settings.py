@@ -52,6 +52,9 @@ class Settings(BaseSettings):
     heavy_queue: int = Field(
         4, ge=0, le=10_000, description="heavy requests waiting for a thread (503 beyond)"
     )
+    max_waiting: int = Field(
+        64, ge=1, le=10_000, description="requests waiting for a map being computed (503 beyond)"
+    )
     light_cost: int = Field(
         50_000,
         ge=0,

@@ -117,7 +117,7 @@ class _StateCollector:
         )
         for family, name, doc, value in families:
             metric = family(name, doc, labels=["lane"])
-            for lane in (self.lanes.light, self.lanes.heavy):
+            for lane in (self.lanes.light, self.lanes.heavy, self.lanes.waiting):
                 metric.add_metric([lane.name], value(lane.stats))
             yield metric
         yield from self._maps()

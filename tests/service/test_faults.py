@@ -186,7 +186,10 @@ def test_sqlite_on_a_read_only_disk_refuses_uploads_and_keeps_serving(small_disk
     try:
         with TestClient(create_app(Settings(store_url=url))) as c:
             assert_unavailable(upload(c, "b", 2))
-            assert c.post(QUERY, json={"points": [[150, 100, 30]]}).json() == answer
+            again = c.post(QUERY, json={"points": [[150, 100, 30]]}).json()
+            assert again["region_version"] == answer["region_version"] and again["known"] == answer["known"]
+            for field in ("mean", "std"):  # this process computed the map again: equal to rounding
+                np.testing.assert_allclose(again[field], answer[field], rtol=1e-12)
             assert c.get(f"/v1/regions/{NAME}").json()["version"] == 1
     finally:
         remount(small_disk, "rw")

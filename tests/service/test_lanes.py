@@ -8,7 +8,7 @@ import anyio
 import pytest
 
 from service import lanes
-from service.lanes import DeadlineExceeded, Heavy, Lane, Lanes, Overloaded
+from service.lanes import DeadlineExceeded, Heavy, Lane, Lanes, Overloaded, Waiting
 
 
 def test_a_full_lane_sheds_at_once_and_frees_its_slots_after():
@@ -112,3 +112,33 @@ def test_lane_threads_run_below_the_event_loop_so_health_and_refreshes_come_firs
 
     assert anyio.run(main) == max(here, lanes.NICE)
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == here  # the caller's is kept
+
+
+def test_a_step_that_must_wait_waits_without_a_lane_thread_then_steps_again():
+    both = Lanes(light_threads=1, light_queue=0, heavy_threads=1, heavy_queue=0, waiters=2)
+    ready, names, steps = threading.Event(), {}, []
+
+    def wait():
+        names["wait"] = threading.current_thread().name
+        assert both.light.stats.busy == 0  # the light lane's one thread is free meanwhile
+        ready.wait(10)
+
+    def step():
+        steps.append(ready.is_set())
+        return "answer" if ready.is_set() else Waiting(wait, step)
+
+    async def main():
+        async with anyio.create_task_group() as tg:
+            results = []
+
+            async def call():
+                results.append(await both.run(step))
+
+            tg.start_soon(call)
+            await anyio.sleep(0.1)
+            assert both.waiting.stats.busy == 1
+            assert await both.run(lambda: "light meanwhile") == "light meanwhile"
+            ready.set()
+        return results
+
+    assert anyio.run(main) == ["answer"] and steps == [False, True]
