@@ -47,7 +47,7 @@ class Settings(BaseSettings):
         1,
         ge=1,
         le=256,
-        description="heavy requests (fits, large queries, grids, uploads, waits for a map) at work at once",
+        description="heavy requests (fits, large queries, grids and uploads) at work at once",
     )
     heavy_queue: int = Field(
         4, ge=0, le=10_000, description="heavy requests waiting for a thread (503 beyond)"
@@ -77,7 +77,9 @@ class Settings(BaseSettings):
     )
     ready_timeout_s: float = Field(2.0, gt=0, description="/readyz: longest wait for the store")
     max_connections: int = Field(
-        1000, ge=1, description="open client connections per worker (the oldest idle one is dropped beyond)"
+        1000,
+        ge=1,
+        description="open client connections per worker (beyond: the one waiting longest on its client goes)",
     )
     header_timeout_s: float = Field(
         10.0,

@@ -36,7 +36,7 @@ LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1, 2.
 class Metrics:
     """The service's Prometheus registry (one per app, so tests can build several apps)."""
 
-    def __init__(self, maps, lanes: lanes.Lanes):
+    def __init__(self, maps, work_lanes: lanes.Lanes):
         self.registry = CollectorRegistry()
         self.requests = Counter(
             "bdf_http_requests", "HTTP requests", ["route", "method", "status"], registry=self.registry
@@ -69,7 +69,7 @@ class Metrics:
         self.deadlines = Counter(
             "bdf_request_deadlines", "requests answered 503 at their deadline", registry=self.registry
         )
-        self.registry.register(_StateCollector(maps, lanes))
+        self.registry.register(_StateCollector(maps, work_lanes))
 
     def answered(self, versions_behind: int, seconds_behind: float) -> None:
         self.versions_behind.observe(versions_behind)
@@ -90,8 +90,8 @@ class Metrics:
 class _StateCollector:
     """The lanes, the posterior cache and the refreshes, read at each scrape."""
 
-    def __init__(self, maps, lanes: lanes.Lanes):
-        self.maps, self.lanes = maps, lanes
+    def __init__(self, maps, work_lanes: lanes.Lanes):
+        self.maps, self.lanes = maps, work_lanes
 
     def collect(self):
         families = (
