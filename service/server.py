@@ -7,13 +7,15 @@ file descriptor. :class:`GuardedProtocol` (its HTTP protocol, subclassed at its 
 asyncio callbacks and its documented parser callbacks) adds:
 
 - a header deadline: a request's line and headers must arrive within ``header_timeout_s``
-  of the connection (or the previous response), else the connection closes;
+  of the connection (or the previous response), else the connection closes; a body must
+  not pause longer than that between two reads either;
 - a connection cap (``max_connections`` per worker): one more connection drops the one that
   has waited longest on its client (for headers, or for a body still arriving), or itself
   when every other connection's request is at work. Authorised clients, which send their
   request at once, keep being served while half-open ones come and go.
 
-A body that trickles in is bounded by the request deadline (:mod:`service.lanes`).
+A body that trickles in without pausing that long is bounded by the request deadline
+(:mod:`service.lanes`).
 """
 
 from __future__ import annotations
@@ -61,6 +63,7 @@ class GuardedProtocol(HttpToolsProtocol):
 
     _since: float | None = None  # when it began waiting for its current request
     _header_timer = None
+    _body_timer = None
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
@@ -72,6 +75,16 @@ class GuardedProtocol(HttpToolsProtocol):
     def on_headers_complete(self) -> None:
         self._cancel_header_timer()
         super().on_headers_complete()
+        self._arm_body_timer()  # a body, if any, must keep arriving
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if self._body_timer is not None:
+            self._arm_body_timer()
+
+    def on_message_complete(self) -> None:
+        self._cancel_body_timer()
+        super().on_message_complete()
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
@@ -80,7 +93,25 @@ class GuardedProtocol(HttpToolsProtocol):
 
     def connection_lost(self, exc) -> None:
         self._cancel_header_timer()
+        self._cancel_body_timer()
         super().connection_lost(exc)
+
+    def _arm_body_timer(self) -> None:
+        self._cancel_body_timer()
+        timeout, _ = _limits()
+        self._body_timer = self.loop.call_later(timeout, self._body_late)
+
+    def _cancel_body_timer(self) -> None:
+        if self._body_timer is not None:
+            self._body_timer.cancel()
+            self._body_timer = None
+
+    def _body_late(self) -> None:
+        """No byte of the body for ``header_timeout_s``: the client has stalled."""
+        self._body_timer = None
+        cycle = self.cycle
+        if cycle is not None and cycle.more_body and not self.transport.is_closing():
+            self.transport.close()
 
     def _await_request(self) -> None:
         self._since = self.loop.time()
