@@ -105,6 +105,10 @@ class PosteriorCache:
     def nbytes(self) -> int:
         return self._bytes
 
+    def __contains__(self, key: tuple) -> bool:
+        """Held, without counting a hit or a miss (a look before the query that counts)."""
+        return key in self._items
+
     def __len__(self) -> int:
         return len(self._items)
 
@@ -371,7 +375,7 @@ class RegionMaps:
     def ready(self, info: RegionInfo, min_version: int = 0) -> bool:
         """A query of the region as read (``info``) would be answered without waiting for
         a map to be computed."""
-        if self.cache.get((info.region_id, info.version)) is not None:
+        if (info.region_id, info.version) in self.cache:
             return True
         with self._lock:
             newest = self._newest.get(info.region_id)

@@ -62,8 +62,8 @@ class GuardedProtocol(HttpToolsProtocol):
     """uvicorn's httptools protocol with a header deadline and a connection cap (module doc)."""
 
     _since: float | None = None  # when it began waiting for its current request
-    _header_timer = None
-    _body_timer = None
+    _timer = None  # armed while it waits on its client: for headers, or for a body's next bytes
+    _in_body = False  # the headers came; the body is still arriving
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
@@ -73,17 +73,18 @@ class GuardedProtocol(HttpToolsProtocol):
             self._shed()
 
     def on_headers_complete(self) -> None:
-        self._cancel_header_timer()
         super().on_headers_complete()
-        self._arm_body_timer()  # a body, if any, must keep arriving
+        self._in_body = True
+        self._arm()  # a body, if any, must keep arriving
 
     def data_received(self, data: bytes) -> None:
         super().data_received(data)
-        if self._body_timer is not None:
-            self._arm_body_timer()
+        if self._in_body and self._timer is not None:
+            self._arm()  # each read of the body restarts its clock; headers have one in all
 
     def on_message_complete(self) -> None:
-        self._cancel_body_timer()
+        self._in_body = False
+        self._cancel()
         super().on_message_complete()
 
     def on_response_complete(self) -> None:
@@ -92,51 +93,32 @@ class GuardedProtocol(HttpToolsProtocol):
             self._await_request()
 
     def connection_lost(self, exc) -> None:
-        self._cancel_header_timer()
-        self._cancel_body_timer()
+        self._cancel()
         super().connection_lost(exc)
 
-    def _arm_body_timer(self) -> None:
-        self._cancel_body_timer()
-        timeout, _ = _limits()
-        self._body_timer = self.loop.call_later(timeout, self._body_late)
-
-    def _cancel_body_timer(self) -> None:
-        if self._body_timer is not None:
-            self._body_timer.cancel()
-            self._body_timer = None
-
-    def _body_late(self) -> None:
-        """No byte of the body for ``header_timeout_s``: the client has stalled."""
-        self._body_timer = None
-        cycle = self.cycle
-        if cycle is not None and cycle.more_body and not self.transport.is_closing():
-            self.transport.close()
-
     def _await_request(self) -> None:
-        self._since = self.loop.time()
-        self._cancel_header_timer()
+        self._since, self._in_body = self.loop.time(), False
+        self._arm()
+
+    def _arm(self) -> None:
+        self._cancel()
         timeout, _ = _limits()
-        self._header_timer = self.loop.call_later(timeout, self._headers_late)
+        self._timer = self.loop.call_later(timeout, self._late)
 
-    def _cancel_header_timer(self) -> None:
-        if self._header_timer is not None:
-            self._header_timer.cancel()
-            self._header_timer = None
+    def _cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
 
-    def _headers_late(self) -> None:
-        self._header_timer = None
+    def _late(self) -> None:
+        """The client sent no headers, or paused its body, for ``header_timeout_s``."""
+        self._timer = None
         if not self.transport.is_closing():
             self.transport.close()
 
     def _waits_on_client(self) -> bool:
         """No request at work: headers still to come, or a body still arriving."""
-        if self.transport.is_closing():
-            return False
-        cycle = self.cycle
-        return self._header_timer is not None or (
-            cycle is not None and cycle.more_body and not cycle.response_complete
-        )
+        return self._timer is not None and not self.transport.is_closing()
 
     def _shed(self) -> None:
         waiting = [c for c in self.connections if isinstance(c, GuardedProtocol) and c._waits_on_client()]
