@@ -71,9 +71,8 @@ MAX_EXTENT_M = 1e6
 MAX_STENCIL = 5000
 MAX_COUPLINGS = 3e8
 #: Peak memory of computing a region's map, per coupling, where data covers the whole
-#: lattice (the factor's fill is largest): 32, 31 and 40 B (peak RSS 563 MB, 1.16 GB,
-#: 3.18 GB) on 2,250, 4,840 and 10,240 hinges x 872 offsets x 9 classes, growing with the
-#: lattice (RELIABILITY.md, "Isolation").
+#: lattice (the factor's fill is largest; it grows with the lattice), with room: measured
+#: by ``bench/bench_isolation.py --parts maps`` (figures in RELIABILITY.md, "Isolation").
 MAP_BYTES_PER_COUPLING = 45
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]

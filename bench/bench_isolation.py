@@ -8,6 +8,10 @@ process, over the RSS with the map ready), per number the answer holds, for the 
 whose size a client chooses: point queries with modes (JSON, Arrow), grids with modes
 (npz), slices. ``service.formats.BYTES_PER_NUMBER`` is set from these figures, with room.
 
+``maps``: peak RSS of computing a map with data over its whole lattice (the worst fill),
+at 2,250, 4,840 and 10,240 hinges x 872 offsets x 9 classes, each in a fresh process
+(about 7 minutes): what ``bdf.tiles.MAP_BYTES_PER_COUPLING`` is set from.
+
 ``stress``: ``bdf serve`` (2 light threads, 1 heavy) on loopback; while each stress of the
 issue's table runs, a prober measures ``/healthz`` and a cached 1,000-point query of
 another region (p50, p99, max, and how many were shed with 503), and the peak RSS of the
@@ -32,27 +36,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_core import publish, rows_table  # bench/ is on the path
 
 ROOT = Path(__file__).resolve().parents[1]
-#: a directional region of 16 sectors (17 classes) where answers are large
-MODES_SPEC = {
-    "name": "modes",
-    "origin": {"lat": 48.0, "lon": 2.0},
-    "bounds_m": {"min": [0, 0, 0], "max": [4000, 4000, 600]},
-    "tile_size_m": [2000, 2000, 600],
-    "spacing_m": [200, 200, 100],
-    "gamma": [1 / 20000, 1 / 20000, 1 / 5000],
-    "directions": 16,
-}
-
-
-def traffic(n: int, seed: int, spec: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Synthetic traffic over the region: eight headings at 30-60 m/s."""
-    rng = np.random.default_rng(seed)
-    hi = np.array(spec["bounds_m"]["max"], float)
-    X = rng.uniform(0, 1, (n, 3)) * hi
-    heading = rng.integers(0, 8, n) * (np.pi / 4)
-    speed = rng.uniform(30, 60, n)
-    V = np.stack([speed * np.sin(heading), speed * np.cos(heading), rng.normal(0, 1, n)], axis=1)
-    return X, V
 
 
 # -- memory -----------------------------------------------------------------------------------
@@ -61,7 +44,8 @@ import json, sys, threading, time, tempfile
 import numpy as np, psutil
 sys.path.insert(0, {root!r}); sys.path.insert(0, {bench!r})
 from fastapi.testclient import TestClient
-from bench_isolation import MODES_SPEC, traffic
+from tests.service.test_isolation import EMPTY, traffic
+MODES_SPEC = {{**EMPTY, "name": "modes"}}  # 16 sectors (17 classes): answers are large
 from service.app import create_app
 from service.settings import Settings
 from service.formats import ARROW, NPZ, JSON
@@ -73,11 +57,11 @@ with tempfile.TemporaryDirectory() as tmp:
                               max_json_mb=1e4, request_timeout_s=600))
     with TestClient(app) as c:
         c.post("/v1/regions", json=MODES_SPEC).raise_for_status()
-        X, V = traffic(20000, 1, MODES_SPEC)
+        X, V = traffic(20000, 1)
         c.post("/v1/regions/modes/observations", json={{"points": X.tolist(), "velocities": V.tolist()}},
                headers={{"Idempotency-Key": "a"}}).raise_for_status()
         c.post("/v1/regions/modes/query?min_version=1", json={{"points": X[:10].tolist()}}).raise_for_status()
-        Q = traffic(size, 2, MODES_SPEC)[0]
+        Q = traffic(size, 2)[0]
         if case.startswith("query"):
             media = ARROW if case.endswith("arrow") else JSON
             if media == ARROW:
@@ -141,6 +125,61 @@ def memory_rows() -> list[dict]:
     return rows
 
 
+MAP_CASE = r"""
+import json, resource, sys, time
+import numpy as np
+sys.path.insert(0, {root!r})
+from bdf.tiles import RegionSpec
+nx = int(sys.argv[1])
+spec = RegionSpec.model_validate({{
+    "name": "full", "origin": {{"lat": 48.0, "lon": 2.0}},
+    "bounds_m": {{"min": [0, 0, 0], "max": [500 * (nx - 1), 500 * (nx - 1), 900]}},
+    "tile_size_m": [5000, 5000, 900], "spacing_m": [500, 500, 100],
+    "gamma": [4e-6, 4e-6, 1e-4], "directions": 8}})
+rng = np.random.default_rng(0)
+X = rng.uniform(spec.lower, spec.upper, (30000, 3))  # over the whole lattice: the worst fill
+heading = rng.integers(0, 8, len(X)) * np.pi / 4
+V = np.stack([40 * np.sin(heading), 40 * np.cos(heading), rng.normal(0, 1, len(X))], 1)
+evidence = spec.region_evidence({{k: i.evidence for k, i in spec.increments(X, V).items()}})
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+t = time.perf_counter()
+spec.posterior(evidence)
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps({{"hinges": spec.grid.size, "offsets": len(spec.stencil.offsets),
+                  "classes": spec.sectors.classes, "couplings": spec.couplings,
+                  "s": time.perf_counter() - t, "base_mb": base, "peak_mb": peak}}))
+"""
+
+
+def map_rows() -> list[dict]:
+    """Peak RSS of computing a region's map with data over its whole lattice (the factor's
+    largest fill), each in a fresh process: what ``MAP_BYTES_PER_COUPLING`` is set from."""
+    from bdf.tiles import MAP_BYTES_PER_COUPLING
+
+    rows = []
+    for nx in (15, 22, 32):
+        out = subprocess.run(
+            [sys.executable, "-c", MAP_CASE.format(root=str(ROOT)), str(nx)], capture_output=True, text=True
+        )
+        if out.returncode:
+            raise RuntimeError(out.stderr[-3000:])
+        got = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append(
+            {
+                "hinges": got["hinges"],
+                "offsets": got["offsets"],
+                "classes": got["classes"],
+                "couplings": got["couplings"],
+                "map s": round(got["s"], 1),
+                "peak RSS MB": round(got["peak_mb"]),
+                "B per coupling": round(got["peak_mb"] * 2**20 / got["couplings"], 1),
+                "estimate MB": round(got["couplings"] * MAP_BYTES_PER_COUPLING / 2**20),
+            }
+        )
+        print(rows[-1], flush=True)
+    return rows
+
+
 def _percentiles(seconds: list[float]) -> str:
     if not seconds:
         return "(none)"
@@ -178,6 +217,8 @@ def main() -> None:
     sections = []
     if "memory" in parts:
         sections.append(("Memory per answer (16 sectors, 17 classes)", rows_table(memory_rows())))
+    if "maps" in parts:
+        sections.append(("Computing a map, data over the whole lattice (8 sectors)", rows_table(map_rows())))
     if "stress" in parts:
         sections.append(("What the others see during each stress", rows_table(stress_rows())))
     report = [
