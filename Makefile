@@ -22,7 +22,7 @@ $(BENCH_STAMP): $(STAMP) | sparse
 	$(PY) -m pip install -q -e '.[dev,bench]'
 	touch $(BENCH_STAMP)
 
-# scikit-sparse (CHOLMOD, the benchmarks' peer of bdf.linalg) builds against Debian's
+# scikit-sparse (CHOLMOD, the benchmarks' peer of bdf.sparse) builds against Debian's
 # SuiteSparse 5; installed here when we may (root with apt-get), else a clear stop
 sparse:
 	@[ -e /usr/include/suitesparse/cholmod.h ] || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null && \

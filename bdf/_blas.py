@@ -2,7 +2,7 @@
 
 Waking a second OpenBLAS thread costs more than it saves on the small GEMMs of the
 splat and gather kernels (:mod:`bdf.features`). The factorisations and inversions of
-:mod:`bdf.linalg` run on scipy's OpenBLAS with every core, but a directional map's
+:mod:`bdf.sparse` run on scipy's OpenBLAS with every core, but a directional map's
 classes gain more from a thread each (:func:`in_threads`).
 """
 
@@ -43,7 +43,7 @@ def single_threaded(fn):
 def in_threads(tasks: list) -> list:
     """The results of ``tasks`` (callables), run side by side in a thread per core with one
     BLAS thread each: for work that releases the GIL (the factorisations and inversions of
-    :mod:`bdf.linalg`), which gains more from a core per task than from two BLAS threads
+    :mod:`bdf.sparse`), which gains more from a core per task than from two BLAS threads
     per task (the directional fit, bench/RESULTS.md)."""
     with one_thread(), ThreadPoolExecutor(min(len(tasks), os.cpu_count() or 1)) as pool:
         return [f.result() for f in [pool.submit(task) for task in tasks]]

@@ -6,10 +6,11 @@ import logging
 
 import numpy as np
 
-from bdf import features, metrics, noise
+from bdf import metrics, noise
 from bdf._validate import as_observations, as_positive, as_sample_weight
 from bdf.directions import Sectors
 from bdf.grid import HingeGrid
+from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Posterior
 from bdf.stats import SectorEvidence
 
@@ -32,7 +33,7 @@ def cross_validate(
     seed=0,
     noise_spacing=None,
     noise_prior=0.1,
-    cutoff=features.DEFAULT_CUTOFF,
+    cutoff=DEFAULT_CUTOFF,
     directions=1,
 ):
     """Pick ``(spacing, gamma)`` from ``candidates`` by K-fold cross-validation.
@@ -87,17 +88,16 @@ def cross_validate(
     table = []
     for spacing, gamma in candidates:
         grid = HingeGrid(lower, upper, spacing)
-        gamma_v = np.broadcast_to(np.asarray(gamma, float), (3,)).copy()
+        kernel = Kernel(tuple(np.broadcast_to(np.asarray(gamma, float), (3,))), cutoff)
         parts = [
             SectorEvidence.from_points(
                 grid,
-                gamma_v,
+                kernel,
                 X[f],
                 V[f],
                 None,
                 weight[f],
                 sectors=sectors,
-                cutoff=cutoff,
                 noise_lattice=lattice,
             )
             for f in (fold == k for k in range(n_splits))
@@ -108,11 +108,11 @@ def cross_validate(
         rmses, mslls = [], []
         for k in range(n_splits):
             test = fold == k
-            evidence, rest = total - parts[k], (alpha, beta, cutoff, lattice, noise_prior)
+            evidence, rest = total - parts[k], (alpha, beta, lattice, noise_prior)
             if sectors.classes == 1:
-                post = Posterior(grid, gamma_v, evidence.classes[0], *rest)
+                post = Posterior(grid, kernel, evidence.classes[0], *rest)
             else:
-                post = Mixture(grid, gamma_v, evidence, *rest, sectors)
+                post = Mixture(grid, kernel, evidence, *rest, sectors)
             modes = post.predict_modes(X[test])
             mean, _ = modes.answer(sectors)
             train = V[~test]
@@ -122,7 +122,7 @@ def cross_validate(
             )
         row = {
             "spacing": np.broadcast_to(spacing, (3,)).tolist(),
-            "gamma": gamma_v.tolist(),
+            "gamma": list(kernel.gamma),
             "hinges": grid.size,
             "cutoff": cutoff,
             "directions": sectors.directions,

@@ -27,8 +27,8 @@ import numpy as np
 
 from bdf._blas import single_threaded
 from bdf.grid import Lattice
+from bdf.kernel import DEFAULT_CUTOFF, window
 
-DEFAULT_CUTOFF = 1e-12
 #: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
 MIN_POINTS_PER_BLOCK = 32
 #: Gathers of at most this many points run point by point, compiled; more share BLAS
@@ -43,12 +43,6 @@ SHORT_ROWS, LANES = 32, 8
 CHUNK_POINTS = 2048
 #: The same in a splat, whose operands are wider (one million points, measured).
 SPLAT_CHUNK = 256
-
-
-def reach(k, cutoff: float) -> np.ndarray:
-    """How far a Gaussian ``exp(-k d^2)`` stays above ``cutoff`` (per axis, as ``k``)."""
-    with np.errstate(over="ignore", divide="ignore"):
-        return np.sqrt(np.log(1.0 / cutoff) / np.asarray(k, float))
 
 
 def expected_kernel(gamma: np.ndarray, noise_std: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -181,7 +175,7 @@ class _Blocks:
         narrowest = k.min(axis=0)
         shape = np.array(lattice.shape)
         self.cutoff = cutoff
-        reach = np.floor(np.sqrt(np.log(1.0 / cutoff) / narrowest) / lattice.step).astype(int)
+        reach = np.floor(window(narrowest, cutoff) / lattice.step).astype(int)
         if len(X) < 2 * MIN_POINTS_PER_BLOCK or np.all(2 * reach + 1 >= shape):
             # too few points to split, or every window would span the lattice (small tiles,
             # radar scans): one window over the whole lattice
@@ -222,8 +216,8 @@ class _Blocks:
         # one buffer per axis for all chunks: allocations of this size would each page-fault
         # where malloc returns freed memory to the system at once (Dask workers set that)
         self._scratch = [np.empty(int(w) * CHUNK_POINTS) for w in self.width]
-        for rows, window in self.chunks():
-            yield rows, window, *self._factors(rows)
+        for rows, box in self.chunks():
+            yield rows, box, *self._factors(rows)
 
 
 @numba.njit(cache=True)
@@ -438,11 +432,11 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
     flat = np.arange(M).reshape(lattice.shape)
     width = tuple(int(w) for w in blocks.width)
     local = np.arange(int(np.prod(width))).reshape(width)
-    for rows, window, fx, fy, fz in blocks:
+    for rows, box, fx, fy, fz in blocks:
         phi = fx.T[:, :, None, None] * fy.T[:, None, :, None] * fz.T[:, None, None, :]
         phi = phi.reshape(len(phi), -1) * amplitude[rows, None]
         pairs = phi.T @ phi
-        hinges = flat[window]
+        hinges = flat[box]
         for k, o in enumerate(stencil.offsets):
             sel = tuple(slice(max(0, -o[d]), width[d] - max(0, o[d])) for d in range(3))
             if any(s.start >= s.stop for s in sel):
@@ -601,7 +595,7 @@ def _row_values(lattice: Lattice, T, k, cutoff) -> int:
     """The most values a row of a window can hold: its z extent (the widest reach, the
     lattice's layers at most) times the table's channels."""
     k_z = float(np.min(np.asarray(k, float).reshape(-1, 3)[:, 2])) * lattice.step[2] ** 2
-    return T.shape[-1] * min(lattice.shape[2], int(2 * np.sqrt(np.log(1.0 / cutoff) / k_z)) + 1)
+    return T.shape[-1] * min(lattice.shape[2], int(2 * window(k_z, cutoff)) + 1)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -646,4 +640,4 @@ def _per_scale(scale, cutoff) -> tuple:
     """What the point-by-point kernels take per ``scale`` (1 or n, 3): it, the window's
     half-width ``reach``, ``ratio = exp(-2 scale)``, and the cutoff."""
     scale = np.ascontiguousarray(scale)
-    return scale, np.sqrt(np.log(1.0 / cutoff) / scale), np.exp(-2.0 * scale), float(cutoff)
+    return scale, window(scale, cutoff), np.exp(-2.0 * scale), float(cutoff)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bdf import features, noise
+from bdf import noise, sparse
 from bdf._validate import (
     as_headings,
     as_hyper,
@@ -20,8 +20,9 @@ from bdf._validate import (
 )
 from bdf.directions import Sectors
 from bdf.grid import HingeGrid
+from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Modes, Posterior
-from bdf.stats import FORMAT_VERSION, SectorEvidence, stencil_of
+from bdf.stats import FORMAT_VERSION, SectorEvidence
 
 
 class BayesianDynamicField:
@@ -96,7 +97,7 @@ class BayesianDynamicField:
         alpha=1e-2,
         beta=1e2,
         *,
-        cutoff=features.DEFAULT_CUTOFF,
+        cutoff=DEFAULT_CUTOFF,
         half_life=None,
         noise_spacing=None,
         noise_prior=0.1,
@@ -136,7 +137,7 @@ class BayesianDynamicField:
         if self.noise_spacing is not None:
             lattice = noise.noise_lattice(self.lower, self.upper, self.noise_spacing)
             as_positive(self.noise_prior, "noise_prior")
-        return grid, gamma, alpha, beta, lattice
+        return grid, Kernel(tuple(gamma), float(self.cutoff)), alpha, beta, lattice
 
     @property
     def hinges(self) -> np.ndarray:
@@ -146,7 +147,7 @@ class BayesianDynamicField:
     # -- learning --------------------------------------------------------------------------
     def fit(self, X, V, *, input_noise_std=None, sample_weight=None, time=None):
         """Learn from ``(X, V)`` only, replacing what was learned. Returns self."""
-        self._grid, self._gamma, self._alpha, self._beta, self._noise_lattice = self._setup()
+        self._grid, self._kernel, self._alpha, self._beta, self._noise_lattice = self._setup()
         self.evidence_ = SectorEvidence.zeros(self._grid, self._noise_lattice, self._sectors)
         self.time_ = None
         return self.partial_fit(X, V, input_noise_std=input_noise_std, sample_weight=sample_weight, time=time)
@@ -179,13 +180,12 @@ class BayesianDynamicField:
         self._warm_start()
         self.evidence_ = self.evidence_ + SectorEvidence.from_points(
             self._grid,
-            self._gamma,
+            self._kernel,
             X,
             V,
             input_noise,
             weight,
             sectors=self._sectors,
-            cutoff=self.cutoff,
             noise_lattice=self._noise_lattice,
         )
         self._posterior = None
@@ -213,8 +213,8 @@ class BayesianDynamicField:
         if not hasattr(self, "evidence_"):
             raise ValueError("this field has not been fitted: call fit(X, V) first")
         if getattr(self, "_posterior", None) is None:
-            model = (self._grid, self._gamma)
-            rest = (self.cutoff, self._noise_lattice, float(self.noise_prior))
+            model = (self._grid, self._kernel)
+            rest = (self._noise_lattice, float(self.noise_prior))
             start = getattr(self, "_start", None)
             if self._sectors.classes == 1:
                 (evidence,) = self.evidence_.classes
@@ -308,8 +308,8 @@ class BayesianDynamicField:
             arrays = {k.removeprefix("evidence_"): data[k] for k in data.files if k.startswith("evidence_")}
         time = params.pop("time_")
         field = cls(**params)
-        grid, gamma, _, _, lattice = field._setup()
-        stencil = stencil_of(grid, gamma, field.cutoff)
+        grid, kernel, _, _, lattice = field._setup()
+        stencil = sparse.stencil_on(grid, kernel)
         evidence = SectorEvidence.from_arrays(arrays, grid, stencil, lattice, field._sectors)
         return field.set_evidence(evidence, time)
 
@@ -319,7 +319,7 @@ class BayesianDynamicField:
         row per class of a directional field: an optimum found on earlier evidence); the
         optimum is the same from any start. Returns self."""
         self._start = start
-        self._grid, self._gamma, self._alpha, self._beta, self._noise_lattice = self._setup()
+        self._grid, self._kernel, self._alpha, self._beta, self._noise_lattice = self._setup()
         if len(evidence.classes) != self._sectors.classes:
             raise ValueError(
                 f"evidence of {len(evidence.classes)} classes given to a field of {self._sectors.classes}"

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bdf.features import DEFAULT_CUTOFF
 from bdf.frames import ENUFrame
+from bdf.kernel import DEFAULT_CUTOFF
 
 log = logging.getLogger(__name__)
 
@@ -260,7 +260,7 @@ def paris_region(
     """The region of :func:`load_paris`'s box: one field, stored in 10 km tiles over the
     whole altitude band, gamma = 1 / spacing^2 unless given, on the sample's origin, with
     ``directions`` heading sectors."""
-    from bdf.tiles import RegionSpec
+    from bdf.region.spec import RegionSpec
 
     frame = sample_origin("paris")
     lower, upper, spacing = np.asarray(lower, float), np.asarray(upper, float), np.asarray(spacing, float)

@@ -9,10 +9,11 @@ import numba
 import numpy as np
 from scipy import special
 
-from bdf import _blas, features, linalg, noise, tuning
+from bdf import _blas, features, noise, sparse, tuning
 from bdf.directions import Sectors, mixture_moments
 from bdf.grid import HingeGrid
-from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence, stencil_of
+from bdf.kernel import Kernel
+from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence
 
 #: ``known``: the data within the kernel's reach weigh at least this (:func:`known`): one
 #: observation of weight 1 at the kernel's 1 % reach, or a track's unit of weight
@@ -66,11 +67,10 @@ class Posterior:
     def __init__(
         self,
         grid: HingeGrid,
-        gamma,
+        kernel: Kernel,
         evidence: Evidence,
         alpha,
         beta,
-        cutoff,
         noise_lattice=None,
         noise_prior=None,
         start=None,
@@ -78,11 +78,12 @@ class Posterior:
         anchor=None,
         density=True,
     ):
-        self.grid, self.gamma, self.cutoff = grid, gamma, cutoff
+        self.grid, self.kernel = grid, kernel
+        self.gamma, self.cutoff = np.array(kernel.gamma), kernel.cutoff
         self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
         # where the data are (:meth:`data_weight`); a mixture keeps its classes' itself
         self._density = evidence.density if density else None
-        self.stencil = stencil_of(grid, gamma, cutoff)
+        self.stencil = sparse.stencil_on(grid, kernel)
         #: alpha or beta came from evidence maximisation ("auto" and some data)
         self.fitted = (isinstance(alpha, str) or isinstance(beta, str)) and evidence.count > 0
         # The prior N(w0, alpha^-1 I) of the weights (w0 = ``prior_weights``, zero unless
@@ -93,7 +94,7 @@ class Posterior:
         proj, v_sq, w0 = evidence.proj, evidence.v_sq, 0.0
         if prior_weights is not None:
             w0 = prior_weights
-            G_w0 = linalg.band_product(self.stencil, band, w0)
+            G_w0 = sparse.band_product(self.stencil, band, w0)
             v_sq = v_sq - 2.0 * np.einsum("mc,mc->c", w0, proj) + np.einsum("mc,mc->c", w0, G_w0)
             proj = proj - G_w0
         self.alpha, self.beta, sols, self.factorisations = tuning.fit_evidence(
@@ -222,7 +223,7 @@ class Posterior:
         for sol in self._solutions:
             if id(sol) not in densities:
                 inverse = sol.factor.inverse_band()
-                densities[id(sol)] = linalg.band_density(self.stencil, inverse, self.grid.midpoints())
+                densities[id(sol)] = sparse.band_density(self.stencil, inverse, self.grid.midpoints())
             columns.append(list(densities).index(id(sol)))
         return np.stack(list(densities.values()), axis=-1), columns
 
@@ -311,36 +312,38 @@ class Mixture:
     def __init__(
         self,
         grid,
-        gamma,
+        kernel: Kernel,
         evidence: SectorEvidence,
         alpha,
         beta,
-        cutoff,
         noise_lattice,
         noise_prior,
         sectors,
         start=None,
     ):
         C = sectors.classes
-        self.sectors, self.grid, self.gamma, self.cutoff = sectors, grid, gamma, cutoff
+        self.sectors, self.grid, self.kernel = sectors, grid, kernel
+        self.gamma, self.cutoff = np.array(kernel.gamma), kernel.cutoff
         alphas, betas = _per_row(alpha, 1 + C), _per_row(beta, 1 + C)
-        rest = (cutoff, noise_lattice, noise_prior)
+        rest = (noise_lattice, noise_prior)
         total = evidence.total()
         starts = [None] * (1 + C) if start is None else list(np.broadcast_to(start, (1 + C, 3)))
-        self.total = Posterior(grid, gamma, total, alphas[0], betas[0], *rest, start=starts[0], density=False)
+        self.total = Posterior(
+            grid, kernel, total, alphas[0], betas[0], *rest, start=starts[0], density=False
+        )
         anchor = float(np.mean(self.total.alpha / self.total.beta))  # a mode's cold start
 
         def mode(c):
             e = evidence.classes[c]
             post = Posterior(
                 grid,
-                gamma,
+                kernel,
                 e,
                 alphas[1 + c],
                 betas[1 + c],
                 *rest,
                 start=starts[1 + c],
-                prior_weights=_layer_prior(e, grid, gamma),
+                prior_weights=_layer_prior(e, grid, self.gamma),
                 anchor=anchor,
                 density=False,
             )

@@ -10,7 +10,7 @@ and the data enter ``Phi^T Phi`` only through the density ``D`` on the midpoint 
 ((2 n_d - 1) points per axis): that is what :class:`Evidence` stores, O(N K) to build and
 about 8 M numbers instead of M^2. Points with input noise (the expected kernel has a
 per-point width) do not fit the identity; their Gram part is kept in ``gram_noisy`` as a
-band on the precision's stencil (:mod:`bdf.linalg`).
+band on the precision's stencil (:mod:`bdf.sparse`).
 
 Stored format (version 3), all float64:
     density     (2nx-1, 2ny-1, 2nz-1)   D above, noise-free points
@@ -42,10 +42,11 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from bdf import features, linalg, noise
+from bdf import features, noise, sparse
 from bdf._validate import take_rows
 from bdf.directions import Sectors
 from bdf.grid import HingeGrid, Lattice
+from bdf.kernel import Kernel
 
 FORMAT_VERSION = 3
 #: Blob formats this code reads.
@@ -83,13 +84,12 @@ class Evidence:
     def from_points(
         cls,
         grid: HingeGrid,
-        gamma: np.ndarray,
+        kernel: Kernel,
         X: np.ndarray,
         V: np.ndarray,
         input_noise_std: np.ndarray | None = None,
         sample_weight: np.ndarray | None = None,
         *,
-        cutoff: float = features.DEFAULT_CUTOFF,
         noise_lattice: Lattice | None = None,
         mass: bool = True,
     ) -> Evidence:
@@ -102,6 +102,7 @@ class Evidence:
         ``mass=False`` leaves ``mass`` zero: only the share field of a directional map reads
         it, and a map of one class saves a quarter of ``Phi^T V``'s splat.
         """
+        gamma, cutoff = np.array(kernel.gamma), kernel.cutoff
         w = np.ones(len(X)) if sample_weight is None else sample_weight
         noisy = None if input_noise_std is None else np.any(input_noise_std > 0, 1)
         if noisy is not None and not noisy.any():
@@ -124,7 +125,7 @@ class Evidence:
                 X[noisy],
                 k,
                 amplitude * np.sqrt(w[noisy]),
-                stencil_of(grid, gamma, cutoff),
+                sparse.stencil_on(grid, kernel),
                 cutoff=cutoff,
             )
         return cls(
@@ -175,10 +176,10 @@ class Evidence:
             moments=None if self.moments is None else self.moments * factor,
         )
 
-    def gram_band(self, stencil: linalg.Stencil) -> np.ndarray:
+    def gram_band(self, stencil: sparse.Stencil) -> np.ndarray:
         """``Phi^T Phi`` on the stencil, as a band (K, M): ``c(o) D(midpoint)`` per pair
         (the midpoint of hinges m and m + o is at index ``2 idx(m) + o``), plus the noisy part."""
-        out = linalg.midpoint_band(stencil, self.density)
+        out = sparse.midpoint_band(stencil, self.density)
         if self.gram_noisy is not None:
             out += self.gram_noisy
         return out
@@ -205,7 +206,7 @@ class Evidence:
         cls,
         blob: bytes,
         grid: HingeGrid,
-        stencil: linalg.Stencil,
+        stencil: sparse.Stencil,
         noise_lattice: Lattice | None = None,
         format_version: int = FORMAT_VERSION,
     ) -> Evidence:
@@ -238,7 +239,7 @@ class Evidence:
 
     @classmethod
     def from_arrays(
-        cls, arrays, grid: HingeGrid, stencil: linalg.Stencil, noise_lattice: Lattice | None = None
+        cls, arrays, grid: HingeGrid, stencil: sparse.Stencil, noise_lattice: Lattice | None = None
     ) -> Evidence:
         M = grid.size
         expected = {
@@ -267,11 +268,6 @@ class Evidence:
         return cls(**values)
 
 
-def stencil_of(grid: HingeGrid, gamma, cutoff: float = features.DEFAULT_CUTOFF) -> linalg.Stencil:
-    """The precision's stencil on ``grid`` for kernel ``gamma`` (cached)."""
-    return linalg.stencil(grid.shape, tuple(grid.step), tuple(np.asarray(gamma, float)), float(cutoff))
-
-
 @dataclass
 class SectorEvidence:
     """The evidence of a map: one :class:`Evidence` per traffic class (:mod:`bdf.directions`),
@@ -288,14 +284,13 @@ class SectorEvidence:
     def from_points(
         cls,
         grid: HingeGrid,
-        gamma: np.ndarray,
+        kernel: Kernel,
         X: np.ndarray,
         V: np.ndarray,
         input_noise_std: np.ndarray | None = None,
         sample_weight: np.ndarray | None = None,
         *,
         sectors: Sectors,
-        cutoff: float = features.DEFAULT_CUTOFF,
         noise_lattice: Lattice | None = None,
     ) -> SectorEvidence:
         """The increment of ``(X, V)``: each observation in the class of its velocity."""
@@ -306,7 +301,7 @@ class SectorEvidence:
             part = rows if sectors.classes == 1 else take_rows(rows, np.flatnonzero(label == c))
             parts.append(
                 Evidence.from_points(
-                    grid, gamma, *part, cutoff=cutoff, noise_lattice=noise_lattice, mass=sectors.classes > 1
+                    grid, kernel, *part, noise_lattice=noise_lattice, mass=sectors.classes > 1
                 )
             )
         return cls(tuple(parts))
@@ -367,7 +362,7 @@ class SectorEvidence:
         cls,
         blob: bytes,
         grid: HingeGrid,
-        stencil: linalg.Stencil,
+        stencil: sparse.Stencil,
         noise_lattice: Lattice | None,
         sectors: Sectors,
         format_version: int = FORMAT_VERSION,

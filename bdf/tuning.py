@@ -11,7 +11,7 @@ ln|G + lam I|``. Everything comes from the additive statistics. For a fixed rati
 the best beta is ``N / R`` in closed form, so with both hyperparameters "auto" a 1-D
 search over ``lam`` with one Cholesky factorisation per step fits alpha and a separate
 beta for each of the three components (they share ``lam``, hence one factorisation).
-Factorisations are sparse (:mod:`bdf.linalg`): one symbolic analysis per stencil, then a
+Factorisations are sparse (:mod:`bdf.sparse`): one symbolic analysis per stencil, then a
 numeric factorisation of ``G + lam I`` per step.
 
 The search is Newton's method in ``x = ln lam`` on the evidence's slope and curvature,
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bdf import linalg
+from bdf import sparse
 
 log = logging.getLogger(__name__)
 
@@ -82,19 +82,19 @@ class Solution:
     """One factorisation of ``G + lam I`` and what it gives."""
 
     lam: float
-    factor: linalg.Factor
+    factor: sparse.Factor
     weights: np.ndarray  # (M, 3) posterior means m for every component
     logdet: float  # ln|G + lam I|
     residual: np.ndarray  # (3,) R per component
 
 
-def solve(stencil: linalg.Stencil, band, proj: np.ndarray, v_sq: np.ndarray, lam: float) -> Solution:
+def solve(stencil: sparse.Stencil, band, proj: np.ndarray, v_sq: np.ndarray, lam: float) -> Solution:
     """Factor ``G + lam I`` (``G`` given as its band on ``stencil``) and solve for the three
     components."""
     try:
         factor = stencil.factor_of(band, lam)
-    except linalg.NotPositiveDefinite:
-        raise linalg.NotPositiveDefinite(
+    except sparse.NotPositiveDefinite:
+        raise sparse.NotPositiveDefinite(
             f"the precision matrix is not positive definite (alpha/beta = {lam:.3g}); "
             "increase alpha or decrease beta"
         ) from None
@@ -271,7 +271,7 @@ def fit_evidence(
             def evaluate(x):
                 try:
                     sol = solve(stencil, band, proj, v_sq, scale * np.exp(x))
-                except linalg.NotPositiveDefinite:
+                except sparse.NotPositiveDefinite:
                     return np.nan, np.nan, np.nan  # rounding at the smallest ratios: move up
                 latest[0] = sol
                 a, b = _hyper_for(sol, alpha, beta, count)
@@ -315,7 +315,7 @@ def fit_evidence(
             factorisations += evaluations
             sol = best[1]
         if sol is None:  # no ratio in the range could be factored
-            raise linalg.NotPositiveDefinite(
+            raise sparse.NotPositiveDefinite(
                 f"the precision matrix is not positive definite at any alpha/beta in "
                 f"[{scale * np.exp(bounds[0]):.3g}, {scale * np.exp(bounds[1]):.3g}]"
             )

@@ -33,7 +33,8 @@ from distributed import Client
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_city
 
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import increments
+from bdf.region.spec import RegionSpec
 from service.build import BATCH_ROWS, build, local_cluster, merge, plan, slice_evidence
 from service.maps import RegionMaps
 from service.store import open_store
@@ -108,7 +109,7 @@ def _warm(spec_json: str) -> None:
     spec = RegionSpec.model_validate_json(spec_json)
     X, V, _ = make_city.sample(20_000, np.random.default_rng(1))
     inside = spec.inside(X)
-    spec.increments(X[inside], V[inside])
+    increments(spec, X[inside], V[inside])
 
 
 def score(store, spec: RegionSpec, seed: int = 99, n: int = 50_000) -> dict:

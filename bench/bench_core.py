@@ -42,9 +42,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bdf import BayesianDynamicField, crossval, features, ingest, metrics
+from bdf import BayesianDynamicField, crossval, ingest, metrics
 from bdf.directions import Sectors
 from bdf.ingest import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M
+from bdf.kernel import DEFAULT_CUTOFF
 from bdf.stats import Evidence, SectorEvidence
 
 PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
@@ -290,7 +291,7 @@ def weighted_cv(
     lower,
     upper,
     spacings=CV_SPACINGS_M,
-    cutoff=features.DEFAULT_CUTOFF,
+    cutoff=DEFAULT_CUTOFF,
     scales=(1.0, 2.0),
     directions=1,
 ) -> list[dict]:
@@ -393,7 +394,7 @@ def soft_evidence(field, X, V, weight):
         share = slow * 1.0 if c == S else ~slow * ((low == c) * (1 - t) + ((low + 1) % S == c) * t)
         w = weight * share
         keep = w > 0
-        parts.append(Evidence.from_points(field._grid, field._gamma, X[keep], V[keep], None, w[keep]))
+        parts.append(Evidence.from_points(field._grid, field._kernel, X[keep], V[keep], None, w[keep]))
     return SectorEvidence(tuple(parts))
 
 

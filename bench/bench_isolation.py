@@ -10,7 +10,7 @@ whose size a client chooses: point queries with modes (JSON, Arrow), grids with 
 
 ``maps``: peak RSS of computing a map with data over its whole lattice (the worst fill),
 at 2,250, 4,840 and 10,240 hinges x 872 offsets x 9 classes, each in a fresh process
-(about 7 minutes): what ``bdf.tiles.MAP_BYTES_PER_COUPLING`` is set from.
+(about 7 minutes): what ``bdf.region.spec.MAP_BYTES_PER_COUPLING`` is set from.
 
 ``stress``: ``bdf serve`` (2 light threads, 1 heavy) on loopback; while each stress of the
 issue's table runs, a prober measures ``/healthz`` and a cached 1,000-point query of
@@ -129,7 +129,9 @@ MAP_CASE = r"""
 import json, resource, sys, time
 import numpy as np
 sys.path.insert(0, {root!r})
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
+from bdf.region.evidence import increments, region_total
+from bdf.region.map import compute_posterior
 nx = int(sys.argv[1])
 spec = RegionSpec.model_validate({{
     "name": "full", "origin": {{"lat": 48.0, "lon": 2.0}},
@@ -140,10 +142,10 @@ rng = np.random.default_rng(0)
 X = rng.uniform(spec.lower, spec.upper, (30000, 3))  # over the whole lattice: the worst fill
 heading = rng.integers(0, 8, len(X)) * np.pi / 4
 V = np.stack([40 * np.sin(heading), 40 * np.cos(heading), rng.normal(0, 1, len(X))], 1)
-evidence = spec.region_evidence({{k: i.evidence for k, i in spec.increments(X, V).items()}})
+evidence = region_total(spec, {{k: i.evidence for k, i in increments(spec, X, V).items()}})
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 t = time.perf_counter()
-spec.posterior(evidence)
+compute_posterior(spec, evidence)
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({{"hinges": spec.grid.size, "offsets": len(spec.stencil.offsets),
                   "classes": spec.sectors.classes, "couplings": spec.couplings,
@@ -154,7 +156,7 @@ print(json.dumps({{"hinges": spec.grid.size, "offsets": len(spec.stencil.offsets
 def map_rows() -> list[dict]:
     """Peak RSS of computing a region's map with data over its whole lattice (the factor's
     largest fill), each in a fresh process: what ``MAP_BYTES_PER_COUPLING`` is set from."""
-    from bdf.tiles import MAP_BYTES_PER_COUPLING
+    from bdf.region.spec import MAP_BYTES_PER_COUPLING
 
     rows = []
     for nx in (15, 22, 32):

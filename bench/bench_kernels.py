@@ -30,9 +30,10 @@ import pyarrow as pa
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_city
 
-from bdf import linalg, tuning
+from bdf import sparse, tuning
 from bdf.posterior import _layer_prior
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import increments, region_total
+from bdf.region.spec import RegionSpec
 from service import formats
 
 
@@ -59,8 +60,8 @@ def evidence_rows() -> list[tuple[str, str]]:
     rows = []
     for S in (1, 8):
         spec = RegionSpec.model_validate(make_city.region_spec(directions=S))
-        spec.increments(X[:1000], V[:1000])  # compile
-        s = best(lambda spec=spec: spec.increments(X, V))
+        increments(spec, X[:1000], V[:1000])  # compile
+        s = best(lambda spec=spec: increments(spec, X, V))
         rows.append((f"evidence, {S} sector(s) [us a point]", f"{s / len(X) * 1e6:.3f}"))
     return rows
 
@@ -127,13 +128,13 @@ def arrow_rows() -> list[tuple[str, str]]:
 def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
     spec = RegionSpec.model_validate(make_city.region_spec(directions=8))
     X, V, _ = make_city.sample(1_000_000, np.random.default_rng(0))
-    increments = spec.increments(X, V)
-    evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()}).classes[klass]
+    tile_increments = increments(spec, X, V)
+    evidence = region_total(spec, {k: i.evidence for k, i in tile_increments.items()}).classes[klass]
     grid, gamma, stencil = spec.grid, np.array(spec.gamma), spec.stencil
     band = evidence.gram_band(stencil)
     # the statistics the search sees, with the mode's prior mean (bdf.posterior.Posterior)
     w0 = _layer_prior(evidence, grid, gamma)
-    Gw0 = linalg.band_product(stencil, band, w0)
+    Gw0 = sparse.band_product(stencil, band, w0)
     proj = evidence.proj - Gw0
     v_sq = evidence.v_sq - 2 * np.einsum("mc,mc->c", w0, evidence.proj) + np.einsum("mc,mc->c", w0, Gw0)
     G = np.zeros((stencil.size, stencil.size))
@@ -142,7 +143,7 @@ def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
         G[a, b] += band[k][a]
         if k:
             G[b, a] += band[k][a]
-    values, vectors = np.linalg.eigh(G)
+    values, vectors = np.sparse.eigh(G)
     scale = float(np.mean(band[0]))
     projected = vectors.T @ proj
     rows = [(f"class {klass}: smallest eigenvalue of G / mean(diag G)", f"{values.min() / scale:.2g}")]

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import arguments, postgres_schema, publish, rows_table  # bench/ is on the path
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from clients.load import mixed_load, stored_difference, upload_batch
 from clients.local import LocalService
 from tests.service.test_store import SPEC  # the suite's small town

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_core import rows_table
 
 from bdf import ingest
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE, across_flow, busiest_flow, tube_voxels
 from clients.local import LocalService
 from clients.sdk import BDFClient

@@ -28,15 +28,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bdf import BayesianDynamicField, ingest, linalg, posterior, tuning
+from bdf import BayesianDynamicField, ingest, posterior, sparse, tuning
 from bdf.ingest import PARIS_GAMMA, PARIS_SPACING_M
 
 
 @contextlib.contextmanager
 def configured(cover: float, supports: int, optima: dict | None):
-    """``linalg.COVER`` and ``Stencil.SUPPORTS`` set, and with ``optima`` (class count ->
+    """``sparse.stencil.COVER`` and ``Stencil.SUPPORTS`` set, and with ``optima`` (class count ->
     ratio) the modes' searches started there instead of at the total's optimum."""
-    saved = linalg.COVER, linalg.Stencil.SUPPORTS, posterior.tuning.fit_evidence
+    saved = sparse.stencil.COVER, sparse.Stencil.SUPPORTS, posterior.tuning.fit_evidence
     search = tuning.fit_evidence
 
     def started_at_optimum(stencil, band, proj, v_sq, count, alpha, beta, start=None):
@@ -44,13 +44,13 @@ def configured(cover: float, supports: int, optima: dict | None):
             start = optima[round(float(count), 6)]
         return search(stencil, band, proj, v_sq, count, alpha, beta, start)
 
-    linalg.COVER, linalg.Stencil.SUPPORTS = cover, supports
+    sparse.stencil.COVER, sparse.Stencil.SUPPORTS = cover, supports
     if optima is not None:
         posterior.tuning.fit_evidence = started_at_optimum
     try:
         yield
     finally:
-        linalg.COVER, linalg.Stencil.SUPPORTS, posterior.tuning.fit_evidence = saved
+        sparse.stencil.COVER, sparse.Stencil.SUPPORTS, posterior.tuning.fit_evidence = saved
 
 
 def main() -> int:
@@ -74,7 +74,7 @@ def main() -> int:
         for e, m in zip(eight.evidence_.classes, eight.posterior_.modes, strict=True)
     }
     hyper = {S: (f.posterior_.alpha, f.posterior_.beta) for S, f in ((1, one), (8, eight))}
-    shipped = (linalg.COVER, linalg.Stencil.SUPPORTS)
+    shipped = (sparse.stencil.COVER, sparse.Stencil.SUPPORTS)
     configurations = {
         "as shipped": (*shipped, None, False),
         "modes' searches started at their optima": (*shipped, optima, False),

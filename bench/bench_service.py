@@ -57,6 +57,8 @@ from bench_core import (  # bench/ is on the path as a script
 )
 
 from bdf import features, ingest
+from bdf.region.evidence import increments, region_total
+from bdf.region.map import RegionMap, compute_posterior
 from clients.local import LocalService
 from service.formats import ARROW, NPZ, arrow_bytes
 
@@ -223,9 +225,9 @@ def library_rows(spec, obs, test, X) -> list[dict]:
     by the blocked BLAS one, interleaved so both see the same machine; and the warm
     100 x 100 x 30 grid. Medians."""
     train = obs.subset(~test)
-    increments = spec.increments(train.X, train.V)
-    post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
-    keys = frozenset(increments)
+    tile_increments = increments(spec, train.X, train.V)
+    post = compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tile_increments.items()}))
+    keys = frozenset(tile_increments)
     gather = features.gather
     paths = {
         "compiled, point by point": features.gather_pointwise,
@@ -239,7 +241,7 @@ def library_rows(spec, obs, test, X) -> list[dict]:
                 for name, path in paths.items():
                     features.gather = lambda *a, block=1, path=path, **kw: path(*a, **kw)
                     t0 = time.perf_counter()
-                    spec.predict(points, post, keys)
+                    RegionMap(spec, post).predict(points, keys)
                     times[name].append(time.perf_counter() - t0)
             for name, t in times.items():
                 ms = 1e3 * float(np.median(t))
@@ -247,18 +249,18 @@ def library_rows(spec, obs, test, X) -> list[dict]:
     finally:
         features.gather = gather
     axes = spec.box_axes(spec.lower, spec.upper, (spec.upper - spec.lower) / (np.array([100, 100, 30]) - 1))
-    spec.predict_grid(axes, post, keys)
+    RegionMap(spec, post).predict_grid(axes, keys)
     times = []
     for _ in range(5):
         t0 = time.perf_counter()
-        spec.predict_grid(axes, post, keys)
+        RegionMap(spec, post).predict_grid(axes, keys)
         times.append(time.perf_counter() - t0)
     rows.append({"what": "grid 100x100x30, library (no HTTP)", "p50 ms": 1e3 * float(np.median(times))})
     if spec.directions > 1:  # what a grid request with modes computes: the modes, then their moments
         times = []
         for _ in range(5):
             t0 = time.perf_counter()
-            spec.predict_grid(axes, post, keys, spec.predict_grid_modes(axes, post))
+            RegionMap(spec, post).predict_grid(axes, keys, RegionMap(spec, post).predict_grid_modes(axes))
             times.append(time.perf_counter() - t0)
         rows.append(
             {"what": "grid 100x100x30 with modes, library (no HTTP)", "p50 ms": 1e3 * float(np.median(times))}

@@ -50,8 +50,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_core import publish, rows_table  # bench/ is on the path when run as a script
 from bench_service import arrow_points
 
-from bdf import ingest, linalg, metrics
+from bdf import ingest, metrics, sparse
 from bdf.ingest import PARIS_SPACING_M
+from bdf.region.evidence import region_total
+from bdf.region.map import RegionMap
 from clients.local import LocalService
 from service.maps import RegionMaps
 from service.store import open_store
@@ -69,8 +71,8 @@ def split():
 
 def held_out(spec, post, train, test) -> dict:
     """Held-out accuracy of a posterior (the served map's, or the single fit's)."""
-    modes = spec.predict_modes(test.X, post)
-    mean, std, _ = spec.predict(test.X, post, modes=modes)
+    modes = RegionMap(spec, post).predict_modes(test.X)
+    mean, std, _ = RegionMap(spec, post).predict(test.X, modes=modes)
     cov = metrics.coverage(test.V, mean, std, axis=0)
     row = {
         "cov95 e": cov[0],
@@ -96,7 +98,7 @@ def calibration(directions, counts, train, weight, test, lower, upper, tmp) -> t
     single_s = time.perf_counter() - t0
     climate = np.sqrt((train.V**2).mean(0))
     probe = np.random.default_rng(2).uniform(spec.lower, spec.upper, (20_000, 3))
-    want = spec.predict(probe, single)[0]
+    want = RegionMap(spec, single).predict(probe)[0]
     rows = [{"directions": directions, "built by": "single fit", **held_out(spec, single, train, test)}]
     timing = {"single fit [s]": single_s}
     flights = np.unique(train.flight)
@@ -114,7 +116,7 @@ def calibration(directions, counts, train, weight, test, lower, upper, tmp) -> t
         state = maps.refresh(spec.name)
         build_s = time.perf_counter() - t0
         post = state.posterior
-        got = spec.predict(probe, post)[0]
+        got = RegionMap(spec, post).predict(probe)[0]
         lam = np.log(post.alpha / post.beta) - np.log(single.alpha / single.beta)
         rows.append(
             {
@@ -160,7 +162,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
     RegionMaps(store).upload(spec.name, "base", train.X[keep], train.V[keep], sample_weight=weight[keep])
     cold, cold_f = [], []
     for _ in range(rounds):
-        linalg.stencil.cache_clear()  # a new process: no analysis, no decoded tiles, no optimum
+        sparse.lattice_stencil.cache_clear()  # a new process: no analysis, no decoded tiles, no optimum
         maps = RegionMaps(store, cache_mb=2048)
         maps._start = lambda *a: None  # nor the store's record of the optimum
         t0 = time.perf_counter()
@@ -188,7 +190,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
         warm_f.append(state.posterior.factorisations)
         # the same map at the optimum found, given: what a refresh without the search costs
         post = state.posterior
-        evidence = spec.region_evidence(store.snapshot(spec.name).evidence)
+        evidence = region_total(spec, store.snapshot(spec.name).evidence)
         t0 = time.perf_counter()
         spec.field(post.alpha, post.beta).set_evidence(evidence).posterior_.compact()
         fixed.append(time.perf_counter() - t0)

@@ -48,8 +48,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_core import accuracy, publish  # bench/ is on the path when run as a script
 from sksparse.cholmod import analyze
 
-from bdf import features, ingest, linalg
-from bdf.tiles import RegionSpec
+from bdf import ingest, sparse
+from bdf.kernel import DEFAULT_CUTOFF
+from bdf.region.evidence import region_total
+from bdf.region.spec import RegionSpec
 from service.maps import RegionMaps
 from service.store import open_store
 
@@ -88,7 +90,7 @@ def paris(spacing, cutoff, directions=1) -> RegionSpec:
 def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
     """Largest error of the map at each cutoff against 1e-12 on 20,000 random points."""
     train = obs.subset(~test)
-    exact = paris(spacing, features.DEFAULT_CUTOFF)
+    exact = paris(spacing, DEFAULT_CUTOFF)
     weight = ingest.track_weights(train, exact.spacing_m)
     climate = np.sqrt(np.average(train.V**2, axis=0, weights=weight))
     ref = exact.field().fit(train.X, train.V, sample_weight=weight)
@@ -101,7 +103,7 @@ def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
         "| max mean error / climatology std | max std relative error |",
         "|---|---|---|---|---|---|---|",
     ]
-    for cutoff in [*cutoffs, features.DEFAULT_CUTOFF]:
+    for cutoff in [*cutoffs, DEFAULT_CUTOFF]:
         spec = paris(spacing, cutoff)
         field = spec.field(ref.alpha_, ref.beta_).fit(train.X, train.V, sample_weight=weight)
         mean, std = field.predict(Q, return_std=True)
@@ -168,7 +170,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         # cold and warm 10,000-point queries
         Q = np.random.default_rng(1).uniform(spec.lower, spec.upper, (10_000, 3))
         cold = RegionMaps(store)
-        linalg.stencil.cache_clear()
+        sparse.lattice_stencil.cache_clear()
         t0 = time.perf_counter()
         assert cold.predict(spec.name, Q).version == result["region_version"]
         row["cold 10k query [s]"] = time.perf_counter() - t0
@@ -176,7 +178,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         cold.predict(spec.name, Q)
         row["warm 10k query [ms]"] = 1e3 * (time.perf_counter() - t0)
         # the factorisation against the hardware
-        ev = spec.region_evidence(store.snapshot(spec.name).evidence)
+        ev = region_total(spec, store.snapshot(spec.name).evidence)
         st = spec.stencil
         band_ = ev.total().gram_band(st)  # the map with one class (a directional map has one per class)
         t0 = time.perf_counter()
@@ -198,7 +200,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         row["selected inversion at GEMM rate [s]"] = factor.inverse_madds / rate
         row["dense Cholesky at GEMM rate [s]"] = spec.grid.size**3 / 6 / rate
         # the symbolic analysis from scratch: our order, then METIS's (CHOLMOD's own choice)
-        linalg.stencil.cache_clear()
+        sparse.lattice_stencil.cache_clear()
         fresh = spec.stencil
         t0 = time.perf_counter()
         support = fresh.support(band_[0] != 0)  # the order, the pattern
@@ -212,7 +214,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         metis = analyze(A, mode="supernodal", ordering_method="metis")
         row["METIS analysis [s]"] = time.perf_counter() - t0
         row["METIS factor Gmadd"] = (
-            linalg.factor_madds(np.diff(metis.cholesky(A, beta=shift).L().tocsc().indptr)) / 1e9
+            sparse.stencil.factor_madds(np.diff(metis.cholesky(A, beta=shift).L().tocsc().indptr)) / 1e9
         )
         store.close()
     return row
@@ -221,9 +223,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spacing", nargs="+", default=["4000,4000,1000"], help="hinge spacings, x,y,z metres")
-    ap.add_argument(
-        "--cutoff", type=float, default=features.DEFAULT_CUTOFF, help="the regions' kernel cutoff"
-    )
+    ap.add_argument("--cutoff", type=float, default=DEFAULT_CUTOFF, help="the regions' kernel cutoff")
     ap.add_argument(
         "--cutoffs", default="", help="looser cutoffs to compare on the first lattice, comma-separated"
     )

@@ -469,7 +469,9 @@ def build_parser() -> argparse.ArgumentParser:
     ):
         p = connection(actions.add_parser(action, help=text, description=text))
         if action == "create":
-            p.add_argument("spec", type=Path, help="JSON file of the region spec (bdf.tiles.RegionSpec)")
+            p.add_argument(
+                "spec", type=Path, help="JSON file of the region spec (bdf.region.spec.RegionSpec)"
+            )
         elif action != "list":
             p.add_argument("name", help="region name")
         p.set_defaults(

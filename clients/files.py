@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bdf import ingest
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 
 
 @dataclass

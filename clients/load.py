@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 import httpx
 import numpy as np
 
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import increments
+from bdf.region.spec import RegionSpec
 from service.formats import ARROW, NPZ, arrow_bytes
 from service.store import open_store
 
@@ -143,7 +144,7 @@ def stored_difference(store_url: str, spec: RegionSpec, seeds: list[int]) -> flo
     statistic's scale (0 up to rounding; ``inf`` if tiles or the observation count differ)."""
     batches = [upload_batch(spec, s) for s in seeds]
     X, V = np.vstack([b[0] for b in batches]), np.vstack([b[1] for b in batches])
-    expected = {k: i.evidence for k, i in spec.increments(X, V).items()}
+    expected = {k: i.evidence for k, i in increments(spec, X, V).items()}
     store = open_store(store_url)
     try:
         snap = store.snapshot(spec.name)

@@ -29,7 +29,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.ipc
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 
 JSON = "application/json"
 ARROW = "application/vnd.apache.arrow.stream"

@@ -20,7 +20,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import increments, region_total
+from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.spec import RegionSpec
 from planner.costmap import CostMap, CostWeights, Modes, path_metrics
 from planner.search import Box, Problem, Solution, solve
 
@@ -90,9 +92,9 @@ class LocalMap:
     @classmethod
     def fit(cls, spec: RegionSpec, X, V, **kwargs) -> LocalMap:
         """The map of observations ``(X, V)`` (keywords of :meth:`RegionSpec.increments`)."""
-        increments = spec.increments(X, V, **kwargs)
-        evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
-        return cls(spec, spec.posterior(evidence))
+        tile_increments = increments(spec, X, V, **kwargs)
+        evidence = region_total(spec, {k: i.evidence for k, i in tile_increments.items()})
+        return cls(spec, compute_posterior(spec, evidence))
 
     def _check(self, name: str) -> None:
         if name != self.spec.name:
@@ -106,15 +108,15 @@ class LocalMap:
         self._check(name)
         lo, hi = (self.spec.lower, self.spec.upper) if bbox is None else (bbox[:3], bbox[3:])
         axes = tuple(self.spec.box_axes(lo, hi, step))
-        m = self.spec.predict_grid_modes(axes, self.posterior) if modes else None
-        mean, std, known = self.spec.predict_grid(axes, self.posterior, m)
+        m = RegionMap(self.spec, self.posterior).predict_grid_modes(axes) if modes else None
+        mean, std, known = RegionMap(self.spec, self.posterior).predict_grid(axes, m)
         if m is None:
             return LocalGrid(axes, mean, std, known)
         return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std, m.share_std)
 
     def query(self, name: str, X, *, heading_deg=None) -> LocalPrediction:
         self._check(name)
-        mean, std, _ = self.spec.predict(np.asarray(X, float), self.posterior, heading_deg)
+        mean, std, _ = RegionMap(self.spec, self.posterior).predict(np.asarray(X, float), heading_deg)
         return LocalPrediction(mean, std)
 
 

@@ -1,7 +1,7 @@
 """The HTTP API (v1): regions, observations, fits, queries, grids, tubes, tiles.
 
 Routes stay thin: decoding and encoding live in :mod:`service.formats`, the maps in
-:mod:`service.maps` and :mod:`bdf.tiles`, storage in :mod:`service.store`. Every route
+:mod:`service.maps` and :mod:`bdf.region`, storage in :mod:`service.store`. Every route
 declares its scope (``x-scope`` in the OpenAPI document). Work that takes CPU or the
 database runs in a lane's threads (:mod:`service.lanes`: light or heavy, bounded, shed
 when full), never on the event loop; ``/healthz`` and ``/metrics`` answer from the event
@@ -27,7 +27,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
 from bdf import directions
-from bdf.tiles import RegionSpec, key_str
+from bdf.region.spec import RegionSpec, key_str
 from service import formats, problems, slices
 from service.auth import PUBLIC, require
 from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET

@@ -41,7 +41,9 @@ from distributed.comm import CommClosedError
 from tqdm import tqdm
 
 from bdf import ingest
-from bdf.tiles import Increment, RegionSpec, TileKey
+from bdf.region.evidence import Increment, region_total
+from bdf.region.map import compute_posterior
+from bdf.region.spec import RegionSpec, TileKey
 from service import formats
 from service.maps import REJECTED, fitted, observations_evidence, require_accepted
 from service.problems import Problem
@@ -337,8 +339,8 @@ def build(
     info = store.region(region)  # apply refuses it if the region was re-created meanwhile
     post = None  # a fit's map is computed first: one that cannot be solved stores nothing
     if replace:
-        evidence = info.spec.region_evidence({k: i.evidence for k, i in total.increments.items()})
-        post = info.spec.posterior(evidence, stored=False)
+        evidence = region_total(info.spec, {k: i.evidence for k, i in total.increments.items()})
+        post = compute_posterior(info.spec, evidence, stored=False)
     result = store.apply(
         region,
         spec_id,

@@ -23,7 +23,7 @@ import pyarrow.ipc
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from service.problems import Problem
 
 JSON = "application/json"

@@ -36,7 +36,9 @@ import numpy as np
 
 from bdf._validate import noise_std_rows, rows_all
 from bdf.posterior import Mixture, Modes, Posterior
-from bdf.tiles import Increment, RegionSpec, TileKey
+from bdf.region.evidence import Increment, increments, region_total
+from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.spec import RegionSpec, TileKey
 from service import lanes
 from service.store import (
     MapStore,
@@ -69,6 +71,11 @@ class MapState:
     @property
     def nbytes(self) -> int:
         return self.posterior.nbytes
+
+    @property
+    def map(self) -> RegionMap:
+        """What queries read: the posterior with the spec that checks their points."""
+        return RegionMap(self.spec, self.posterior)
 
 
 class PosteriorCache:
@@ -195,9 +202,9 @@ class RegionMaps:
             self._spawner.stop()
 
     def _posterior(self, spec: RegionSpec, evidence, start=None, stored=True) -> Posterior | Mixture:
-        """``spec.posterior(evidence, start, stored=stored)``, in the child process if isolated."""
+        """``compute_posterior(spec, evidence, start, stored=stored)``, in the child process if isolated."""
         if not self._isolate:
-            return spec.posterior(evidence, start, stored=stored)
+            return compute_posterior(spec, evidence, start, stored=stored)
         for attempt in range(2):
             with self._lock:
                 if self._pool is None:
@@ -252,7 +259,7 @@ class RegionMaps:
         require_accepted(summary, "fit" if replace else "upload")
         post = None
         if replace:
-            evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
+            evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
             post = self._posterior(spec, evidence, self._start(info), stored=False)
         lanes.check()  # past the deadline the client has its 503: store nothing
         result = self.store.apply(
@@ -335,8 +342,8 @@ class RegionMaps:
             lanes.check()
             part = slice(lo, lo + self.CHUNK)
             heading = heading_deg[part] if heading_deg is not None and np.ndim(heading_deg) else heading_deg
-            per_class = state.spec.predict_modes(X[part], state.posterior) if modes else None
-            parts.append((*state.spec.predict(X[part], state.posterior, heading, per_class), per_class))
+            per_class = state.map.predict_modes(X[part]) if modes else None
+            parts.append((*state.map.predict(X[part], heading, per_class), per_class))
         mean, std, known, per_class = _joined(parts, axis=0)
         return Prediction(
             mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
@@ -355,8 +362,8 @@ class RegionMaps:
         for lo in range(0, max(x.size, 1), slab):  # a deadline check between slabs of x
             lanes.check()
             sub = [x[lo : lo + slab], *rest]
-            per_class = state.spec.predict_grid_modes(sub, state.posterior) if modes else None
-            parts.append((*state.spec.predict_grid(sub, state.posterior, per_class), per_class))
+            per_class = state.map.predict_grid_modes(sub) if modes else None
+            parts.append((*state.map.predict_grid(sub, per_class), per_class))
         mean, std, known, per_class = _joined(parts, axis=0)
         return Prediction(
             mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
@@ -460,7 +467,7 @@ class RegionMaps:
             started = time.perf_counter()
             snap, evidence = self._snapshot_evidence(region, info.region_id)
             spec = snap.region.spec
-            post = self._posterior(spec, spec.region_evidence(evidence), self._start(snap.region, newest))
+            post = self._posterior(spec, region_total(spec, evidence), self._start(snap.region, newest))
             state = MapState(spec, snap.region.region_id, snap.region.version, post)
             self._publish(state)
             seconds = time.perf_counter() - started
@@ -615,7 +622,7 @@ def _joined(parts: list[tuple], axis: int) -> tuple:
 
 def _compute_posterior(spec: RegionSpec, evidence, start, stored):
     """:meth:`RegionSpec.posterior` (a module function: what the posterior process runs)."""
-    return spec.posterior(evidence, start, stored=stored)
+    return compute_posterior(spec, evidence, start, stored=stored)
 
 
 #: How often the posterior process checks that the process that started it lives (s).
@@ -712,7 +719,7 @@ def observations_evidence(
 ) -> tuple[dict[TileKey, Increment], dict]:
     """The tile increments of observations, and the summary the ledger keeps: rows with a
     non-finite value, outside the region or outside its physical envelope (speeds, input
-    noise, weights: :class:`bdf.tiles.Envelope`) are rejected and counted by reason
+    noise, weights: :class:`bdf.region.spec.Envelope`) are rejected and counted by reason
     (:data:`REJECTED`), the rest accepted. Uploads, fits and Dask builds all learn through
     this."""
     return _evidence(spec, *_checked(X, V, input_noise_std, sample_weight), progress)
@@ -736,10 +743,11 @@ def _evidence(spec: RegionSpec, X, V, noise, weight, progress):
     def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
         return a if a is None or every else np.compress(keep, a, axis=0)
 
-    increments = (
+    tile_increments = (
         {}
         if not keep.any()
-        else spec.increments(
+        else increments(
+            spec,
             kept(X),
             kept(V),
             input_noise_std=kept(noise),
@@ -752,7 +760,7 @@ def _evidence(spec: RegionSpec, X, V, noise, weight, progress):
         "accepted": int(keep.sum()),
         "rejected": {reason: int(c.sum()) for reason, c in zip(REJECTED, counts, strict=True)},
     }
-    return increments, summary
+    return tile_increments, summary
 
 
 def require_accepted(summary: dict, what: str) -> None:

@@ -62,8 +62,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bdf.region.evidence import Increment, decode_tile
+from bdf.region.spec import RegionSpec, TileKey, key_str, parse_key
 from bdf.stats import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence
-from bdf.tiles import Increment, RegionSpec, TileKey, key_str, parse_key
 
 SCHEMA_VERSION = 4
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
@@ -666,7 +667,7 @@ def _decode(spec: RegionSpec, key: TileKey, blob, format_version, stored_checksu
             "`bdf verify` lists every such tile; restore the store from a backup or fit the region again"
         )
     try:
-        return spec.decode(key, blob, int(format_version))
+        return decode_tile(spec, key, blob, int(format_version))
     except ValueError as exc:
         raise CorruptTile(f"{where}: its stored statistics cannot be decoded ({exc})") from exc
 

@@ -5,7 +5,9 @@ import pytest
 
 from bdf import BayesianDynamicField
 from bdf.directions import Sectors, mixture_moments
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import decode_tile, increments, region_total
+from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.spec import RegionSpec
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER, dense_features
 from tests.bdf.test_field import assert_close
 from tests.bdf.test_tiles import SMALL
@@ -178,20 +180,20 @@ def test_a_directional_region_is_one_directional_field():
     X = rng.uniform(spec.lower, spec.upper, (3000, 3))
     V = np.where((X[:, 0] > 150)[:, None], [[0.0, -12.0, 0.0]], [[12.0, 0.0, 0.0]])
     V += 0.5 * rng.standard_normal(V.shape)
-    increments = spec.increments(X, V)
-    evidence = spec.region_evidence({k: i.evidence for k, i in increments.items()})
-    post = spec.posterior(evidence)
+    tile_increments = increments(spec, X, V)
+    evidence = region_total(spec, {k: i.evidence for k, i in tile_increments.items()})
+    post = compute_posterior(spec, evidence)
     ref = spec.field(post.alpha, post.beta).fit(X, V)
     Q = rng.uniform(spec.lower, spec.upper, (500, 3))
-    mean, std, _ = spec.predict(Q, post)
+    mean, std, _ = RegionMap(spec, post).predict(Q)
     ref_mean, ref_std = ref.predict(Q, return_std=True)
     assert_close(mean, ref_mean, 1e-6, "region mixture mean")
     assert_close(std, ref_std, 1e-6, "region mixture std")
     # stored blobs round-trip per class
-    key, inc = next(iter(increments.items()))
-    back = spec.decode(key, inc.evidence.to_bytes())
+    key, inc = next(iter(tile_increments.items()))
+    back = decode_tile(spec, key, inc.evidence.to_bytes())
     for a, b in zip(back.classes, inc.evidence.classes, strict=True):
         np.testing.assert_array_equal(a.density, b.density)
         np.testing.assert_array_equal(a.mass, b.mass)
     with pytest.raises(ValueError, match=r"cut in class|ends before class"):
-        spec.decode(key, inc.evidence.to_bytes()[:-80])
+        decode_tile(spec, key, inc.evidence.to_bytes()[:-80])

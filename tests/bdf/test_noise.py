@@ -126,12 +126,13 @@ def test_local_noise_saves_loads_and_refuses_mismatches(tmp_path, data):
     np.testing.assert_array_equal(loaded.predict(Xq, return_std=True), field.predict(Xq, return_std=True))
     assert loaded.noise_spacing == NOISE_SPACING.tolist()
     plain = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA)
+    grid, kernel = plain._setup()[:2]
     with pytest.raises(ValueError, match="moments do not fit"):
         plain.set_evidence(field.evidence_)
     with pytest.raises(ValueError, match="moments do not fit"):
-        field.set_evidence(SectorEvidence.from_points(plain._setup()[0], GAMMA, X, V, sectors=Sectors()))
+        field.set_evidence(SectorEvidence.from_points(grid, kernel, X, V, sectors=Sectors()))
     with pytest.raises(ValueError, match="with local-noise moments to evidence without"):
-        _ = field.evidence_ + SectorEvidence.from_points(plain._setup()[0], GAMMA, X, V, sectors=Sectors())
+        _ = field.evidence_ + SectorEvidence.from_points(grid, kernel, X, V, sectors=Sectors())
 
 
 @pytest.mark.parametrize(

@@ -3,8 +3,10 @@ import pytest
 
 from bdf import Evidence
 from bdf.posterior import KNOWN_WEIGHT
-from bdf.stats import stencil_of
-from bdf.tiles import RegionSpec, key_str, parse_key
+from bdf.region.evidence import increments, region_total
+from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.spec import RegionSpec, key_str, parse_key
+from bdf.sparse import stencil_on
 from tests.bdf.conftest import dense_weight
 
 PARIS = {
@@ -103,11 +105,11 @@ def test_spec_rejects_bad_values(change, message):
 def test_each_observation_is_counted_once_and_the_tiles_sum_to_the_region(small):
     spec, X, V = small
     w = np.random.default_rng(1).uniform(0.5, 2.0, len(X))
-    increments = spec.increments(X, V, sample_weight=w)
-    assert sum(i.points for i in increments.values()) == len(X)
-    assert sum(i.evidence.count for i in increments.values()) == pytest.approx(w.sum(), rel=1e-12)
-    (total,) = spec.region_evidence({k: i.evidence for k, i in increments.items()}).classes
-    direct = Evidence.from_points(spec.grid, np.array(spec.gamma), X, V, sample_weight=w, mass=False)
+    tile_increments = increments(spec, X, V, sample_weight=w)
+    assert sum(i.points for i in tile_increments.values()) == len(X)
+    assert sum(i.evidence.count for i in tile_increments.values()) == pytest.approx(w.sum(), rel=1e-12)
+    (total,) = region_total(spec, {k: i.evidence for k, i in tile_increments.items()}).classes
+    direct = Evidence.from_points(spec.grid, spec.kernel, X, V, sample_weight=w, mass=False)
     for name in ("density", "proj", "mass", "v_sum", "v_sq"):
         got, want = getattr(total, name), getattr(direct, name)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
@@ -118,11 +120,11 @@ def test_each_observation_is_counted_once_and_the_tiles_sum_to_the_region(small)
 def test_the_region_is_one_field_everywhere_empty_places_included(small, local, alpha):
     spec = RegionSpec.model_validate({**SMALL, **local, "alpha": alpha})
     _, X, V = small
-    increments = spec.increments(X, V)
-    post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
+    tile_increments = increments(spec, X, V)
+    post = compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tile_increments.items()}))
     field = spec.field(post.alpha, post.beta).fit(X, V)
     Q = np.random.default_rng(2).uniform(spec.lower, spec.upper, (2000, 3))
-    mean, std, known = spec.predict(Q, post)
+    mean, std, known = RegionMap(spec, post).predict(Q)
     ref_mean, ref_std = field.predict(Q, return_std=True)
     climate = np.sqrt((V**2).mean(0))
     np.testing.assert_allclose(mean, ref_mean, rtol=0, atol=1e-6 * climate.min())
@@ -132,9 +134,9 @@ def test_the_region_is_one_field_everywhere_empty_places_included(small, local, 
     np.testing.assert_array_equal(known, post.data_weight(Q)[:, 0] >= KNOWN_WEIGHT)
     # the grid path equals the point path
     axes = [np.linspace(0, 300, 7), np.linspace(0, 200, 5), np.array([10.0, 50.0])]
-    g_mean, g_std, g_known = spec.predict_grid(axes, post)
+    g_mean, g_std, g_known = RegionMap(spec, post).predict_grid(axes)
     mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    p_mean, p_std, p_known = spec.predict(mesh, post)
+    p_mean, p_std, p_known = RegionMap(spec, post).predict(mesh)
     np.testing.assert_allclose(g_mean.reshape(-1, 3), p_mean, rtol=0, atol=1e-9 * climate.min())
     np.testing.assert_allclose(g_std.reshape(-1, 3), p_std, rtol=1e-9)
     np.testing.assert_array_equal(g_known.ravel(), p_known)
@@ -152,8 +154,8 @@ def test_known_is_where_the_data_weigh_within_the_kernels_reach(small, direction
     _, X, V = small
     rng = np.random.default_rng(5)
     w = rng.uniform(0.001, 0.01, len(X))
-    increments = spec.increments(X, V, sample_weight=w)
-    post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
+    tile_increments = increments(spec, X, V, sample_weight=w)
+    post = compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tile_increments.items()}))
     Q = rng.uniform(spec.lower, spec.upper, (1500, 3))
     gamma = np.array(spec.gamma)
     label = spec.sectors.classify(V)
@@ -171,25 +173,25 @@ def test_known_is_where_the_data_weigh_within_the_kernels_reach(small, direction
     np.testing.assert_allclose(
         post.data_weight_grid(axes).reshape(len(mesh), -1), post.data_weight(mesh), rtol=1e-9, atol=1e-12
     )
-    _, _, known = spec.predict(Q, post)
+    _, _, known = RegionMap(spec, post).predict(Q)
     np.testing.assert_array_equal(known, got.sum(1) >= KNOWN_WEIGHT)
     # the far corner of tile (1, 1, 0), whose core holds data up to x = 150, is not known
     corner = np.array([[199.0, 199.0, 30.0]])
-    assert (1, 1, 0) in increments and not spec.predict(corner, post)[2][0]
+    assert (1, 1, 0) in tile_increments and not RegionMap(spec, post).predict(corner)[2][0]
 
 
 def test_stored_blob_round_trips_with_and_without_noisy_points_and_local_noise(small):
     spec, X, V = small
     local = RegionSpec.model_validate({**SMALL, **LOCAL})
-    grid, gamma = spec.tile_grid((0, 0, 0)), np.array(spec.gamma)
-    stencil, lattice = stencil_of(grid, gamma), local.tile_noise_lattice((0, 0, 0))
+    grid, kernel = spec.tile_grid((0, 0, 0)), spec.kernel
+    stencil, lattice = stencil_on(grid, kernel), local.tile_noise_lattice((0, 0, 0))
     noise = np.zeros((50, 3))
     noise[:10] = 4.0  # ten noisy-input points: a Gram band
     for evidence, with_lattice in (
-        (Evidence.from_points(grid, gamma, X[:50], V[:50]), None),
-        (Evidence.from_points(grid, gamma, X[:50], V[:50], noise), None),
-        (Evidence.from_points(grid, gamma, X[:50], V[:50], noise_lattice=lattice), lattice),
-        (Evidence.from_points(grid, gamma, X[:50], V[:50], noise, noise_lattice=lattice), lattice),
+        (Evidence.from_points(grid, kernel, X[:50], V[:50]), None),
+        (Evidence.from_points(grid, kernel, X[:50], V[:50], noise), None),
+        (Evidence.from_points(grid, kernel, X[:50], V[:50], noise_lattice=lattice), lattice),
+        (Evidence.from_points(grid, kernel, X[:50], V[:50], noise, noise_lattice=lattice), lattice),
     ):
         back = Evidence.from_bytes(evidence.to_bytes(), grid, stencil, with_lattice)
         assert back.to_arrays().keys() == evidence.to_arrays().keys()
@@ -204,12 +206,12 @@ def test_stored_blob_round_trips_with_and_without_noisy_points_and_local_noise(s
 def test_noisy_inputs_in_tiles_equal_the_field(small):
     spec, X, V = small
     noise = np.full((len(X), 3), 3.0)
-    increments = spec.increments(X, V, input_noise_std=noise)
+    tile_increments = increments(spec, X, V, input_noise_std=noise)
     spec = spec.model_copy(update={"alpha": 1.0, "beta": 5.0})
-    post = spec.posterior(spec.region_evidence({k: i.evidence for k, i in increments.items()}))
+    post = compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tile_increments.items()}))
     field = spec.field().fit(X, V, input_noise_std=noise)
     Q = np.random.default_rng(4).uniform(spec.lower, spec.upper, (500, 3))
-    mean, std, _ = spec.predict(Q, post)
+    mean, std, _ = RegionMap(spec, post).predict(Q)
     ref_mean, ref_std = field.predict(Q, return_std=True)
     np.testing.assert_allclose(mean, ref_mean, rtol=0, atol=1e-6 * np.abs(ref_mean).max())
     np.testing.assert_allclose(std, ref_std, rtol=1e-6)

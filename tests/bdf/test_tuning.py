@@ -95,7 +95,7 @@ def test_search_derivatives_equal_finite_differences_of_the_evidence(alpha, beta
     sqrt(M) times the unit vectors), against central differences of the exact evidence;
     and the 64 random probes stay within 3 % of the slope's scale."""
     from bdf import tuning
-    from bdf.stats import stencil_of
+    from bdf.sparse import stencil_on
 
     rng = np.random.default_rng(3)
     X = rng.uniform(LOWER, UPPER, (600, 3))
@@ -103,7 +103,7 @@ def test_search_derivatives_equal_finite_differences_of_the_evidence(alpha, beta
     V[:, 2] = 0.3 * V[:, 2]  # the components' noise differs: their betas differ
     field = BayesianDynamicField(LOWER, UPPER, 2.0, 0.25, alpha=0.5, beta=10.0).fit(X, V)
     ev = field.evidence_.total()
-    stencil = stencil_of(field.posterior_.grid, field.posterior_.gamma, field.cutoff)
+    stencil = stencil_on(field.posterior_.grid, field.posterior_.kernel)
     band = ev.gram_band(stencil)
     M = stencil.size
     exact = np.sqrt(M) * np.eye(M)

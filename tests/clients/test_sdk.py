@@ -7,7 +7,7 @@ import httpx
 import numpy as np
 import pytest
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from clients.sdk import AsyncBDFClient, BDFClient, BDFError
 from tests.service.test_api import library
 from tests.service.test_store import SPEC, data

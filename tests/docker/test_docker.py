@@ -22,7 +22,7 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from clients.local import LocalService, free_port
 from tests.service.test_api import enu_columns, library
 from tests.service.test_store import SPEC, data

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from clients.sdk import BDFClient
 from planner.costmap import CostWeights
 from planner.routes import densify, plan_route

@@ -36,7 +36,7 @@ def store(store_url):
 @pytest.fixture
 def spec(store):
     """The region ``town`` (tests.service.test_store.SPEC), created in ``store``."""
-    from bdf.tiles import RegionSpec
+    from bdf.region.spec import RegionSpec
     from tests.service.test_store import SPEC
 
     spec = RegionSpec.model_validate(SPEC)

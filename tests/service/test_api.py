@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from bdf.posterior import known
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from service.app import create_app
 from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_body, arrow_bytes, npz_bytes
 from service.settings import Settings

@@ -16,7 +16,8 @@ import pytest
 from distributed import Client, LocalCluster
 
 from bdf import ingest
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import increments
+from bdf.region.spec import RegionSpec
 from service.build import ClusterLost, build, plan
 from service.maps import RegionMaps
 from service.store import open_store
@@ -135,7 +136,7 @@ def test_adsb_state_vectors_build_in_the_regions_frame(store, spec, client, tmp_
     keep = ~onground
     assert result["accepted"] == 2 * keep.sum()
     assert result["rejected"] == {**NO_REJECTS, "on_ground": 2 * onground.sum()}
-    expected = spec.increments(np.concatenate([X[keep]] * 2), np.concatenate([V[keep]] * 2))
+    expected = increments(spec, np.concatenate([X[keep]] * 2), np.concatenate([V[keep]] * 2))
     assert_evidence_equal(store.snapshot("town").evidence, {k: i.evidence for k, i in expected.items()}, 1e-9)
 
 
@@ -253,7 +254,7 @@ def test_a_scheduler_lost_mid_build_stores_nothing_and_the_rerun_applies_once(st
         first = build(store, "town", paths, client, progress=False)
         again = build(store, "town", paths, client, progress=False)
     assert (first["region_version"], again["replayed"], store.region("town").version) == (1, True, 1)
-    expected = {k: i.evidence for k, i in spec.increments(X, V).items()}
+    expected = {k: i.evidence for k, i in increments(spec, X, V).items()}
     assert_evidence_equal(store.snapshot("town").evidence, expected, rtol=1e-9)
 
 
@@ -269,7 +270,7 @@ def test_bdf_build_command_on_a_process_cluster(tmp_path):
     run = subprocess.run([*cmd, *map(str, paths)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert "400 accepted" in run.stdout and "version 1" in run.stdout
-    expected = {k: i.evidence for k, i in spec.increments(X, V).items()}
+    expected = {k: i.evidence for k, i in increments(spec, X, V).items()}
     assert_evidence_equal(store.snapshot("town").evidence, expected, rtol=1e-9)
     run = subprocess.run(
         [*cmd, str(tmp_path / "nothing.parquet")], capture_output=True, text=True, timeout=300

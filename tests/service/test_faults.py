@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import increments
+from bdf.region.spec import RegionSpec
 from clients.local import LocalService
 from service.app import create_app
 from service.settings import Settings
@@ -46,7 +47,7 @@ def assert_stored(store_url: str, seeds: list[int], n: int = 100) -> None:
         assert snap.region.observations == n * len(seeds)
         X = np.vstack([data(s, n=n)[0] for s in seeds])
         V = np.vstack([data(s, n=n)[1] for s in seeds])
-        assert_evidence_equal(snap.evidence, {k: i.evidence for k, i in spec.increments(X, V).items()})
+        assert_evidence_equal(snap.evidence, {k: i.evidence for k, i in increments(spec, X, V).items()})
     finally:
         store.close()
 
@@ -364,14 +365,15 @@ def test_the_posterior_process_leaves_when_its_worker_is_killed(tmp_path):
 
     script = f"""
 import time
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import region_total
+from bdf.region.spec import RegionSpec
 from service.maps import RegionMaps
 from service.store import open_store
 from tests.service.test_store import SPEC
 store = open_store("sqlite:///{tmp_path}/maps.db")
 spec = RegionSpec.model_validate(SPEC)
 maps = RegionMaps(store, isolate=True)
-maps._posterior(spec, spec.region_evidence({{}}))
+maps._posterior(spec, region_total(spec, {{}}))
 print(*maps._pool._processes, flush=True)
 time.sleep(600)
 """

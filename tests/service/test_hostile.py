@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 
 import service.maps
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from service import slices
 from service.app import create_app
 from service.formats import ARROW, NPZ, PARQUET

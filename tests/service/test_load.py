@@ -6,7 +6,7 @@ import os
 
 import httpx
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from clients.load import WEIGHTS, mixed_load, stored_difference, upload_batch
 from clients.local import LocalService
 from tests.service.test_store import SPEC

@@ -13,7 +13,8 @@ import numpy as np
 import psutil
 import pytest
 
-from bdf.tiles import RegionSpec
+from bdf.region.evidence import increments
+from bdf.region.spec import RegionSpec
 from service.lanes import Lane
 from service.maps import REJECTED, PosteriorCache, RegionMaps
 from service.store import (
@@ -97,12 +98,12 @@ def test_upload_adds_exactly_the_increments_and_stores_them_losslessly(store, sp
         "upload_id": "a",
         "kind": "observations",
         "region_version": 1,
-        "tiles_updated": len(spec.increments(X[:100], V[:100])),
+        "tiles_updated": len(increments(spec, X[:100], V[:100])),
         "replayed": False,
     }
     maps.upload("town", "b", X[100:], V[100:], sample_weight=w[100:])
     snap = store.snapshot("town")
-    expected = spec.increments(X, V, sample_weight=w)
+    expected = increments(spec, X, V, sample_weight=w)
     assert_evidence_equal(snap.evidence, {k: inc.evidence for k, inc in expected.items()})
     assert {k: t.points for k, t in snap.tiles.items()} == {k: inc.points for k, inc in expected.items()}
     assert snap.region.version == 2 and snap.region.observations == 300
@@ -125,10 +126,13 @@ def test_replay_returns_the_first_result_and_a_new_payload_is_a_conflict(store, 
     before = store.snapshot("town")
     assert maps.upload("town", "same", X, V) == {**first, "replayed": True}
     # the store itself also refuses to apply twice, even if asked directly
-    increments = spec.increments(X, V)
+    tile_increments = increments(spec, X, V)
     digest = payload_digest("observations", X, V, None, None)
     region_id = store.region("town").region_id
-    assert store.apply("town", region_id, "same", digest, increments, observations=len(X))["replayed"] is True
+    assert (
+        store.apply("town", region_id, "same", digest, tile_increments, observations=len(X))["replayed"]
+        is True
+    )
     with pytest.raises(UploadConflict):
         maps.upload("town", "same", X + 1.0, V)
     with pytest.raises(UploadConflict):
@@ -147,7 +151,7 @@ def test_bad_rows_are_counted_and_never_stored(store, spec):
     assert result["rejected"] == {**NO_REJECTS, "non_finite": 2, "outside_region": 1}
     keep = np.ones(50, bool)
     keep[[3, 7, 9]] = False
-    expected = spec.increments(X[keep], V[keep])
+    expected = increments(spec, X[keep], V[keep])
     assert_evidence_equal(store.snapshot("town").evidence, {k: i.evidence for k, i in expected.items()})
     with pytest.raises(ValueError, match="both be"):
         maps.upload("town", "shape", X[:, :2], V)
@@ -165,7 +169,7 @@ def test_fit_replaces_the_map(store, spec):
     maps.upload("town", "old", X1, V1)
     result = maps.upload("town", "fit", X2, V2, replace=True)
     assert result["kind"] == "fit" and result["region_version"] == 2
-    expected = spec.increments(X2, V2)
+    expected = increments(spec, X2, V2)
     snap = store.snapshot("town")
     assert_evidence_equal(snap.evidence, {k: i.evidence for k, i in expected.items()})
     assert snap.region.observations == 80
@@ -357,7 +361,7 @@ def test_concurrent_writers_equal_one_batch_and_readers_never_see_half_an_upload
     store = open_store(store_url)
     snap = store.snapshot("town")
     assert snap.region.version == 200 and snap.region.observations == 4000
-    expected = spec.increments(X, V)
+    expected = increments(spec, X, V)
     assert_evidence_equal(snap.evidence, {k: i.evidence for k, i in expected.items()}, rtol=1e-9)
     store.close()
 
@@ -416,7 +420,7 @@ def test_a_writer_killed_mid_upload_leaves_all_or_nothing(store_url):
     assert store.upload_result("city", "crash", payload_digest("observations", X, V, None, None)) is None
     # the client retries: now it applies, once
     assert maps.upload("city", "crash", X, V)["replayed"] is False
-    expected = spec.increments(np.vstack([X0, X]), np.vstack([V0, V]))
+    expected = increments(spec, np.vstack([X0, X]), np.vstack([V0, V]))
     assert_evidence_equal(store.snapshot("city").evidence, {k: i.evidence for k, i in expected.items()})
     store.close()
 

@@ -7,7 +7,7 @@ import threading
 import numpy as np
 import pytest
 
-from bdf.tiles import RegionSpec
+from bdf.region.spec import RegionSpec
 from bdf.tuning import LOG_TOLERANCE
 from service.maps import RegionMaps
 from tests.service.test_store import SPEC

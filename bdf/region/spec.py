@@ -1,4 +1,4 @@
-"""Regions: one field over a region-wide hinge lattice, its evidence stored in tiles.
+"""What a region is: a named city area, its geometry, its tiling and its model settings.
 
 A region's ENU box is cut into tiles of ``tile_size_m``; tile ``(i, j, k)`` has the *core*
 box ``bounds.min + (i, j, k) * tile_size`` (the last tile per axis ends at ``bounds.max``).
@@ -6,57 +6,31 @@ Tiles are the unit of storage, of exactly-once update and of caching, not of the
 each observation belongs to the one tile whose core holds it, and the tile keeps what
 its core's observations add to the region's evidence, over the region's hinges those
 points reach (its *support*: the core grown by the kernel's reach at the cutoff, on the
-region's lattice, :meth:`RegionSpec.tile_grid`). The region's evidence is the sum of its
-tiles' (:meth:`RegionSpec.region_evidence`), every observation counted once, and the map
-is the posterior of ONE field over the region's lattice (:meth:`RegionSpec.field`), with
-one set of hyperparameters: fixed in the spec, or ("auto") the evidence maximum of the
-whole region's data (:meth:`RegionSpec.posterior`).
+region's lattice, :meth:`RegionSpec.tile_grid`). :mod:`bdf.region.evidence` turns points
+into those increments and sums them; :mod:`bdf.region.map` answers queries from the
+posterior of ONE field over the region's lattice, with one set of hyperparameters.
 
-Where the region has no data the field reverts to its prior, whose predictive variance
-under "auto" is set by the region's evidence (on the scale of its velocities). ``known``
-marks the points where the data within the kernel's reach weigh at least
-:data:`bdf.posterior.KNOWN_WEIGHT` (their own density, :meth:`bdf.posterior.Posterior.data_weight`,
-not the boxes of the tiles that hold them); per class, the same says where a mode is
-only its prior.
-
-A directional region (``directions`` > 1, :mod:`bdf.directions`) keeps in each tile one
-evidence per traffic class (:class:`bdf.stats.SectorEvidence`); every sum above is per
-class, and the map is one directional field. ``cutoff`` sets the kernel's reach, so the
-tiles' supports and the precision's stencil.
-
-Input noise widens a point's expected kernel (``1 + 2 gamma nu^2`` in its exponent); its
-features are kept over the tile's support, so terms beyond the plain kernel's reach at
-the cutoff are dropped (below ``cutoff^(1 / (1 + 2 gamma nu^2))``).
+:class:`RegionSpec` is also the body ``POST /v1/regions`` accepts: every spec it accepts
+can be served (its validator bounds the lattice, the stencil and the map's memory).
 """
 
 from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Callable, Mapping
-from typing import Annotated, Literal, NamedTuple
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bdf import features, noise
-from bdf._validate import (
-    _bad_rows,
-    as_headings,
-    as_noise_std,
-    as_observations,
-    as_points,
-    as_sample_weight,
-    rows_all,
-    take_rows,
-)
+from bdf import features, noise, sparse
+from bdf._validate import _bad_rows, as_points, rows_all
 from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice, axis_counts
-from bdf.linalg import NotPositiveDefinite
-from bdf.posterior import Mixture, Modes, Posterior, known
-from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence, stencil_of
+from bdf.kernel import DEFAULT_CUTOFF, Kernel
+from bdf.stats import SectorEvidence
 
 log = logging.getLogger(__name__)
 TileKey = tuple[int, int, int]
@@ -151,13 +125,6 @@ class Envelope(BaseModel):
         return out
 
 
-class Increment(NamedTuple):
-    """What one upload adds to one tile."""
-
-    evidence: Evidence
-    points: int
-
-
 class RegionSpec(BaseModel):
     """A named city region: geodetic origin, ENU box, tiling and model settings (metres, 1/m^2).
 
@@ -175,9 +142,9 @@ class RegionSpec(BaseModel):
     beta: Hyper = "auto"
     noise_spacing_m: PositiveVec3 | None = None
     noise_prior: Positive = 0.1
-    #: Kernel cutoff (:mod:`bdf.features`): it sets the precision's stencil, so the cost of
-    #: a solve; looser values trade exactness for speed (bench/RESULTS.md, error vs cutoff).
-    cutoff: Annotated[float, Field(gt=0, lt=1)] = features.DEFAULT_CUTOFF
+    #: Kernel cutoff (:mod:`bdf.kernel`): it sets the precision's stencil, so the cost of
+    #: a solve; looser values trade exactness for speed.
+    cutoff: Annotated[float, Field(gt=0, lt=1)] = DEFAULT_CUTOFF
     #: Heading sectors (1: the paper's model; more: a mixture, :mod:`bdf.directions`).
     directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] = 1
     slow_mps: Positive = 5.0
@@ -246,9 +213,13 @@ class RegionSpec(BaseModel):
         return np.array(self.bounds_m.max, float)
 
     @property
+    def kernel(self) -> Kernel:
+        return Kernel(tuple(self.gamma), self.cutoff)
+
+    @property
     def reach_m(self) -> np.ndarray:
         """Per axis, how far the kernel reaches above the cutoff (metres)."""
-        return features.reach(np.array(self.gamma), self.cutoff)
+        return self.kernel.reach_m
 
     @property
     def auto(self) -> bool:
@@ -285,8 +256,8 @@ class RegionSpec(BaseModel):
         return Sectors(self.directions, self.slow_mps)
 
     @property
-    def stencil(self):
-        return stencil_of(self.grid, self.gamma, self.cutoff)
+    def stencil(self) -> sparse.Stencil:
+        return sparse.stencil_on(self.grid, self.kernel)
 
     def frame(self) -> ENUFrame:
         return _frame(self.origin.lat, self.origin.lon, self.origin.alt_m)
@@ -346,7 +317,7 @@ class RegionSpec(BaseModel):
 
     def home_tiles(self, X) -> dict[TileKey, np.ndarray]:
         """Row indices of ``X`` per tile whose core holds them (each row in one tile)."""
-        X = self._inside_points(X)
+        X = self.inside_points(X)
         if not len(X):
             return {}
         n = np.array(self.tile_counts)
@@ -357,168 +328,16 @@ class RegionSpec(BaseModel):
         keys = np.stack(np.unravel_index(flat[bounds[:-1]], tuple(n)), axis=1).tolist()
         return {tuple(k): order[a:b] for a, b, k in zip(bounds[:-1], bounds[1:], keys, strict=True)}
 
-    def _inside_points(self, X) -> np.ndarray:
+    def inside_points(self, X) -> np.ndarray:
+        """``X`` as validated points (n, 3), all inside the region (``ValueError`` names the
+        rows outside)."""
         X = as_points(X, "X", allow_empty=True)
         in_box = self._in_box(X)
         if not in_box.all():  # rows only for the message
             raise ValueError(f"points outside region {self.name!r} bounds: {_bad_rows(~rows_all(in_box))}")
         return X
 
-    # -- learning and querying -------------------------------------------------------------
-    def increments(
-        self,
-        X,
-        V,
-        *,
-        input_noise_std=None,
-        sample_weight=None,
-        progress: Callable[[float], None] | None = None,
-    ) -> dict[TileKey, Increment]:
-        """The evidence each tile gains from observations ``(X, V)`` (all inside the region):
-        its core's points, over its support.
-
-        ``progress(fraction)`` is called after each tile (long fits report it).
-        """
-        X, V = as_observations(X, V)
-        input_noise = as_noise_std(input_noise_std, len(X))
-        weight = as_sample_weight(sample_weight, len(X))
-        gamma = np.array(self.gamma)
-        out = {}
-        groups = self.home_tiles(X)
-        for done, (key, idx) in enumerate(groups.items(), start=1):
-            evidence = SectorEvidence.from_points(
-                self.tile_grid(key),
-                gamma,
-                *take_rows((X, V, input_noise, weight), idx),
-                sectors=self.sectors,
-                noise_lattice=self.tile_noise_lattice(key),
-                cutoff=self.cutoff,
-            )
-            out[key] = Increment(evidence, len(idx))
-            if progress is not None:
-                progress(done / len(groups))
-        return out
-
-    def decode(self, key: TileKey, blob: bytes, format_version: int = FORMAT_VERSION) -> SectorEvidence:
-        """A tile's stored evidence (:meth:`SectorEvidence.to_bytes` on its support)."""
-        grid = self.tile_grid(key)
-        stencil = stencil_of(grid, self.gamma, self.cutoff)
-        return SectorEvidence.from_bytes(
-            blob, grid, stencil, self.tile_noise_lattice(key), self.sectors, format_version
-        )
-
-    def region_evidence(self, tiles: Mapping[TileKey, SectorEvidence]) -> SectorEvidence:
-        """The region's evidence: the sum of its tiles', each placed on the region's lattice."""
-        return SectorEvidence(
-            tuple(
-                self._region_class({k: ev.classes[c] for k, ev in tiles.items()})
-                for c in range(self.sectors.classes)
-            )
-        )
-
-    def _region_class(self, tiles: Mapping[TileKey, Evidence]) -> Evidence:
-        """One class's :meth:`region_evidence`."""
-        total = Evidence.zeros(self.grid, self.noise_lattice)
-        region_stencil = self.stencil
-        for key, ev in tiles.items():
-            grid = self.tile_grid(key)
-            i0 = np.round((grid.origin - self.grid.origin) / self.grid.step).astype(int)
-            hinges = tuple(slice(a, a + n) for a, n in zip(i0, grid.shape, strict=True))
-            mids = tuple(slice(2 * a, 2 * (a + n) - 1) for a, n in zip(i0, grid.shape, strict=True))
-            total.density[mids] += ev.density
-            total.proj.reshape(*self.grid.shape, 3)[hinges] += ev.proj.reshape(*grid.shape, 3)
-            total.mass.reshape(self.grid.shape)[hinges] += ev.mass.reshape(grid.shape)
-            total.count += ev.count
-            total.v_sum += ev.v_sum
-            total.v_sq += ev.v_sq
-            if ev.moments is not None:
-                sub = self.tile_noise_lattice(key)
-                j0 = np.round((sub.origin - self.noise_lattice.origin) / sub.step).astype(int)
-                cells = tuple(slice(a, a + n) for a, n in zip(j0, sub.shape, strict=True))
-                total.moments[cells] += ev.moments
-            if ev.gram_noisy is not None:
-                if total.gram_noisy is None:
-                    total.gram_noisy = np.zeros((len(region_stencil.offsets), self.grid.size))
-                # the tile's stencil is the region's, cut where the support's edge is nearer
-                tile_stencil = stencil_of(grid, self.gamma, self.cutoff)
-                rows = {tuple(o): k for k, o in enumerate(region_stencil.offsets.tolist())}
-                for k, o in enumerate(tile_stencil.offsets.tolist()):
-                    band = total.gram_noisy[rows[tuple(o)]].reshape(self.grid.shape)
-                    band[hinges] += ev.gram_noisy[k].reshape(grid.shape)
-        return total
-
-    def posterior(self, evidence: SectorEvidence, start=None, *, stored: bool = True) -> Posterior | Mixture:
-        """The region's posterior of ``evidence`` (:meth:`region_evidence`) at the spec's
-        hyperparameters, variance density ready, factors dropped. "auto" is this
-        evidence's maximum (``posterior.alpha``, ``posterior.beta``), its search started at
-        ``start`` (ratios alpha / beta, (3,) or a row per class: the optimum of the
-        region's previous version) and the same from any start.
-
-        Fixed values that do not factor on ``stored`` data (which must be served) are
-        raised (alpha by powers of ten) to the least that factors, with a warning; on data
-        not stored yet (a fit, before it is applied) they raise ``NotPositiveDefinite``."""
-        try:
-            return self.field().set_evidence(evidence, start=start).posterior_.compact()
-        except NotPositiveDefinite:
-            if self.alpha == "auto" or not stored:
-                raise
-        # the spec's fixed alpha does not factor on stored (accepted) data, which must still
-        # be served: at the least alpha ten times larger, a hundred, ... that does
-        for power in range(1, 13):
-            try:
-                field = self.field(np.asarray(self.alpha, float) * 10.0**power)
-                post = field.set_evidence(evidence, start=start).posterior_.compact()
-            except NotPositiveDefinite:
-                continue
-            log.warning(
-                "region %s: served at alpha x 1e%d: its fixed alpha does not factor", self.name, power
-            )
-            return post
-        raise NotPositiveDefinite(f"region {self.name}: no alpha up to 1e12 times the spec's factors")
-
-    def predict(
-        self, X, posterior: Posterior | Mixture, heading_deg=None, modes: Modes | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Predictive mean (n, 3), std (n, 3) and ``known`` (n,) at ``X`` inside the region,
-        from the region's ``posterior``. ``heading_deg`` (one or (n,)): the mode of that
-        heading (a region of one direction has one). ``modes``: :meth:`predict_modes` of
-        the same points when the caller has them (the answer derives from them)."""
-        X = self._inside_points(X)
-        if heading_deg is not None:
-            heading_deg = as_headings(heading_deg, len(X))
-        if modes is None and self.directions == 1:
-            mean, std, weight = posterior.answer(X)
-        else:
-            modes = posterior.predict_modes(X) if modes is None else modes
-            mean, std = modes.answer(self.sectors, heading_deg)
-            weight = modes.weight
-        return mean, std, known(weight)
-
-    def predict_modes(self, X, posterior: Posterior | Mixture) -> Modes:
-        """:class:`~bdf.posterior.Modes` at ``X`` inside the region."""
-        return posterior.predict_modes(self._inside_points(X))
-
-    def predict_grid(
-        self, axes, posterior: Posterior | Mixture, modes: Modes | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]`` (inside the region):
-        mean and std (nx, ny, nz, 3), known (nx, ny, nz); separable, so a few small
-        contractions per axis. ``modes``: :meth:`predict_grid_modes` of the same grid when
-        the caller has them (the answer derives from them)."""
-        axes = self._grid_axes(axes)
-        if modes is None:
-            mean, var = posterior.predict_grid(axes)
-            std = np.sqrt(var)
-            weight = posterior.data_weight_grid(axes)
-        else:
-            mean, std = modes.answer(self.sectors)
-            weight = modes.weight
-        return mean, std, known(weight)
-
-    def predict_grid_modes(self, axes, posterior: Posterior | Mixture) -> Modes:
-        """:class:`~bdf.posterior.Modes` on the grid ``axes``, the grid's shape first."""
-        return posterior.predict_grid_modes(self._grid_axes(axes))
-
+    # -- grids of voxels ----------------------------------------------------------------
     @staticmethod
     def box_axes(lo, hi, step, max_voxels: float = np.inf) -> list[np.ndarray]:
         """The voxel grid of a box: per axis ``lo + i * step`` up to ``hi`` inclusive.
@@ -535,7 +354,8 @@ class RegionSpec(BaseModel):
         # the last point may pass hi by rounding (far from the origin): it is hi
         return [np.minimum(lo[d] + step[d] * np.arange(int(counts[d])), hi[d]) for d in range(3)]
 
-    def _grid_axes(self, axes) -> list[np.ndarray]:
+    def grid_axes(self, axes) -> list[np.ndarray]:
+        """The axes of a grid of voxels, checked: finite, non-empty, inside the region."""
         axes = [np.asarray(a, float).ravel() for a in axes]
         for d, a in enumerate(axes):
             if (

@@ -1,8 +1,10 @@
 import numpy as np
 import pytest
 
-from bdf import linalg
 from bdf.grid import Lattice
+from bdf.kernel import Kernel
+from bdf.sparse import stencil as sparse_stencil
+from bdf.sparse.stencil import NotPositiveDefinite, lattice_stencil
 
 
 @pytest.mark.parametrize(
@@ -12,7 +14,7 @@ def test_selected_inverse_equals_the_dense_inverse_on_the_stencil(shape, cutoff,
     """Several supernodes, thin and wide, on a random positive definite band, in the nested
     dissection's order; with a fraction ``idle`` of the hinges untouched by the data (zero
     rows: factored apart), the log-determinant and a solve too."""
-    stencil = linalg.stencil(shape, (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), cutoff)
+    stencil = lattice_stencil(shape, (1.0, 1.0, 1.0), Kernel((1.0, 1.0, 1.0), cutoff))
     rng = np.random.default_rng(3)
     band = rng.uniform(-1.0, 1.0, (len(stencil.offsets), stencil.size))
     band[0] = 2.0 * len(stencil.offsets) + rng.uniform(0.0, 1.0, stencil.size)  # dominant diagonal
@@ -30,45 +32,12 @@ def test_selected_inverse_equals_the_dense_inverse_on_the_stencil(shape, cutoff,
     for k in range(len(stencil.offsets)):
         m, partner = stencil.pairs(k)
         fewer[k, m[dropped[m] | dropped[partner]]] = 0.0
-    assert np.count_nonzero(fewer[0]) * linalg.COVER >= np.count_nonzero(band[0])
+    assert np.count_nonzero(fewer[0]) * sparse_stencil.COVER >= np.count_nonzero(band[0])
     assert stencil.factor_of(fewer, 0.5).support is factor.support
     assert_dense_algebra(stencil, fewer, stencil.factor_of(fewer, 0.5), rng)
     starts = factor.support.layout.starts
     assert len(starts) > 5 and np.diff(starts).max() > 1
     assert np.array_equal(np.sort(stencil.order), np.arange(stencil.size))
-
-
-@pytest.mark.parametrize(
-    ("shape", "cutoff", "idle", "supernodes"),
-    [
-        ((9, 8, 5), 1e-3, 0.0, 5),
-        ((12, 10, 4), 1e-3, 0.5, 5),
-        ((20, 4, 3), 1e-2, 0.8, 5),
-        ((6, 6, 6), 1e-6, 0.3, 1),  # the kernel's reach spans the lattice: dense
-        ((5, 4, 3), 1e-3, 0.95, 1),
-    ],
-)
-def test_symbolic_rows_are_the_dense_factors_nonzeros(shape, cutoff, idle, supernodes):
-    """Each supernode's rows are exactly the rows of its columns' nonzeros in the dense
-    Cholesky factor of a random matrix on the pattern, in the layout's column order (a
-    postorder of the elimination tree; idle hinges leave a forest, down to a few lone
-    hinges): relaxed supernodes pad their columns with the rows they share, no others."""
-    stencil = linalg.stencil(shape, (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), cutoff)
-    rng = np.random.default_rng(11)
-    active = rng.uniform(size=stencil.size) >= idle
-    support = linalg.Support(stencil, active, stencil.order)
-    A = support.matrix(rng.uniform(0.5, 1.0, (len(stencil.offsets), stencil.size))).toarray()
-    A = A + np.tril(A, -1).T + len(A) * np.eye(len(A))
-    layout = linalg._analyse(support._indptr, support._rows)
-    P = layout.columns
-    L = np.linalg.cholesky(A[np.ix_(P, P)])
-    assert len(layout.starts) - 1 >= supernodes
-    for s in range(len(layout.starts) - 1):
-        f, e = layout.starts[s], layout.starts[s + 1]
-        nonzero = np.flatnonzero(np.any(L[:, f:e] != 0.0, axis=1))
-        expected = np.union1d(np.arange(f, e), nonzero[nonzero >= f])
-        np.testing.assert_array_equal(layout.rows[layout.rowptr[s] : layout.rowptr[s + 1]], expected)
-    assert np.array_equal(np.sort(P), np.arange(len(A)))
 
 
 def assert_dense_algebra(stencil, band, factor, rng):
@@ -95,7 +64,7 @@ def test_band_product_and_midpoint_maps_equal_dense_algebra():
     """``band_product`` (a mode's prior through G) is the dense symmetric product; the
     midpoint maps (G from the data density, the variance density from a band) put each
     pair at its midpoint ``2 idx(m) + o``."""
-    stencil = linalg.stencil((7, 6, 4), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 1e-3)
+    stencil = lattice_stencil((7, 6, 4), (1.0, 1.0, 1.0), Kernel((1.0, 1.0, 1.0), 1e-3))
     rng = np.random.default_rng(5)
     band = rng.standard_normal((len(stencil.offsets), stencil.size))
     dense = np.zeros((stencil.size, stencil.size))
@@ -108,29 +77,87 @@ def test_band_product_and_midpoint_maps_equal_dense_algebra():
         dense[partner, m] += band[k, m] if k else 0.0
         idx = np.stack(np.unravel_index(m, stencil.shape), axis=1)
         at = tuple((2 * idx + o).T)
-        expected_band[k, m] = stencil.factor[k] * density[at]
-        np.add.at(expected_density, at, stencil.factor[k] * (2.0 if k else 1.0) * band[k, m])
+        expected_band[k, m] = stencil.kernel[k] * density[at]
+        np.add.at(expected_density, at, stencil.kernel[k] * (2.0 if k else 1.0) * band[k, m])
     x = rng.standard_normal((stencil.size, 3))
-    np.testing.assert_allclose(linalg.band_product(stencil, band, x), dense @ x, rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(linalg.midpoint_band(stencil, density), expected_band)
+    np.testing.assert_allclose(sparse_stencil.band_product(stencil, band, x), dense @ x, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(sparse_stencil.midpoint_band(stencil, density), expected_band)
     midpoints = Lattice(np.zeros(3), np.full(3, 0.5), mid_shape)
-    np.testing.assert_allclose(linalg.band_density(stencil, band, midpoints), expected_density, atol=1e-12)
+    np.testing.assert_allclose(
+        sparse_stencil.band_density(stencil, band, midpoints), expected_density, atol=1e-12
+    )
 
 
 def test_a_band_that_is_not_positive_definite_raises_on_every_factorisation():
     """The support's first factorisation (after its analysis) and the later ones raise
     NotPositiveDefinite, which the evidence search takes as "more regularisation"; the
     support stays usable."""
-    stencil = linalg.stencil((6, 5, 4), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 1e-3)
+    stencil = lattice_stencil((6, 5, 4), (1.0, 1.0, 1.0), Kernel((1.0, 1.0, 1.0), 1e-3))
     rng = np.random.default_rng(7)
     band = rng.uniform(-1.0, 1.0, (len(stencil.offsets), stencil.size))
     band[0] = 2.0 * len(stencil.offsets)
     bad = band.copy()
     bad[0, 17] = -1.0  # a negative diagonal entry
     for _ in range(2):
-        with pytest.raises(linalg.NotPositiveDefinite):
+        with pytest.raises(NotPositiveDefinite):
             stencil.factor_of(bad, 0.5)
     stencil.factor_of(band, 0.5)  # the first good one finds the layout
-    with pytest.raises(linalg.NotPositiveDefinite):
+    with pytest.raises(NotPositiveDefinite):
         stencil.factor_of(bad, 0.5)
     assert_dense_algebra(stencil, band, stencil.factor_of(band, 0.5), rng)
+
+
+@pytest.mark.parametrize(
+    ("shape", "reach"), [((20, 9, 4), (2, 2, 1)), ((17, 17, 3), (3, 2, 3)), ((5, 4, 3), (3, 3, 3))]
+)
+def test_each_slab_of_the_dissection_separates_its_two_halves(shape, reach):
+    """Replaying :func:`dissection`'s recursion: the order is a permutation, each box's two
+    halves come before its slab, and no stencil pair within the reach joins a hinge of one
+    half to one of the other (a pair inside the box crosses only through the slab), which is
+    what keeps the halves' factors apart."""
+    order = sparse_stencil.dissection(shape, reach)
+    assert np.array_equal(np.sort(order), np.arange(int(np.prod(shape))))
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    index = np.arange(int(np.prod(shape))).reshape(shape)
+    reach = np.array(reach)
+    boxes, cuts = [([0, 0, 0], list(shape))], 0
+    while boxes:
+        lo, hi = boxes.pop()
+        extent = np.array(hi) - np.array(lo)
+        room = np.where(extent > 2 * reach + 1, extent / reach, 0.0)
+        if room.max() == 0:
+            continue
+        d = int(np.argmax(room))
+        c = lo[d] + (extent[d] - reach[d]) // 2
+        halves = []
+        for a, b in ((lo[d], c), (c + reach[d], hi[d])):
+            sub_lo, sub_hi = list(lo), list(hi)
+            sub_lo[d], sub_hi[d] = a, b
+            boxes.append((sub_lo, sub_hi))
+            halves.append(index[tuple(slice(x, y) for x, y in zip(sub_lo, sub_hi, strict=True))].ravel())
+        slab_lo, slab_hi = list(lo), list(hi)
+        slab_lo[d], slab_hi[d] = c, c + reach[d]
+        slab = index[tuple(slice(x, y) for x, y in zip(slab_lo, slab_hi, strict=True))].ravel()
+        assert rank[slab].min() > max(rank[halves[0]].max(), rank[halves[1]].max())
+        left = np.stack(np.unravel_index(halves[0], shape), axis=1)
+        right = np.stack(np.unravel_index(halves[1], shape), axis=1)
+        gap = np.abs(left[:, None, d] - right[None, :, d]).min()
+        assert gap > reach[d]  # the closest pair across is out of the kernel's reach
+        cuts += 1
+    assert cuts >= (1 if max(shape) > 2 * max(reach) + 1 else 0)
+
+
+def test_the_stencil_holds_the_offsets_whose_coupling_is_above_the_cutoff():
+    """Offsets o with c(o) = exp(-sum gamma step^2 o^2 / 2) >= cutoff, half of them
+    (lexicographically >= 0, zero first), and their couplings as ``kernel``."""
+    gamma, step, cutoff = np.array([0.5, 2.0, 1.0]), np.array([1.0, 0.5, 2.0]), 1e-4
+    stencil = lattice_stencil((15, 15, 9), tuple(step), Kernel(tuple(gamma), cutoff))
+    grid = np.stack(np.meshgrid(*[np.arange(-7, 8)] * 2, np.arange(-4, 5), indexing="ij"), -1).reshape(-1, 3)
+    coupling = np.exp(-(grid**2 @ (gamma * step**2)) / 2)
+    kept = grid[(coupling >= cutoff) & [tuple(o) >= (0, 0, 0) for o in grid]]
+    assert sorted(map(tuple, stencil.offsets)) == sorted(map(tuple, kept))
+    assert tuple(stencil.offsets[0]) == (0, 0, 0)
+    np.testing.assert_allclose(
+        stencil.kernel, np.exp(-(stencil.offsets**2 @ (gamma * step**2)) / 2), rtol=1e-15
+    )

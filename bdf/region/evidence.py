@@ -1,0 +1,119 @@
+"""A region's evidence: points to per-tile, per-class increments, and their sum.
+
+Each observation belongs to the tile whose core holds it (:meth:`RegionSpec.home_tiles`);
+the tile's increment is what its core's points add to the region's evidence over the
+tile's support (:func:`increments`, by :meth:`bdf.stats.SectorEvidence.from_points`: the
+one function everything that learns calls). Stored increments are decoded on the tile's
+support (:func:`decode_tile`) and the region's evidence is their sum on the region's
+lattice (:func:`region_total`), each observation counted once: tiles are independently
+updatable, and the order of uploads does not matter.
+
+Input noise widens a point's expected kernel (``1 + 2 gamma nu^2`` in its exponent); its
+features are kept over the tile's support, so terms beyond the plain kernel's reach at
+the cutoff are dropped (below ``cutoff^(1 / (1 + 2 gamma nu^2))``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import NamedTuple
+
+import numpy as np
+
+from bdf import sparse
+from bdf._validate import as_noise_std, as_observations, as_sample_weight, take_rows
+from bdf.region.spec import RegionSpec, TileKey
+from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence
+
+
+class Increment(NamedTuple):
+    """What one upload adds to one tile."""
+
+    evidence: Evidence
+    points: int
+
+
+def increments(
+    spec: RegionSpec,
+    X,
+    V,
+    *,
+    input_noise_std=None,
+    sample_weight=None,
+    progress: Callable[[float], None] | None = None,
+) -> dict[TileKey, Increment]:
+    """The evidence each tile gains from observations ``(X, V)`` (all inside the region):
+    its core's points, over its support.
+
+    ``progress(fraction)`` is called after each tile (long fits report it).
+    """
+    X, V = as_observations(X, V)
+    input_noise = as_noise_std(input_noise_std, len(X))
+    weight = as_sample_weight(sample_weight, len(X))
+    out = {}
+    groups = spec.home_tiles(X)
+    for done, (key, idx) in enumerate(groups.items(), start=1):
+        evidence = SectorEvidence.from_points(
+            spec.tile_grid(key),
+            spec.kernel,
+            *take_rows((X, V, input_noise, weight), idx),
+            sectors=spec.sectors,
+            noise_lattice=spec.tile_noise_lattice(key),
+        )
+        out[key] = Increment(evidence, len(idx))
+        if progress is not None:
+            progress(done / len(groups))
+    return out
+
+
+def decode_tile(
+    spec: RegionSpec, key: TileKey, blob: bytes, format_version: int = FORMAT_VERSION
+) -> SectorEvidence:
+    """A tile's stored evidence (:meth:`SectorEvidence.to_bytes` on its support)."""
+    grid = spec.tile_grid(key)
+    stencil = sparse.stencil_on(grid, spec.kernel)
+    return SectorEvidence.from_bytes(
+        blob, grid, stencil, spec.tile_noise_lattice(key), spec.sectors, format_version
+    )
+
+
+def region_total(spec: RegionSpec, tiles: Mapping[TileKey, SectorEvidence]) -> SectorEvidence:
+    """The region's evidence: the sum of its tiles', each placed on the region's lattice."""
+    return SectorEvidence(
+        tuple(
+            _class_total(spec, {k: ev.classes[c] for k, ev in tiles.items()})
+            for c in range(spec.sectors.classes)
+        )
+    )
+
+
+def _class_total(spec: RegionSpec, tiles: Mapping[TileKey, Evidence]) -> Evidence:
+    """One class's :func:`region_total`."""
+    total = Evidence.zeros(spec.grid, spec.noise_lattice)
+    region_stencil = spec.stencil
+    for key, ev in tiles.items():
+        grid = spec.tile_grid(key)
+        i0 = np.round((grid.origin - spec.grid.origin) / spec.grid.step).astype(int)
+        hinges = tuple(slice(a, a + n) for a, n in zip(i0, grid.shape, strict=True))
+        mids = tuple(slice(2 * a, 2 * (a + n) - 1) for a, n in zip(i0, grid.shape, strict=True))
+        total.density[mids] += ev.density
+        total.proj.reshape(*spec.grid.shape, 3)[hinges] += ev.proj.reshape(*grid.shape, 3)
+        total.mass.reshape(spec.grid.shape)[hinges] += ev.mass.reshape(grid.shape)
+        total.count += ev.count
+        total.v_sum += ev.v_sum
+        total.v_sq += ev.v_sq
+        if ev.moments is not None:
+            sub = spec.tile_noise_lattice(key)
+            j0 = np.round((sub.origin - spec.noise_lattice.origin) / sub.step).astype(int)
+            cells = tuple(slice(a, a + n) for a, n in zip(j0, sub.shape, strict=True))
+            total.moments[cells] += ev.moments
+        if ev.gram_noisy is not None:
+            if total.gram_noisy is None:
+                total.gram_noisy = np.zeros((len(region_stencil.offsets), spec.grid.size))
+            # the tile's stencil is the region's, cut where the support's edge is nearer
+            tile_stencil = sparse.stencil_on(grid, spec.kernel)
+            rows = {tuple(o): k for k, o in enumerate(region_stencil.offsets.tolist())}
+            for k, o in enumerate(tile_stencil.offsets.tolist()):
+                band = total.gram_noisy[rows[tuple(o)]].reshape(spec.grid.shape)
+                band[hinges] += ev.gram_noisy[k].reshape(grid.shape)
+    return total
