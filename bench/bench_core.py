@@ -44,9 +44,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bdf import BayesianDynamicField, crossval, ingest, metrics
 from bdf.directions import Sectors
-from bdf.ingest import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M
 from bdf.kernel import DEFAULT_CUTOFF
 from bdf.stats import Evidence, SectorEvidence
+from clients import samples
+from clients.samples import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M
 
 PAPER_ALPHA, PAPER_BETA = 1e-2, 1e2
 #: The coarsest grid the targets allow (M >= 2,000): where an "auto" fit takes under 1 s.
@@ -474,7 +475,7 @@ def main():
     parser.add_argument("--no-append", action="store_true", help="do not append to bench/RESULTS.md")
     args = parser.parse_args()
 
-    obs, lower, upper = ingest.load_paris()
+    obs, lower, upper = samples.load_paris()
     if args.directions:
         counts = [int(c) for c in args.directions.split(",")]
         report = [

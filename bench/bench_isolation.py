@@ -48,7 +48,7 @@ from tests.service.test_isolation import EMPTY, traffic
 MODES_SPEC = {{**EMPTY, "name": "modes"}}  # 16 sectors (17 classes): answers are large
 from service.app import create_app
 from service.settings import Settings
-from service.formats import ARROW, NPZ, JSON
+from service.wire import ARROW, NPZ, JSON
 case, size = sys.argv[1], int(sys.argv[2])
 proc = psutil.Process()
 with tempfile.TemporaryDirectory() as tmp:

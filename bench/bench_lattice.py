@@ -11,7 +11,7 @@ or ``--directions`` heading sectors (the demo's map: the mixture's MSLL). Per
 candidate also the prior std's ripple between hinges (``1 - min / max`` of
 ``sqrt(phi(x)^T phi(x))`` over a lattice cell): a kernel narrow for its lattice shows the
 lattice as a pattern where there is no data. The demo's lattice
-(``bdf.ingest.PARIS_REGION_SPACING_M``) is read from this table (bench/RESULTS.md).
+(``bdf.samples.PARIS_REGION_SPACING_M``) is read from this table (bench/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_core import publish, weighted_cv  # bench/ is on the path when run as a script
 
 from bdf import ingest
+from clients import samples
 
 CANDIDATES_M = [
     np.array([4000.0, 4000.0, 1000.0]),
@@ -56,10 +57,10 @@ def main(argv=None) -> None:
     ap.add_argument("--gammas", default="1,2", help="gamma x spacing^2 of every lattice, comma-separated")
     ap.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
     args = ap.parse_args(argv)
-    obs, lower, upper = ingest.load_paris()
+    obs, lower, upper = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     train = obs.subset(~test)
-    lower = lower - [0, 0, 1000]  # the region's box (ingest.paris_region)
+    lower = lower - [0, 0, 1000]  # the region's box (samples.paris_region)
     scales = [float(g) for g in args.gammas.split(",")]
     rows = weighted_cv(train, lower, upper, CANDIDATES_M, args.cutoff, scales, args.directions)
     for r in rows:

@@ -35,6 +35,7 @@ from bench_core import rows_table
 
 from bdf import ingest
 from bdf.region.spec import RegionSpec
+from clients import samples
 from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE, across_flow, busiest_flow, tube_voxels
 from clients.local import LocalService
 from clients.sdk import BDFClient
@@ -62,8 +63,8 @@ def main() -> None:
     parser.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
     args = parser.parse_args()
 
-    obs, lower, upper = ingest.load_paris()
-    spec = ingest.paris_region(lower, upper)
+    obs, lower, upper = samples.load_paris()
+    spec = samples.paris_region(lower, upper)
     if args.directions:
         text = directional_pairs(obs, spec, args)
         print(text)

@@ -29,7 +29,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bdf import BayesianDynamicField, ingest, posterior, sparse, tuning
-from bdf.ingest import PARIS_GAMMA, PARIS_SPACING_M
+from clients import samples
+from clients.samples import PARIS_GAMMA, PARIS_SPACING_M
 
 
 @contextlib.contextmanager
@@ -57,7 +58,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=5)
     args = parser.parse_args()
-    obs, lower, upper = ingest.load_paris()
+    obs, lower, upper = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     X, V, probe = obs.X[~test], obs.V[~test], obs.X[test][:1]
     weight = ingest.track_weights(obs.subset(~test), PARIS_SPACING_M)

@@ -5,7 +5,7 @@
         [--directions 1,8] [--no-append]
 
 A real ``bdf serve`` (``--workers`` uvicorn workers, SQLite unless --postgres) holds the
-demo's Paris map (its lattice, ``bdf.ingest.paris_demo_region``; flight split, fitted over
+demo's Paris map (its lattice, ``bdf.samples.paris_demo_region``; flight split, fitted over
 HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
 
 * queries: ``wrk`` (a C load generator: microseconds of CPU per request, so the server's
@@ -59,8 +59,10 @@ from bench_core import (  # bench/ is on the path as a script
 from bdf import features, ingest
 from bdf.region.evidence import increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
+from clients import samples
 from clients.local import LocalService
-from service.formats import ARROW, NPZ, arrow_bytes
+from service.formats import arrow_bytes
+from service.wire import ARROW, NPZ
 
 QUERY_POINTS = 1000
 CLIENTS = 16
@@ -336,7 +338,7 @@ def main():
     if shutil.which("wrk") is None:
         sys.exit("bench_service needs wrk: apt-get install wrk (make bench does, as root)")
 
-    obs, lower, upper = ingest.load_paris()
+    obs, lower, upper = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     report = [
         f"## HTTP service, {datetime.date.today()}",
@@ -344,15 +346,15 @@ def main():
         f"`{' '.join([Path(sys.executable).name, *sys.argv])}` on {platform.machine()}, "
         f"{os.cpu_count()} cores; {args.workers} uvicorn workers with {args.threads} compute threads "
         "each; wrk (1 thread) on the same machine. The demo's Paris map (its lattice: "
-        f"{ingest.PARIS_REGION_SPACING_M.tolist()} m, gamma "
-        f"{ingest.PARIS_REGION_GAMMA[0] * ingest.PARIS_REGION_SPACING_M[0] ** 2:g}/spacing^2, cutoff "
-        f"{ingest.PARIS_REGION_CUTOFF:g}), fitted over HTTP "
+        f"{samples.PARIS_REGION_SPACING_M.tolist()} m, gamma "
+        f"{samples.PARIS_REGION_GAMMA[0] * samples.PARIS_REGION_SPACING_M[0] ** 2:g}/spacing^2, cutoff "
+        f"{samples.PARIS_REGION_CUTOFF:g}), fitted over HTTP "
         f"from {int((~test).sum())} rows in one Arrow body. Targets (issue 20): 16 connections, Arrow, "
         "p50 < 20 ms and < 2.5 ms of server CPU per request; 1 connection p50 < 4 ms; grid < 100 ms warm.",
     ]
     backends = ["SQLite", "PostgreSQL"] if args.postgres else ["SQLite"]
     for directions in (int(d) for d in args.directions.split(",")):
-        spec = ingest.paris_demo_region(lower, upper, directions=directions)
+        spec = samples.paris_demo_region(lower, upper, directions=directions)
         for name in backends:
             env = {
                 "BDF_LOG_LEVEL": "warning",

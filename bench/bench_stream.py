@@ -3,10 +3,10 @@
     .venv/bin/python bench/bench_stream.py [--directions 1,8] [--uploads 1,10,100]
         [--seconds 30] [--parts calibration,refresh,staleness] [--uploaders 8] [--no-append]
 
-Data: the flight split of the core benchmark (`bdf.ingest.load_paris`: 20 % of whole
+Data: the flight split of the core benchmark (`bdf.samples.load_paris`: 20 % of whole
 flights held out, seed 0), track weights (`bdf.ingest.track_weights` on the core
 benchmark's 4 km x 4 km x 1 km cells, as bench_core.py). Region: the demo's
-(`bdf.ingest.paris_demo_region`, 2 km x 2 km x 1 km hinges, cutoff 1e-9), with 1 and with
+(`bdf.samples.paris_demo_region`, 2 km x 2 km x 1 km hinges, cutoff 1e-9), with 1 and with
 8 heading sectors.
 
 1. Calibration: the region built in process through `RegionMaps` on SQLite from the
@@ -51,10 +51,11 @@ from bench_core import publish, rows_table  # bench/ is on the path when run as 
 from bench_service import arrow_points
 
 from bdf import ingest, metrics, sparse
-from bdf.ingest import PARIS_SPACING_M
 from bdf.region.evidence import region_total
 from bdf.region.map import RegionMap
+from clients import samples
 from clients.local import LocalService
+from clients.samples import PARIS_SPACING_M
 from service.maps import RegionMaps
 from service.store import open_store
 
@@ -62,7 +63,7 @@ ARROW = "application/vnd.apache.arrow.stream"
 
 
 def split():
-    obs, lower, upper = ingest.load_paris()
+    obs, lower, upper = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     train = obs.subset(~test)
     weight = ingest.track_weights(train, PARIS_SPACING_M)
@@ -92,7 +93,7 @@ def held_out(spec, post, train, test) -> dict:
 
 
 def calibration(directions, counts, train, weight, test, lower, upper, tmp) -> tuple[list[dict], dict]:
-    spec = ingest.paris_demo_region(lower, upper, directions=directions)
+    spec = samples.paris_demo_region(lower, upper, directions=directions)
     t0 = time.perf_counter()
     single = spec.field().fit(train.X, train.V, sample_weight=weight).posterior_
     single_s = time.perf_counter() - t0
@@ -152,7 +153,7 @@ class _SearchPoints(logging.Handler):
 
 def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
     """Cold map against warm refreshes after 1,000-row uploads (medians over ``rounds``)."""
-    spec = ingest.paris_demo_region(lower, upper, directions=directions)
+    spec = samples.paris_demo_region(lower, upper, directions=directions)
     store = open_store(f"sqlite:///{tmp}/refresh-d{directions}")
     store.create_region(spec)
     rng = np.random.default_rng(5)
@@ -268,7 +269,7 @@ def _map_metrics(text: str) -> dict:
 def served(directions, train, weight, lower, upper, data, seconds, uploaders=8) -> dict:
     """:func:`staleness` on a service holding the region of ``directions`` built from the
     training data (its first map computed before the load starts)."""
-    spec = ingest.paris_demo_region(lower, upper, directions=directions)
+    spec = samples.paris_demo_region(lower, upper, directions=directions)
     with LocalService(data) as svc:
         with httpx.Client(base_url=svc.url, timeout=900) as c:
             c.post("/v1/regions", json=spec.model_dump(mode="json")).raise_for_status()

@@ -3,7 +3,7 @@
     .venv/bin/python bench/bench_tiles.py [--spacing 4000,4000,1000 ...] [--cutoff 1e-12]
         [--cutoffs 1e-6,1e-8,1e-10] [--directions 8] [--no-append]
 
-Region: the demo's (`bdf.ingest.paris_region`: the core benchmark's 80 km x 80 km box,
+Region: the demo's (`bdf.samples.paris_region`: the core benchmark's 80 km x 80 km box,
 10 km tiles over the whole altitude band, gamma = 1/spacing^2). Training data: the flight
 split of the core benchmark (20 % of whole flights held out, seed 0), track-weighted.
 Everything runs in process through `RegionMaps` on SQLite in a temporary directory.
@@ -52,6 +52,7 @@ from bdf import ingest, sparse
 from bdf.kernel import DEFAULT_CUTOFF
 from bdf.region.evidence import region_total
 from bdf.region.spec import RegionSpec
+from clients import samples
 from service.maps import RegionMaps
 from service.store import open_store
 
@@ -83,8 +84,8 @@ def seam_ratio(values: np.ndarray, axes, spec) -> float:
 
 
 def paris(spacing, cutoff, directions=1) -> RegionSpec:
-    _, lower, upper = ingest.load_paris()
-    return ingest.paris_region(lower, upper, spacing, directions=directions, cutoff=cutoff)
+    _, lower, upper = samples.load_paris()
+    return samples.paris_region(lower, upper, spacing, directions=directions, cutoff=cutoff)
 
 
 def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
@@ -230,7 +231,7 @@ def main(argv=None) -> None:
     ap.add_argument("--directions", type=int, default=1, help="heading sectors of the regions")
     ap.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
     args = ap.parse_args(argv)
-    obs, _, _ = ingest.load_paris()
+    obs, _, _ = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     rate = gemm_rate()
     spacings = [np.array([float(v) for v in s.split(",")]) for s in args.spacing]

@@ -47,10 +47,13 @@ def _print_json(value) -> None:
 
 
 def _region_create(args) -> int:
+    from bdf.region.spec import RegionSpec
+
     spec = json.loads(Path(args.spec).read_text())
     with _client(args) as bdf:
         region = bdf.create_region(spec)
-    print(f"created region {region.spec.name!r} ({region.spec.tile_counts} tiles per axis)")
+    created = RegionSpec.model_validate(region.spec)
+    print(f"created region {created.name!r} ({created.tile_counts} tiles per axis)")
     return 0
 
 
@@ -59,14 +62,14 @@ def _region_list(args) -> int:
         regions = bdf.regions()
     print(f"{'name':<20} {'version':>8} {'observations':>13} {'tiles':>6}")
     for r in regions:
-        print(f"{r.spec.name:<20} {r.version:>8} {r.observations:>13} {r.tiles:>6}")
+        print(f"{r.spec['name']:<20} {r.version:>8} {r.observations:>13} {r.tiles:>6}")
     return 0
 
 
 def _region_show(args) -> int:
     with _client(args) as bdf:
         r = bdf.region(args.name)
-    _print_json({**r.__dict__, "spec": r.spec.model_dump(mode="json")})
+    _print_json(r.__dict__)
     return 0
 
 
@@ -87,10 +90,11 @@ def _health(args) -> int:
 
 def _send_observations(args, kind: str) -> int:
     """``bdf upload``, ``bdf fit`` or ``bdf retract`` of a file."""
+    from bdf.region.spec import RegionSpec
     from clients.files import read_observations
 
     with _client(args) as bdf:
-        spec = bdf.region(args.name).spec
+        spec = RegionSpec.model_validate(bdf.region(args.name).spec)
         obs = read_observations(args.file, spec)
         if obs.dropped:
             print(f"{args.file}: dropped {obs.dropped}", file=sys.stderr)
@@ -160,10 +164,11 @@ def _tubes(args) -> int:
 
 
 def _plot(args) -> int:
+    from bdf.region.spec import RegionSpec
     from clients import plots
 
     with _client(args) as bdf:
-        spec = bdf.region(args.name).spec
+        spec = RegionSpec.model_validate(bdf.region(args.name).spec)
         step = _floats(args.step, (1, 3), "--step") if args.step else None
         if args.kind == "tube":
             step = step or (np.array(spec.spacing_m) / 2).tolist()
@@ -230,9 +235,9 @@ def _plan(args) -> int:
 
 
 def _data_fetch(args) -> int:
-    from bdf import ingest
+    from clients import samples
 
-    print(ingest.fetch_sample(args.name, args.cache))
+    print(samples.fetch_sample(args.name, args.cache))
     return 0
 
 

@@ -22,7 +22,8 @@ import numpy as np
 from scipy import ndimage
 
 from bdf import ingest, metrics
-from clients import plots
+from bdf.region.spec import RegionSpec
+from clients import plots, samples
 from clients.local import LocalService
 from clients.sdk import BDFClient
 
@@ -41,9 +42,9 @@ DIRECTIONS = 8
 def run(out: Path, plan_time_s: float = 5.0, url: str | None = None, token: str | None = None) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    obs, lower, upper = ingest.load_paris()
+    obs, lower, upper = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
-    spec = ingest.paris_demo_region(lower, upper, directions=DIRECTIONS)
+    spec = samples.paris_demo_region(lower, upper, directions=DIRECTIONS)
     report: dict[str, object] = {}
     svc = None
     with contextlib.ExitStack() as stack:
@@ -52,9 +53,9 @@ def run(out: Path, plan_time_s: float = 5.0, url: str | None = None, token: str 
             url = svc.url
             print(f"service on {url} (SQLite in {out / 'bdf-data'}); log in {out / 'service.log'}")
         bdf = stack.enter_context(BDFClient(url, token))
-        existing = spec.name in [r.spec.name for r in bdf.regions()]
+        existing = spec.name in [r.spec["name"] for r in bdf.regions()]
         if existing and svc is None:
-            spec = bdf.region(spec.name).spec
+            spec = RegionSpec.model_validate(bdf.region(spec.name).spec)
             print(f"using the map of region {spec.name!r} on {url} as it is")
         else:
             if existing:  # the demo's own store, from an earlier run

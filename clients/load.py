@@ -20,8 +20,9 @@ import numpy as np
 
 from bdf.region.evidence import increments
 from bdf.region.spec import RegionSpec
-from service.formats import ARROW, NPZ, arrow_bytes
+from service.formats import arrow_bytes
 from service.store import open_store
+from service.wire import ARROW, NPZ
 
 #: request kinds and their share of the workload
 WEIGHTS = {"query_json": 30, "query_arrow": 20, "grid": 10, "tubes": 10, "upload": 20, "regions": 10}

@@ -26,15 +26,10 @@ from typing import Any, Literal
 
 import httpx
 import numpy as np
-import pyarrow as pa
-import pyarrow.ipc
 
-from bdf.region.spec import RegionSpec
+from service import wire
+from service.wire import ARROW, GEOJSON, JSON, NPZ
 
-JSON = "application/json"
-ARROW = "application/vnd.apache.arrow.stream"
-NPZ = "application/x-npz"
-GEOJSON = "application/geo+json"
 RETRY_STATUS = frozenset({500, 502, 503, 504})
 Frame = Literal["enu", "wgs84"]
 
@@ -54,7 +49,7 @@ class BDFError(Exception):
 
 @dataclass(frozen=True)
 class Region:
-    spec: RegionSpec
+    spec: dict  # the region spec's JSON form (bdf.region.spec.RegionSpec validates it)
     version: int
     observations: int
     tiles: int
@@ -144,7 +139,7 @@ class _Request:
         if self.content_type:
             out["content-type"] = self.content_type
         if self.idempotency_key:
-            out["idempotency-key"] = self.idempotency_key
+            out[wire.IDEMPOTENCY_HEADER] = self.idempotency_key
         return out
 
 
@@ -156,7 +151,15 @@ class _Pause:
 Call = Generator[_Request | _Pause, httpx.Response | httpx.TransportError | None, Any]
 
 
+def _pyarrow():
+    """pyarrow, imported at the first Arrow body: the SDK imports fast (a CLI's start)."""
+    import pyarrow.ipc
+
+    return pyarrow
+
+
 def _arrow(columns: dict[str, np.ndarray]) -> bytes:
+    pa = _pyarrow()
     table = pa.table(columns)
     sink = pa.BufferOutputStream()
     with pa.ipc.new_stream(sink, table.schema) as writer:
@@ -164,11 +167,11 @@ def _arrow(columns: dict[str, np.ndarray]) -> bytes:
     return sink.getvalue().to_pybytes()
 
 
-def _read_arrow(body: bytes) -> pa.Table:
-    return pa.ipc.open_stream(body).read_all()
+def _read_arrow(body: bytes):
+    return _pyarrow().ipc.open_stream(body).read_all()
 
 
-def _stack(table: pa.Table, names) -> np.ndarray:
+def _stack(table, names) -> np.ndarray:
     return np.stack([table.column(n).to_numpy() for n in names], axis=1).astype(float)
 
 
@@ -182,7 +185,7 @@ def _points(X, name: str = "X") -> np.ndarray:
 def _position_columns(X: np.ndarray, frame: Frame) -> dict[str, np.ndarray]:
     if frame not in ("enu", "wgs84"):
         raise ValueError(f"frame must be 'enu' or 'wgs84', got {frame!r}")
-    names = ("x", "y", "z") if frame == "enu" else ("lat", "lon", "alt_m")
+    names = wire.ENU_COLUMNS if frame == "enu" else wire.WGS84_COLUMNS
     return {n: np.ascontiguousarray(X[:, i]) for i, n in enumerate(names)}
 
 
@@ -209,14 +212,13 @@ def _npz(body: bytes) -> dict[str, np.ndarray]:
 
 
 def _version(response: httpx.Response) -> int:
-    return int(response.headers["x-region-version"])
+    return int(response.headers[wire.VERSION_HEADER])
 
 
 def _lag(response: httpx.Response) -> tuple[int, float]:
     """How far the answer's map was behind the region (versions, seconds)."""
-    return int(response.headers["x-region-versions-behind"]), float(
-        response.headers["x-region-seconds-behind"]
-    )
+    headers = response.headers
+    return int(headers[wire.VERSIONS_BEHIND_HEADER]), float(headers[wire.SECONDS_BEHIND_HEADER])
 
 
 def _json_body(body) -> dict:
@@ -226,7 +228,7 @@ def _json_body(body) -> dict:
 def _observations_body(X, V, noise, weight, frame: Frame) -> bytes:
     columns = {
         **_position_columns(X, frame),
-        **{c: np.ascontiguousarray(V[:, j]) for j, c in enumerate(("ve", "vn", "vu"))},
+        **{c: np.ascontiguousarray(V[:, j]) for j, c in enumerate(wire.VELOCITY_COLUMNS)},
     }
     if noise is not None:
         columns["input_noise_std"] = noise
@@ -343,9 +345,10 @@ class _Endpoints:
     def region(self, name: str) -> Region:
         return self._run(self._json("GET", f"/v1/regions/{name}", parse=_region))
 
-    def create_region(self, spec: RegionSpec | dict) -> Region:
-        spec = spec if isinstance(spec, RegionSpec) else RegionSpec.model_validate(spec)
-        body = spec.model_dump(mode="json")
+    def create_region(self, spec) -> Region:
+        """Create a region from its spec: a dict of its JSON form, or a
+        :class:`bdf.region.spec.RegionSpec` (checked here before it is sent)."""
+        body = spec.model_dump(mode="json") if hasattr(spec, "model_dump") else dict(spec)
         return self._run(self._json("POST", "/v1/regions", json=body, parse=_region))
 
     def delete_region(self, name: str) -> None:
@@ -592,8 +595,8 @@ class _Endpoints:
         )
         table = _read_arrow(response.content)
         return Prediction(
-            _stack(table, ("ve", "vn", "vu")),
-            _stack(table, ("std_e", "std_n", "std_u")),
+            _stack(table, wire.VELOCITY_COLUMNS),
+            _stack(table, wire.STD_COLUMNS),
             table.column("known").to_numpy(zero_copy_only=False).astype(bool),
             _version(response),
             *_lag(response),
@@ -618,7 +621,7 @@ class _Endpoints:
 
 
 def _region(js: dict) -> Region:
-    return Region(**{**js, "spec": RegionSpec.model_validate(js["spec"])})
+    return Region(**js)
 
 
 def _summary(results: Iterable[dict]) -> UploadResult:

@@ -239,7 +239,7 @@ def plan_route(
     rises above the bound between grid nodes is planned again on a grid of half the step
     (up to ``REFINES`` times); the last plan is returned, with a warning if it still does.
     """
-    spec = client.region(region).spec
+    spec = RegionSpec.model_validate(client.region(region).spec)
     start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
     box = planning_box(spec, start, goal, altitude_m, margin_m)
     step = grid_step(spec, *box, step)

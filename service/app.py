@@ -28,9 +28,8 @@ from pydantic import BaseModel
 
 from bdf import directions
 from bdf.region.spec import RegionSpec, key_str
-from service import formats, problems, slices
+from service import formats, problems, slices, wire
 from service.auth import PUBLIC, require
-from service.formats import ARROW, GEOJSON, JSON, NPZ, PARQUET
 from service.jobs import Jobs
 from service.lanes import Heavy, Lanes, Waiting
 from service.maps import RegionMaps
@@ -38,6 +37,7 @@ from service.problems import Problem
 from service.settings import Settings
 from service.store import MapStore, RegionInfo, open_store
 from service.telemetry import Metrics, RequestMiddleware
+from service.wire import ARROW, GEOJSON, JSON, NPZ, PARQUET
 
 log = logging.getLogger("bdf.service")
 PNG = "image/png"
@@ -159,9 +159,9 @@ def _answer_headers(request: Request, pred, body: bytes = b"") -> dict:
     request.app.state.metrics.answered(pred.behind, pred.behind_s)
     return {
         "ETag": _etag(request, pred.region_id, pred.version, body),
-        "X-Region-Version": str(pred.version),
-        "X-Region-Versions-Behind": str(pred.behind),
-        "X-Region-Seconds-Behind": f"{pred.behind_s:.3f}",
+        wire.VERSION_HEADER: str(pred.version),
+        wire.VERSIONS_BEHIND_HEADER: str(pred.behind),
+        wire.SECONDS_BEHIND_HEADER: f"{pred.behind_s:.3f}",
     }
 
 
@@ -318,7 +318,7 @@ async def delete_region(name: RegionName, request: Request):
 IdempotencyKey = Annotated[
     str,
     Header(
-        alias="Idempotency-Key",
+        alias=wire.IDEMPOTENCY_HEADER,
         min_length=1,
         max_length=200,
         pattern=r"^[ -~]+$",
@@ -944,13 +944,19 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
             CORSMiddleware,
             allow_origins=settings.cors_origins,
             allow_methods=["GET", "POST", "DELETE"],
-            allow_headers=["Authorization", "Content-Type", "Accept", "Idempotency-Key", "If-None-Match"],
+            allow_headers=[
+                "Authorization",
+                "Content-Type",
+                "Accept",
+                wire.IDEMPOTENCY_HEADER,
+                "If-None-Match",
+            ],
             expose_headers=[
                 "ETag",
-                "X-Region-Version",
-                "X-Region-Versions-Behind",
-                "X-Region-Seconds-Behind",
-                "X-Request-ID",
+                wire.VERSION_HEADER,
+                wire.VERSIONS_BEHIND_HEADER,
+                wire.SECONDS_BEHIND_HEADER,
+                wire.REQUEST_ID_HEADER,
                 "Location",
                 "Retry-After",
             ],

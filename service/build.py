@@ -44,7 +44,7 @@ from bdf import ingest
 from bdf.region.evidence import Increment, region_total
 from bdf.region.map import compute_posterior
 from bdf.region.spec import RegionSpec, TileKey
-from service import formats
+from service import formats, wire
 from service.maps import REJECTED, fitted, observations_evidence, require_accepted
 from service.problems import Problem
 from service.store import MapStore
@@ -58,9 +58,9 @@ BATCH_ROWS = 200_000
 CSV_BYTES_PER_ROW = 64
 #: Numeric columns: float64 from CSV (type inference per block could differ), numpy from ADS-B.
 _NUMERIC_COLUMNS = (
-    *formats.ENU_COLUMNS,
-    *formats.WGS84_COLUMNS,
-    *formats.VELOCITY_COLUMNS,
+    *wire.ENU_COLUMNS,
+    *wire.WGS84_COLUMNS,
+    *wire.VELOCITY_COLUMNS,
     "input_noise_std",
     "sample_weight",
     *{c for cols, *_ in ingest.ADSB_SCHEMAS.values() for c in cols},

@@ -25,27 +25,25 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bdf.region.spec import RegionSpec
 from service.problems import Problem
-
-JSON = "application/json"
-ARROW = "application/vnd.apache.arrow.stream"
-PARQUET = "application/vnd.apache.parquet"
-NPZ = "application/x-npz"
-GEOJSON = "application/geo+json"
-PARQUET_ALIASES = (PARQUET, "application/x-parquet")
+from service.wire import (
+    ARROW,
+    ENU_COLUMNS,
+    GEOJSON,
+    JSON,
+    NPZ,
+    PARQUET,
+    PARQUET_ALIASES,
+    QUERY_COLUMNS,
+    UPLOAD_COLUMNS,
+    VELOCITY_COLUMNS,
+    WGS84_COLUMNS,
+)
 
 #: a JSON number, never a string, a bool, NaN or an infinity (1e400 parses as one)
 FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 Value = FiniteFloat | None  # null -> NaN: the row is rejected and counted, not the request
 Row3 = Annotated[list[Value], Field(min_length=3, max_length=3)]
 Frame = Literal["enu", "wgs84"]
-ENU_COLUMNS = ("x", "y", "z")
-WGS84_COLUMNS = ("lat", "lon", "alt_m")
-VELOCITY_COLUMNS = ("ve", "vn", "vu")
-#: the columns a binary body may hold: an upload's, a query's (anything else is a 422)
-UPLOAD_COLUMNS = frozenset(
-    (*ENU_COLUMNS, *WGS84_COLUMNS, *VELOCITY_COLUMNS, "input_noise_std", "sample_weight")
-)
-QUERY_COLUMNS = frozenset((*ENU_COLUMNS, *WGS84_COLUMNS, "heading_deg"))
 
 
 @dataclass(frozen=True)

@@ -28,8 +28,7 @@ from service.store import (
     UploadConflict,
     UploadNotFound,
 )
-
-REQUEST_ID_HEADER = "X-Request-ID"
+from service.wire import REQUEST_ID_HEADER
 
 PROBLEM = "application/problem+json"
 log = logging.getLogger("bdf.service")

@@ -16,7 +16,8 @@ from prometheus_client import CollectorRegistry, Counter, Histogram, disable_cre
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from service import lanes
-from service.problems import DEADLINE_RETRY_S, REQUEST_ID_HEADER, Problem, new_request_id, problem
+from service.problems import DEADLINE_RETRY_S, Problem, new_request_id, problem
+from service.wire import REQUEST_ID_HEADER
 
 #: a client's request id is kept if it is a plain token (it goes into logs and headers)
 REQUEST_ID = re.compile(r"[A-Za-z0-9._-]{1,64}")

@@ -1,6 +1,8 @@
 """The layering of DESIGN.md: no import cycle between this project's modules."""
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -72,3 +74,57 @@ def test_packages_import_one_way():
         if package in allowed:
             wrong = {t for t in targets if t.split(".")[0] not in allowed[package]}
             assert not wrong, f"{module} imports {sorted(wrong)}"
+
+
+def closure(graph: dict[str, set[str]], start: str) -> set[str]:
+    """The project modules ``start`` imports, directly or through others."""
+    seen, todo = set(), [start]
+    while todo:
+        for nxt in graph[todo.pop()] - seen:
+            seen.add(nxt)
+            todo.append(nxt)
+    return seen
+
+
+def numba_importers() -> set[str]:
+    """The project modules whose code imports numba."""
+    out = set()
+    for pkg in PACKAGES:
+        for path in (ROOT / pkg).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+                if isinstance(node, ast.ImportFrom) and node.module:
+                    names = [node.module]
+                if any(n.split(".")[0] == "numba" for n in names):
+                    out.add(module_name(path))
+    return out
+
+
+def test_the_sdk_imports_no_numerics_of_the_library():
+    """The SDK (and the wire names it shares with the service) reach no module of bdf and
+    none that imports numba, so that ``import clients.sdk`` stays light."""
+    graph = imports()
+    assert {"bdf.sparse.supernodal", "bdf.features"} <= numba_importers()
+    reached = closure(graph, "clients.sdk") | {"clients.sdk"}
+    assert "service.wire" in reached
+    assert not {m for m in reached if m.split(".")[0] == "bdf"}, sorted(reached)
+    assert not reached & numba_importers(), sorted(reached & numba_importers())
+
+
+def test_importing_the_sdk_loads_neither_numba_nor_scipy():
+    """The same, by the interpreter: what ``import clients.sdk`` leaves in sys.modules."""
+    heavy = "('numba', 'scipy', 'bdf', 'pyproj')"
+    code = f"import sys, clients.sdk; print(sorted(m for m in {heavy} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_the_library_wings_import_one_way():
+    """bdf.sparse is the algebra under the model: it imports only the lattice and the kernel
+    besides itself. bdf.region is the top of the library: no other bdf module imports it."""
+    for module, targets in imports().items():
+        if module.startswith("bdf.sparse"):
+            wrong = {t for t in targets if not t.startswith("bdf.sparse")} - {"bdf.grid", "bdf.kernel"}
+            assert not wrong, f"{module} imports {sorted(wrong)}"
+        elif module.startswith("bdf") and not module.startswith("bdf.region"):
+            assert not {t for t in targets if t.startswith("bdf.region")}, module

@@ -9,8 +9,8 @@ from bdf.region.evidence import decode_tile, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.spec import RegionSpec
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER, dense_features
+from tests.bdf.region.conftest import SMALL
 from tests.bdf.test_field import assert_close
-from tests.bdf.test_tiles import SMALL
 
 
 @pytest.fixture

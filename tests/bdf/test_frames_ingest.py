@@ -114,8 +114,6 @@ def test_adsb_missing_column_and_unknown_format(tmp_path):
         ingest.read_adsb(tmp_path / "s.csv", PARIS)
     with pytest.raises(ValueError, match="unknown format"):
         ingest.read_adsb(tmp_path / "s.xlsx", PARIS)
-    with pytest.raises(ValueError, match="unknown sample"):
-        ingest.fetch_sample("tokyo")
 
 
 def test_radar_csv(tmp_path):

@@ -92,7 +92,7 @@ def test_errors_are_one_line_with_meaningful_exit_codes(server, tmp_path):
         run = bdf(*args)
         assert run.returncode == code and words in run.stderr and run.stderr.count("\n") == 1, run.stderr
     with BDFClient(server.url) as client:
-        if NAME not in [r.spec.name for r in client.regions()]:
+        if NAME not in [r.spec["name"] for r in client.regions()]:
             client.create_region(SPEC)
     run = bdf("upload", NAME, str(bad), "--url", server.url)
     assert run.returncode == 2 and "need the columns" in run.stderr

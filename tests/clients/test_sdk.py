@@ -27,7 +27,7 @@ def server(tmp_path_factory):
 @pytest.fixture
 def bdf(server):
     with BDFClient(server.url, backoff_s=0.01) as c:
-        if NAME in [r.spec.name for r in c.regions()]:
+        if NAME in [r.spec["name"] for r in c.regions()]:
             c.delete_region(NAME)
         c.create_region(SPEC)
         yield c

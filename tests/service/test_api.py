@@ -15,8 +15,9 @@ import pytest
 from bdf.posterior import known
 from bdf.region.spec import RegionSpec
 from service.app import create_app
-from service.formats import ARROW, GEOJSON, NPZ, PARQUET, arrow_body, arrow_bytes, npz_bytes
+from service.formats import arrow_body, arrow_bytes, npz_bytes
 from service.settings import Settings
+from service.wire import ARROW, GEOJSON, NPZ, PARQUET
 from tests.service.test_store import NO_REJECTS, SPEC, data
 
 NAME = SPEC["name"]

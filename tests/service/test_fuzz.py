@@ -28,8 +28,8 @@ from schemathesis.specs.openapi.checks import (
 )
 
 from service.app import create_app
-from service.formats import ARROW, PARQUET
 from service.settings import Settings
+from service.wire import ARROW, PARQUET
 from tests.service.test_store import SPEC, data
 
 NAME = SPEC["name"]

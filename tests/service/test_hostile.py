@@ -22,10 +22,10 @@ import service.maps
 from bdf.region.spec import RegionSpec
 from service import slices
 from service.app import create_app
-from service.formats import ARROW, NPZ, PARQUET
 from service.maps import RegionMaps
 from service.settings import Settings
 from service.store import RegionExists, StoreUnavailable, open_store
+from service.wire import ARROW, NPZ, PARQUET
 from tests.service.test_store import SPEC, data
 
 NAME = SPEC["name"]

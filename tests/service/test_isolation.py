@@ -25,8 +25,9 @@ from fastapi.testclient import TestClient
 
 from clients.local import LocalService, free_port
 from service.app import create_app
-from service.formats import ARROW, JSON, NPZ, arrow_bytes
+from service.formats import arrow_bytes
 from service.settings import Settings
+from service.wire import ARROW, JSON, NPZ
 from tests.service.conftest import POSTGRES_ENV
 from tests.service.tcp_proxy import PausableProxy
 from tests.service.test_store import SPEC, data

@@ -1,0 +1,29 @@
+"""The names on the wire: media types, columns and headers of the HTTP API.
+
+Standard library only: the service (:mod:`service.formats`, :mod:`service.app`) and the SDK
+(:mod:`clients.sdk`, which must import fast) both read them from here.
+"""
+
+JSON = "application/json"
+ARROW = "application/vnd.apache.arrow.stream"
+PARQUET = "application/vnd.apache.parquet"
+NPZ = "application/x-npz"
+GEOJSON = "application/geo+json"
+PARQUET_ALIASES = (PARQUET, "application/x-parquet")
+
+ENU_COLUMNS = ("x", "y", "z")
+WGS84_COLUMNS = ("lat", "lon", "alt_m")
+VELOCITY_COLUMNS = ("ve", "vn", "vu")
+STD_COLUMNS = ("std_e", "std_n", "std_u")
+#: the columns a binary body may hold: an upload's, a query's (anything else is a 422)
+UPLOAD_COLUMNS = frozenset(
+    (*ENU_COLUMNS, *WGS84_COLUMNS, *VELOCITY_COLUMNS, "input_noise_std", "sample_weight")
+)
+QUERY_COLUMNS = frozenset((*ENU_COLUMNS, *WGS84_COLUMNS, "heading_deg"))
+
+#: the region version a map answer comes from, and how far it is behind the newest
+VERSION_HEADER = "X-Region-Version"
+VERSIONS_BEHIND_HEADER = "X-Region-Versions-Behind"
+SECONDS_BEHIND_HEADER = "X-Region-Seconds-Behind"
+REQUEST_ID_HEADER = "X-Request-ID"
+IDEMPOTENCY_HEADER = "Idempotency-Key"
