@@ -10,19 +10,21 @@ loop alone, so they never wait behind work.
 
 from __future__ import annotations
 
+import functools
 import gc
 import hashlib
 import logging
 import pathlib
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import anyio
 import anyio.to_thread
 import numpy as np
-from fastapi import APIRouter, FastAPI, Header, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, FastAPI, Header, Path, Query, Request, Response
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import HTMLResponse, JSONResponse, StreamingResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
@@ -137,49 +139,83 @@ def _view(info: RegionInfo) -> dict:
     }
 
 
-def _etag(request: Request, region_id: str, version: int, body: bytes = b"") -> str:
-    """Names everything an answer depends on: the map state (region instance and version)
-    and the request (path, query, Accept, Content-Type and the body's digest)."""
-    h = hashlib.sha256()
-    for part in (
-        request.url.path,
-        repr(sorted(request.query_params.multi_items())),
-        request.headers.get("accept", ""),
-        request.headers.get("content-type", ""),
-    ):
-        h.update(part.encode() + b"\0")
-    h.update(body)
-    return f'W/"{region_id}.{version}.{h.hexdigest()[:20]}"'
+@dataclass(frozen=True)
+class Service:
+    """The parts a route works with: what the app was made with (``app.state.service``)."""
+
+    settings: Settings
+    maps: RegionMaps
+    jobs: Jobs
+    lanes: Lanes
+    metrics: Metrics
+
+    async def run(self, step, heavy: bool = False):
+        """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy``; a
+        light step that returns :class:`Heavy` goes on in the heavy lane."""
+        return await self.lanes.run(step, heavy)
+
+    def limits(self, rows: int) -> formats.Limits:
+        """What one request body may decode into: ``rows`` rows at most."""
+        s = self.settings
+        return formats.Limits(rows, int(s.max_decoded_mb * 2**20), int(s.max_json_mb * 2**20))
 
 
-def _answer_headers(request: Request, pred, body: bytes = b"") -> dict:
-    """An answer's ETag, the region version it was computed from and how far that is behind
-    the region's newest (versions, and seconds since the first of them was written); the
-    lag is counted in /metrics too."""
-    request.app.state.metrics.answered(pred.behind, pred.behind_s)
-    return {
-        "ETag": _etag(request, pred.region_id, pred.version, body),
-        wire.VERSION_HEADER: str(pred.version),
-        wire.VERSIONS_BEHIND_HEADER: str(pred.behind),
-        wire.SECONDS_BEHIND_HEADER: f"{pred.behind_s:.3f}",
-    }
+def service(request: Request) -> Service:
+    return request.app.state.service
 
 
-def _not_modified(request: Request, etag: str) -> bool:
-    header = request.headers.get("if-none-match")
-    if not header:
-        return False
-    tags = [t.strip().removeprefix("W/") for t in header.split(",")]
-    return "*" in tags or etag.removeprefix("W/") in tags
+ServiceDep = Annotated[Service, Depends(service)]
 
 
-def _region_or_304(request: Request, name: str, body: bytes = b"") -> tuple[RegionInfo, Response | None]:
-    """The region's info, and a 304 response if the client's ETag names its current state
-    and this request."""
-    info = request.app.state.maps.store.region(name)
-    etag = _etag(request, info.region_id, info.version, body)
-    return info, Response(status_code=304, headers={"ETag": etag}) if _not_modified(request, etag) else None
+class MapAnswer:
+    """The headers of an answer computed from a region's map: its ETag, which names
+    everything the answer depends on (the map's region instance and version, the request's
+    path, query, Accept, Content-Type and body), and the version it came from and how far
+    that is behind the region's newest (versions, and seconds since the first of them was
+    written), which /metrics counts too."""
 
+    def __init__(self, request: Request, svc: Service):
+        self.request, self.svc, self.body = request, svc, b""
+
+    def etag(self, region_id: str, version: int) -> str:
+        h = hashlib.sha256()
+        request = self.request
+        for part in (
+            request.url.path,
+            repr(sorted(request.query_params.multi_items())),
+            request.headers.get("accept", ""),
+            request.headers.get("content-type", ""),
+        ):
+            h.update(part.encode() + b"\0")
+        h.update(self.body)
+        return f'W/"{region_id}.{version}.{h.hexdigest()[:20]}"'
+
+    def region_or_304(self, name: str) -> tuple[RegionInfo, Response | None]:
+        """The region's info, and a 304 if the client's ETag names its current state and
+        this request."""
+        info = self.svc.maps.store.region(name)
+        etag = self.etag(info.region_id, info.version)
+        header = self.request.headers.get("if-none-match")
+        tags = [t.strip().removeprefix("W/") for t in header.split(",")] if header else []
+        if "*" in tags or etag.removeprefix("W/") in tags:
+            return info, Response(status_code=304, headers={"ETag": etag})
+        return info, None
+
+    def headers(self, pred) -> dict:
+        self.svc.metrics.answered(pred.behind, pred.behind_s)
+        return {
+            "ETag": self.etag(pred.region_id, pred.version),
+            wire.VERSION_HEADER: str(pred.version),
+            wire.VERSIONS_BEHIND_HEADER: str(pred.behind),
+            wire.SECONDS_BEHIND_HEADER: f"{pred.behind_s:.3f}",
+        }
+
+
+def map_answer(request: Request, svc: ServiceDep) -> MapAnswer:
+    return MapAnswer(request, svc)
+
+
+AnswerDep = Annotated[MapAnswer, Depends(map_answer)]
 
 MinVersion = Annotated[
     int,
@@ -192,6 +228,19 @@ MinVersion = Annotated[
 WithModes = Annotated[
     bool, Query(description="add every traffic class (heading sectors, then slow): share, mean, std")
 ]
+
+#: a number as the comma-separated query parameters take it (two exponent digits: finite)
+NUMBER = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]{1,2})?"
+POSITIVE = r"(?:0*[1-9][0-9]*(?:\.[0-9]*)?|0*\.[0-9]*[1-9][0-9]*)(?:[eE][-+]?[0-9]{1,2})?"
+BOX3 = rf"^{NUMBER}(?:,{NUMBER}){{5}}$"
+BOX2 = rf"^{NUMBER}(?:,{NUMBER}){{3}}$"
+STEP = rf"^{POSITIVE}(?:,{POSITIVE},{POSITIVE})?$"
+#: what the patterns mean, in a 422
+PATTERNS = {
+    BOX3: "6 comma-separated numbers",
+    BOX2: "4 comma-separated numbers",
+    STEP: "1 or 3 comma-separated positive numbers",
+}
 
 
 def _floats(text: str, n: int, name: str) -> np.ndarray:
@@ -206,59 +255,67 @@ def _floats(text: str, n: int, name: str) -> np.ndarray:
     return values
 
 
-def grid_axes(spec: RegionSpec, bbox: str | None, step: str, max_voxels: int):
-    """Axes ``lo + i * step`` up to ``hi`` (inclusive) of a bbox inside the region."""
-    step_v = _floats(step, 3, "step")
-    if np.any(step_v <= 0):
-        raise Problem(422, f"step must be positive, got {step!r}")
-    if bbox is None:
-        lo, hi = spec.lower, spec.upper
-    else:
-        box = _floats(bbox, 6, "bbox")
-        lo, hi = box[:3], box[3:]
-        if np.any(hi < lo):
-            raise Problem(422, f"bbox max {hi.tolist()} must not be below its min {lo.tolist()}")
-        if np.any(lo < spec.lower) or np.any(hi > spec.upper):
-            raise Problem(
-                422,
-                f"bbox {box.tolist()} leaves region {spec.name!r}, whose bounds are "
-                f"{spec.bounds_m.min} .. {spec.bounds_m.max} (ENU metres)",
-            )
-    try:
-        return RegionSpec.box_axes(lo, hi, step_v, max_voxels)
-    except ValueError as exc:  # the voxel limit
-        raise Problem(422, str(exc)) from None
+@dataclass(frozen=True)
+class GridParams:
+    """A voxel grid over a box: ``step`` (3,) metres, and ``bbox`` (6,) in region ENU
+    metres (None: the region's box); the map of at least ``min_version``."""
+
+    step: np.ndarray
+    bbox: np.ndarray | None
+    min_version: int
+
+    def axes(self, spec: RegionSpec, max_voxels: int) -> list[np.ndarray]:
+        """Axes ``lo + i * step`` up to ``hi`` (inclusive) of the bbox, inside the region."""
+        if self.bbox is None:
+            lo, hi = spec.lower, spec.upper
+        else:
+            lo, hi = self.bbox[:3], self.bbox[3:]
+            if np.any(lo < spec.lower) or np.any(hi > spec.upper):
+                raise Problem(
+                    422,
+                    f"bbox {self.bbox.tolist()} leaves region {spec.name!r}, whose bounds are "
+                    f"{spec.bounds_m.min} .. {spec.bounds_m.max} (ENU metres)",
+                )
+        try:
+            return RegionSpec.box_axes(lo, hi, self.step, max_voxels)
+        except ValueError as exc:  # the voxel limit
+            raise Problem(422, str(exc)) from None
 
 
-def _mesh(axes) -> np.ndarray:
-    mesh = np.meshgrid(*axes, indexing="ij")
-    return np.stack([m.ravel() for m in mesh], axis=1)
+def grid_params(
+    step: Annotated[str, Query(pattern=STEP, description="dx,dy,dz metres (or one number for all axes)")],
+    bbox: Annotated[
+        str | None, Query(pattern=BOX3, description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")
+    ] = None,
+    min_version: MinVersion = 0,
+) -> GridParams:
+    box = None if bbox is None else _floats(bbox, 6, "bbox")
+    if box is not None and np.any(box[3:] < box[:3]):
+        raise Problem(422, f"bbox max {box[3:].tolist()} must not be below its min {box[:3].tolist()}")
+    return GridParams(_floats(step, 3, "step"), box, min_version)
 
 
-async def _run(request: Request, step, heavy: bool = False):
-    """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy``; a light
-    step that returns :class:`Heavy` goes on in the heavy lane."""
-    return await request.app.state.lanes.run(step, heavy)
+GridDep = Annotated[GridParams, Depends(grid_params)]
 
 
-def _light_or_heavy(app, info: RegionInfo, min_version: int, rows: int, work):
+def _light_or_heavy(svc: Service, info: RegionInfo, min_version: int, rows: int, work):
     """``work()`` now if it is light (``rows`` points or voxels times the map's posteriors
     within ``light_cost``), else handed on to the heavy lane; first, if no map of at least
     ``min_version`` is ready, a wait for it (no lane's thread holds it)."""
-    maps = app.state.maps
+    maps = svc.maps
     if not maps.ready(info, min_version):
         return Waiting(
             lambda: maps.wait_for(info, min_version),
-            lambda: _light_or_heavy(app, info, min_version, rows, work),
+            lambda: _light_or_heavy(svc, info, min_version, rows, work),
         )
-    return work() if rows * info.spec.posteriors <= app.state.settings.light_cost else Heavy(work)
+    return work() if rows * info.spec.posteriors <= svc.settings.light_cost else Heavy(work)
 
 
-def _within_budget(app, spec: RegionSpec, rows: int, modes: bool, media: str, what: str) -> None:
+def _within_budget(svc: Service, spec: RegionSpec, rows: int, modes: bool, media: str, what: str) -> None:
     """422 unless the answer of ``rows`` points or voxels (every class's too with
     ``modes``) fits the memory one request may take, before any work."""
     need = formats.answer_bytes(rows, spec.sectors.classes, modes, media)
-    budget = app.state.settings.request_memory_mb * 2**20
+    budget = svc.settings.request_memory_mb * 2**20
     if need > budget:
         classes = f" x {spec.sectors.classes} traffic classes" if modes else ""
         raise Problem(
@@ -279,14 +336,14 @@ router = APIRouter(prefix="/v1")
     response_model=RegionView,
     **scoped("admin", **_body_doc(RegionSpec, binary=())),
 )
-async def create_region(request: Request):
+async def create_region(request: Request, svc: ServiceDep):
     """Create a region from its spec; 409 if the name exists. The body is read after the
     token is checked (a parameter would have it parsed first, by anyone)."""
     body = await request.body()
     if formats.media_type(request.headers.get("content-type")) not in (JSON, ""):
         raise Problem(415, f"send the region spec as {JSON}")
-    spec = RegionSpec.model_validate_json(formats.json_body(body, _limits(request.app, 0)))
-    budget = request.app.state.settings.map_memory_mb * 2**20
+    spec = RegionSpec.model_validate_json(formats.json_body(body, svc.limits(0)))
+    budget = svc.settings.map_memory_mb * 2**20
     if spec.map_bytes > budget:
         raise Problem(
             422,
@@ -294,24 +351,23 @@ async def create_region(request: Request):
             f"couplings), more than this service's {budget / 2**20:.0f} MiB for one map: raise the spacing "
             "or gamma, or take fewer directions",
         )
-    info = await _run(request, lambda: request.app.state.maps.store.create_region(spec))
+    info = await svc.run(lambda: svc.maps.store.create_region(spec))
     return JSONResponse(_view(info), status_code=201)
 
 
 @router.get("/regions", response_model=list[RegionView], **scoped("read"))
-async def list_regions(request: Request):
-    store = request.app.state.maps.store
-    return await _run(request, lambda: [_view(info) for info in store.list_regions()])
+async def list_regions(svc: ServiceDep):
+    return await svc.run(lambda: [_view(info) for info in svc.maps.store.list_regions()])
 
 
 @router.get("/regions/{name}", response_model=RegionView, **scoped("read"))
-async def get_region(name: RegionName, request: Request):
-    return await _run(request, lambda: _view(request.app.state.maps.store.region(name)))
+async def get_region(name: RegionName, svc: ServiceDep):
+    return await svc.run(lambda: _view(svc.maps.store.region(name)))
 
 
 @router.delete("/regions/{name}", status_code=204, **scoped("admin"))
-async def delete_region(name: RegionName, request: Request):
-    await _run(request, lambda: request.app.state.maps.store.delete_region(name))
+async def delete_region(name: RegionName, svc: ServiceDep):
+    await svc.run(lambda: svc.maps.store.delete_region(name))
     return Response(status_code=204)
 
 
@@ -332,40 +388,36 @@ IdempotencyKey = Annotated[
     response_model=UploadResult,
     **scoped("write", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
-async def post_observations(name: RegionName, request: Request, upload_id: IdempotencyKey):
+async def post_observations(name: RegionName, request: Request, upload_id: IdempotencyKey, svc: ServiceDep):
     """Add observations to the map (exactly once per Idempotency-Key)."""
     body = await request.body()
-    app = request.app
 
     def work():
-        _, obs = _observations(app, name, body, request.headers.get("content-type"))
-        return _apply(app, name, upload_id, obs)
+        _, obs = _observations(svc, name, body, request.headers.get("content-type"))
+        return _apply(svc, name, upload_id, obs)
 
-    return await _run(request, work, heavy=_heavy_body(app, body))
+    return await svc.run(work, heavy=_heavy_body(svc, body))
 
 
-def _heavy_body(app, body: bytes) -> bool:
+def _heavy_body(svc: Service, body: bytes) -> bool:
     """An upload whose body is larger than ``light_body_mb`` decodes and learns in the
     heavy lane."""
-    return len(body) > app.state.settings.light_body_mb * 2**20
+    return len(body) > svc.settings.light_body_mb * 2**20
 
 
-def _observations(app, name: str, body: bytes, content_type: str | None):
+def _observations(svc: Service, name: str, body: bytes, content_type: str | None):
     """The region's spec and the body's observations, checked against it."""
-    spec = app.state.maps.store.region(name).spec
-    limits = _limits(app, app.state.settings.max_points)
-    return spec, formats.read_observations(spec, body, formats.media_type(content_type), limits)
+    spec = svc.maps.store.region(name).spec
+    obs = formats.read_observations(
+        spec, body, formats.media_type(content_type), svc.limits(svc.settings.max_points)
+    )
+    return spec, obs
 
 
-def _limits(app, rows: int) -> formats.Limits:
-    settings: Settings = app.state.settings
-    return formats.Limits(rows, int(settings.max_decoded_mb * 2**20), int(settings.max_json_mb * 2**20))
-
-
-def _apply(app, name: str, upload_id: str, obs: formats.Observations, retract: bool = False, **kw) -> dict:
+def _apply(svc: Service, name: str, upload_id: str, obs: formats.Observations, retract=False, **kw) -> dict:
     """Upload (or, with ``replace=True``, fit; with ``retract``, retract) and count it in
     the metrics."""
-    maps = app.state.maps
+    maps = svc.maps
     result = (maps.retract if retract else maps.upload)(
         name,
         upload_id,
@@ -375,7 +427,7 @@ def _apply(app, name: str, upload_id: str, obs: formats.Observations, retract: b
         sample_weight=obs.sample_weight,
         **kw,
     )
-    app.state.metrics.upload_applied(result)
+    svc.metrics.upload_applied(result)
     return result
 
 
@@ -388,24 +440,21 @@ def _apply(app, name: str, upload_id: str, obs: formats.Observations, retract: b
         responses={202: {"model": JobView, "description": "a large fit runs as a job"}},
     ),
 )
-async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey):
+async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey, svc: ServiceDep):
     """Replace the map with this data. Large bodies run as a job (202); the old map keeps
     answering queries until the new one commits."""
     body = await request.body()
-    app = request.app
     content_type = request.headers.get("content-type")
-    spec, obs = await _run(
-        request, lambda: _observations(app, name, body, content_type), _heavy_body(app, body)
-    )
+    spec, obs = await svc.run(lambda: _observations(svc, name, body, content_type), _heavy_body(svc, body))
 
     def fit(progress=None):
-        return _apply(app, name, upload_id, obs, replace=True, progress=progress)
+        return _apply(svc, name, upload_id, obs, replace=True, progress=progress)
 
-    settings: Settings = app.state.settings
+    settings = svc.settings
     search = spec.grid.size * spec.sectors.classes  # a fit's cost grows with it, whatever the rows
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
-        return await _run(request, fit, heavy=True)
-    job = app.state.jobs.submit(name, upload_id, fit)
+        return await svc.run(fit, heavy=True)
+    job = svc.jobs.submit(name, upload_id, fit)
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 
@@ -414,32 +463,31 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     response_model=UploadResult,
     **scoped("admin", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
-async def post_retraction(name: RegionName, request: Request, upload_id: IdempotencyKey):
+async def post_retraction(name: RegionName, request: Request, upload_id: IdempotencyKey, svc: ServiceDep):
     """Retract an acknowledged upload exactly (a sensor found broken): the Idempotency-Key
     names the upload, the body holds the very rows it sent (checked against the ledger's
     digest). The map becomes the map without them; once per upload, a retry replays."""
     body = await request.body()
-    app = request.app
 
     def work():
-        _, obs = _observations(app, name, body, request.headers.get("content-type"))
-        return _apply(app, name, upload_id, obs, retract=True)
+        _, obs = _observations(svc, name, body, request.headers.get("content-type"))
+        return _apply(svc, name, upload_id, obs, retract=True)
 
-    return await _run(request, work, heavy=_heavy_body(app, body))
+    return await svc.run(work, heavy=_heavy_body(svc, body))
 
 
 @router.post("/regions/{name}/hyperparameters", response_model=RegionView, **scoped("write"))
-async def post_hyperparameters(name: RegionName, request: Request):
+async def post_hyperparameters(name: RegionName, svc: ServiceDep):
     """The region's map at its current version (each refresh after a write does the same in
     the background): its "auto" alpha and beta at the evidence maximum of all its data,
     recorded in the region view, which this answers. It waits for the refresh, until the
     request's deadline (503 past it; the refresh goes on, and a retry finds its map)."""
-    return await _run(request, lambda: _view(request.app.state.maps.fit_hyperparameters(name)), heavy=True)
+    return await svc.run(lambda: _view(svc.maps.fit_hyperparameters(name)), heavy=True)
 
 
 @router.get("/jobs/{job_id}", response_model=JobView, **scoped("write"))
-async def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Request):
-    job = request.app.state.jobs.get(job_id)
+async def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], svc: ServiceDep):
+    job = svc.jobs.get(job_id)
     if job is None:
         raise Problem(404, f"no job {job_id!r} on this server (jobs are kept in memory per replica)")
     return job.public()
@@ -452,125 +500,61 @@ async def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], reque
         "read", responses={200: {"content": {ARROW: {}}}}, **_body_doc(formats.QueryBody, binary=(ARROW,))
     ),
 )
-async def query(name: RegionName, request: Request, min_version: MinVersion = 0, modes: WithModes = False):
+async def query(
+    name: RegionName,
+    request: Request,
+    svc: ServiceDep,
+    answer: AnswerDep,
+    min_version: MinVersion = 0,
+    modes: WithModes = False,
+):
     """Predictive mean and std at points; Arrow in and out on request. A directional region
     answers its mixture, the mode of a heading (``heading_deg``: JSON field or Arrow
     column), and on request (``modes``) every traffic class: JSON ``modes``, or Arrow columns
     ``share{c}``, ``mode{c}_v{e,n,u}``, ``mode{c}_std_{e,n,u}`` and ``share_std``."""
-    body = await request.body()
+    answer.body = await request.body()
     out = formats.negotiate(request.headers.get("accept"), [JSON, ARROW])
-    app = request.app
+    media = formats.media_type(request.headers.get("content-type"))
 
     def step():
-        info, not_modified = _region_or_304(request, name, body)
+        info, not_modified = answer.region_or_304(name)
         if not_modified:
             return not_modified
-        q = formats.read_query(
-            info.spec,
-            body,
-            formats.media_type(request.headers.get("content-type")),
-            _limits(app, app.state.settings.max_query_points),
-            modes,
-        )
-        _within_budget(app, info.spec, len(q.X), q.modes, out, "points")
-        return _light_or_heavy(app, info, min_version, len(q.X), lambda: answer(info, q))
+        limits = svc.limits(svc.settings.max_query_points)
+        q = formats.read_query(info.spec, answer.body, media, limits, modes)
+        _within_budget(svc, info.spec, len(q.X), q.modes, out, "points")
 
-    def answer(info: RegionInfo, q: formats.PointQuery):
-        pred = app.state.maps.predict(name, q.X, info, min_version, heading_deg=q.heading_deg, modes=q.modes)
-        headers = _answer_headers(request, pred, body)
-        m = pred.modes
-        if out == ARROW:
-            columns = {
-                **formats.vector_columns("v", pred.mean),
-                **formats.vector_columns("std_", pred.std),
-                "known": pred.known,
-            }
-            if m is not None:
-                for c in range(m.share.shape[1]):
-                    columns[f"share{c}"] = np.ascontiguousarray(m.share[:, c])
-                    columns |= formats.vector_columns(f"mode{c}_v", m.mean[:, c])
-                    columns |= formats.vector_columns(f"mode{c}_std_", m.std[:, c])
-                    columns[f"prior_only{c}"] = np.ascontiguousarray(m.prior_only[:, c])
-                columns["share_std"] = m.share_std
-            return Response(formats.arrow_body(columns), media_type=ARROW, headers=headers)
-        content = {
-            "mean": pred.mean,
-            "std": pred.std,
-            "known": pred.known,
-            "region_version": pred.version,
-        }
-        if m is not None:
-            content["modes"] = {
-                "heading_deg": formats.class_headings(info.spec),
-                "share": m.share,
-                "share_std": m.share_std,
-                "mean": m.mean,
-                "std": m.std,
-                "prior_only": m.prior_only,
-            }
-        return StreamingResponse(formats.json_chunks(content), media_type=JSON, headers=headers)
+        def work():
+            pred = svc.maps.predict(name, q.X, info, min_version, heading_deg=q.heading_deg, modes=q.modes)
+            return formats.encode_points(out, info.spec, pred, answer.headers(pred))
 
-    return await _run(request, step)
+        return _light_or_heavy(svc, info, min_version, len(q.X), work)
+
+    return await svc.run(step)
 
 
-def _grid_step(
-    request: Request,
-    name: str,
-    bbox: str | None,
-    step: str,
-    min_version: int,
-    modes: bool,
-    media: str,
-    encode,
+def _on_grid(
+    svc: Service, answer: MapAnswer, name: str, axes_of, min_version: int, modes: bool, media: str, encode
 ):
-    """The light step of a grid answer: the region (or a 304), the axes and the memory
-    budget; then ``encode(spec, axes, prediction on the grid)``, now or in the heavy lane."""
-    app = request.app
+    """The light step of an answer on a grid: the region (or a 304), its axes
+    (``axes_of(spec)``) and the memory budget; then ``encode(spec, axes, prediction)``, now or
+    in the heavy lane."""
 
     def light():
-        info, not_modified = _region_or_304(request, name)
+        info, not_modified = answer.region_or_304(name)
         if not_modified:
             return not_modified
-        axes = grid_axes(info.spec, bbox, step, app.state.settings.max_grid_voxels)
-        return _grid_answer(app, name, info, axes, min_version, modes, media, encode)
+        axes = axes_of(info.spec)
+        voxels = int(np.prod([len(a) for a in axes]))
+        _within_budget(svc, info.spec, voxels, modes, media, "voxels")
+
+        def work():
+            pred = svc.maps.predict_grid(name, axes, info, min_version, modes=modes)
+            return encode(info.spec, axes, pred)
+
+        return _light_or_heavy(svc, info, min_version, voxels, work)
 
     return light
-
-
-def _grid_answer(app, name: str, info: RegionInfo, axes, min_version: int, modes: bool, media: str, encode):
-    """``encode(spec, axes, prediction)`` on ``axes`` if it fits the budget: now if light."""
-    voxels = int(np.prod([len(a) for a in axes]))
-    _within_budget(app, info.spec, voxels, modes, media, "voxels")
-
-    def work():
-        pred = app.state.maps.predict_grid(name, axes, info, min_version, modes=modes)
-        return encode(info.spec, axes, pred)
-
-    return _light_or_heavy(app, info, min_version, voxels, work)
-
-
-#: a number as the comma-separated query parameters take it (two exponent digits: finite)
-NUMBER = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]{1,2})?"
-POSITIVE = r"(?:0*[1-9][0-9]*(?:\.[0-9]*)?|0*\.[0-9]*[1-9][0-9]*)(?:[eE][-+]?[0-9]{1,2})?"
-BOX3 = rf"^{NUMBER}(?:,{NUMBER}){{5}}$"
-BOX2 = rf"^{NUMBER}(?:,{NUMBER}){{3}}$"
-STEP = rf"^{POSITIVE}(?:,{POSITIVE},{POSITIVE})?$"
-#: what the patterns mean, in a 422
-PATTERNS = {
-    BOX3: "6 comma-separated numbers",
-    BOX2: "4 comma-separated numbers",
-    STEP: "1 or 3 comma-separated positive numbers",
-}
-BBox = Annotated[
-    str | None, Query(pattern=BOX3, description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")
-]
-Step = Annotated[
-    str,
-    Query(
-        pattern=STEP,
-        description="dx,dy,dz metres (or one number for all axes)",
-    ),
-]
 
 
 @router.get(
@@ -580,9 +564,9 @@ Step = Annotated[
 async def grid(
     name: RegionName,
     request: Request,
-    step: Step,
-    bbox: BBox = None,
-    min_version: MinVersion = 0,
+    svc: ServiceDep,
+    answer: AnswerDep,
+    params: GridDep,
     modes: WithModes = False,
 ):
     """Mean and std on the voxel grid ``bbox`` x ``step``: npz (arrays mean, std (nx, ny, nz,
@@ -595,64 +579,13 @@ async def grid(
     out = formats.negotiate(request.headers.get("accept"), [JSON, NPZ, ARROW])
     if modes and out != NPZ:
         raise Problem(422, f"modes on a grid come as npz: ask for Accept: {NPZ}")
-    light = _grid_step(
-        request, name, bbox, step, min_version, modes, out, lambda *a: _encode_grid(request, out, *a)
-    )
-    return await _run(request, light)
+    max_json = svc.settings.max_json_voxels
 
+    def encode(spec, axes, pred):
+        return formats.encode_grid(out, spec, axes, pred, answer.headers(pred), max_json)
 
-def _encode_grid(request: Request, out: str, spec: RegionSpec, axes, pred):
-    shape = pred.known.shape
-    headers = _answer_headers(request, pred)
-    if out == NPZ:
-        extra = {}
-        if pred.modes is not None:
-            m = pred.modes
-            headings = [np.nan if h is None else h for h in formats.class_headings(spec)]
-            extra = dict(
-                share=m.share,
-                share_std=m.share_std,
-                mode_mean=m.mean,
-                mode_std=m.std,
-                mode_prior_only=m.prior_only,
-                heading_deg=np.array(headings),
-            )
-        body = formats.npz_bytes(
-            mean=pred.mean, std=pred.std, known=pred.known, x=axes[0], y=axes[1], z=axes[2], **extra
-        )
-        return Response(body, media_type=NPZ, headers=headers)
-    if out == ARROW:
-        columns = {
-            **formats.vector_columns("", _mesh(axes), ("x", "y", "z")),
-            **formats.vector_columns("v", pred.mean.reshape(-1, 3)),
-            **formats.vector_columns("std_", pred.std.reshape(-1, 3)),
-            "known": pred.known.ravel(),
-        }
-        return Response(
-            formats.arrow_body(columns, {"shape": ",".join(map(str, shape))}),
-            media_type=ARROW,
-            headers=headers,
-        )
-    _json_size(pred.known.size, request.app.state.settings)
-    content = {
-        "x": axes[0].tolist(),
-        "y": axes[1].tolist(),
-        "z": axes[2].tolist(),
-        "mean": pred.mean.tolist(),
-        "std": pred.std.tolist(),
-        "known": pred.known.tolist(),
-        "region_version": pred.version,
-    }
-    return JSONResponse(content, headers=headers)
-
-
-def _json_size(voxels: int, settings: Settings) -> None:
-    if voxels > settings.max_json_voxels:
-        raise Problem(
-            422,
-            f"{voxels} voxels is too many for JSON (limit {settings.max_json_voxels}): "
-            f"ask for Accept: {NPZ} or {ARROW}",
-        )
+    axes_of = functools.partial(params.axes, max_voxels=svc.settings.max_grid_voxels)
+    return await svc.run(_on_grid(svc, answer, name, axes_of, params.min_version, modes, out, encode))
 
 
 @router.get(
@@ -662,13 +595,13 @@ def _json_size(voxels: int, settings: Settings) -> None:
 async def tubes(
     name: RegionName,
     request: Request,
+    svc: ServiceDep,
+    answer: AnswerDep,
+    params: GridDep,
     max_std_mps: Annotated[
         float, Query(gt=0, allow_inf_nan=False, description="the tube bound on the predictive std, m/s")
     ],
-    step: Step,
-    bbox: BBox = None,
     component: Annotated[Literal["all", "e", "n", "u"], Query(description="whose std is bounded")] = "all",
-    min_version: MinVersion = 0,
     heading_deg: Annotated[
         float | None,
         Query(
@@ -686,73 +619,26 @@ async def tubes(
     npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow. With ``heading_deg``,
     mean and std are the mode of that heading's sector, and its share bounds the tube too."""
     out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
+    bound = formats.TubeBound(max_std_mps, component, heading_deg, min_share)
+    max_json = svc.settings.max_json_voxels
 
-    def encode(spec: RegionSpec, axes, pred):
-        return _encode_tube(request, out, spec, axes, pred, max_std_mps, component, heading_deg, min_share)
+    def encode(spec, axes, pred):
+        return formats.encode_tube(out, spec, axes, pred, bound, answer.headers(pred), max_json)
 
+    axes_of = functools.partial(params.axes, max_voxels=svc.settings.max_grid_voxels)
     modes = heading_deg is not None
-    return await _run(request, _grid_step(request, name, bbox, step, min_version, modes, out, encode))
-
-
-def _encode_tube(
-    request: Request, out: str, spec: RegionSpec, axes, pred, max_std_mps, component, heading_deg, min_share
-):
-    mean_grid, std_grid, wide = pred.mean, pred.std, pred.known
-    if heading_deg is not None:
-        sector = int(spec.sectors.sector_of_heading(heading_deg))  # 0 in a region of one direction
-        mean_grid, std_grid = pred.modes.mean[..., sector, :], pred.modes.std[..., sector, :]
-        wide = wide & (pred.modes.share[..., sector] >= min_share)
-    bounded = std_grid if component == "all" else std_grid[..., ["e", "n", "u"].index(component), None]
-    inside = wide & (bounded < max_std_mps).all(axis=-1)
-    idx = np.flatnonzero(inside)
-    X, mean, std = _mesh(axes)[idx], mean_grid.reshape(-1, 3)[idx], std_grid.reshape(-1, 3)[idx]
-    headers = _answer_headers(request, pred)
-    if out == NPZ:
-        body = formats.npz_bytes(
-            points=X,
-            mean=mean,
-            std=std,
-            mask=inside,
-            x=axes[0],
-            y=axes[1],
-            z=axes[2],
-        )
-        return Response(body, media_type=NPZ, headers=headers)
-    if out == ARROW:
-        columns = {
-            **formats.vector_columns("", X, ("x", "y", "z")),
-            **formats.vector_columns("v", mean),
-            **formats.vector_columns("std_", std),
-        }
-        return Response(formats.arrow_body(columns), media_type=ARROW, headers=headers)
-    _json_size(len(idx), request.app.state.settings)
-    geo = spec.frame().to_geodetic(X)
-    features = [
-        {
-            "type": "Feature",
-            "geometry": {"type": "Point", "coordinates": [lon, lat, alt]},
-            "properties": {"enu": x, "mean": m, "std": s},
-        }
-        for (lat, lon, alt), x, m, s in zip(
-            geo.tolist(), X.tolist(), mean.tolist(), std.tolist(), strict=True
-        )
-    ]
-    content = {
-        "type": "FeatureCollection",
-        "features": features,
-        "properties": {"max_std_mps": max_std_mps, "component": component, "region_version": pred.version},
-    }
-    return JSONResponse(content, media_type=GEOJSON, headers=headers)
+    return await svc.run(_on_grid(svc, answer, name, axes_of, params.min_version, modes, out, encode))
 
 
 @router.get(
     "/regions/{name}/slice.png",
     response_class=Response,
-    **scoped("read", responses={200: {"content": {PNG: {}}}}),
+    **scoped("read", responses={200: {"content": {formats.PNG: {}}}}),
 )
 async def slice_png(
     name: RegionName,
-    request: Request,
+    svc: ServiceDep,
+    answer: AnswerDep,
     alt_m: Annotated[
         float, Query(allow_inf_nan=False, description="altitude of the slice, region ENU metres")
     ],
@@ -775,65 +661,32 @@ async def slice_png(
 ):
     """A PNG of one horizontal slice with its colour scale and units (the viewer's image).
     ``modes`` draws each traffic class's arrows, ``share`` the largest class's share."""
-    with_modes = layer in ("modes", "share")
+    view = slices.SliceView(layer, component, max_std_mps, min_share)
+    box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
 
-    def light():
-        info, not_modified = _region_or_304(request, name)
-        if not_modified:
-            return not_modified
-        spec = info.spec
+    def axes_of(spec: RegionSpec):
         if not spec.lower[2] <= alt_m <= spec.upper[2]:
             raise Problem(
                 422, f"alt_m {alt_m} is outside region {name!r}'s {spec.lower[2]} .. {spec.upper[2]} m"
             )
-        box = None if bbox is None else tuple(_floats(bbox, 4, "bbox"))
         try:
             x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, box, step)
         except ValueError as exc:  # a bbox or step the slice cannot have
             raise Problem(422, str(exc)) from None
-        axes = [x, y, np.array([alt_m])]
-        return _grid_answer(app, name, info, axes, min_version, with_modes, PNG, encode)
+        return [x, y, np.array([alt_m])]
 
-    def encode(spec: RegionSpec, axes, pred):
-        return _encode_slice(request, name, axes, pred, alt_m, layer, component, max_std_mps, min_share)
+    def encode(spec, axes, pred):
+        return formats.encode_slice(name, axes, pred, view, answer.headers(pred))
 
-    app = request.app
-    return await _run(request, light)
-
-
-def _encode_slice(request: Request, name: str, axes, pred, alt_m, layer, component, max_std_mps, min_share):
-    x, y, _ = axes
-    with_modes = pred.modes is not None
-    per_class = {}
-    if with_modes:
-        per_class = dict(
-            share=pred.modes.share[:, :, 0],
-            share_std=pred.modes.share_std[:, :, 0],
-            mode_mean=pred.modes.mean[:, :, 0],
-            mode_known=~pred.modes.prior_only[:, :, 0],
-            min_share=min_share,
-        )
-    png = slices.render_slice(
-        x,
-        y,
-        pred.mean[:, :, 0],
-        pred.std[:, :, 0],
-        pred.known[:, :, 0],
-        alt_m=alt_m,
-        layer=layer,
-        component=component,
-        max_std_mps=max_std_mps,
-        title=f"{name} v{pred.version}",
-        **per_class,
-    )
-    headers = _answer_headers(request, pred)
-    return Response(png, media_type=PNG, headers=headers)
+    with_modes = layer in ("modes", "share")
+    light = _on_grid(svc, answer, name, axes_of, min_version, with_modes, formats.PNG, encode)
+    return await svc.run(light)
 
 
 @router.get("/regions/{name}/tiles", **scoped("read"))
-async def tiles(name: RegionName, request: Request):
+async def tiles(name: RegionName, svc: ServiceDep):
     """The region's tiles that hold data: key, version, weighted count, points, bytes."""
-    return await _run(request, lambda: _tiles(request.app.state.maps.store.snapshot(name, keys=())))
+    return await svc.run(lambda: _tiles(svc.maps.store.snapshot(name, keys=())))
 
 
 def _tiles(snap) -> dict:
@@ -863,16 +716,15 @@ async def healthz():
 
 
 @ops.get("/readyz", **scoped(PUBLIC))
-async def readyz(request: Request):
+async def readyz(request: Request, svc: ServiceDep):
     """Readiness: the store answers within ``ready_timeout_s``, in a thread of its own (at
     most one check at a time: while one hangs, the next answers 503 at once)."""
-    app = request.app
-    limiter: anyio.CapacityLimiter = app.state.ready_limiter
+    limiter: anyio.CapacityLimiter = request.app.state.ready_limiter
     if limiter.borrowed_tokens:
         raise Problem(503, "the store did not answer the last readiness check yet", {"Retry-After": "1"})
-    with anyio.move_on_after(app.state.settings.ready_timeout_s) as waited:
+    with anyio.move_on_after(svc.settings.ready_timeout_s) as waited:
         try:
-            await anyio.to_thread.run_sync(app.state.maps.store.ping, limiter=limiter, abandon_on_cancel=True)
+            await anyio.to_thread.run_sync(svc.maps.store.ping, limiter=limiter, abandon_on_cancel=True)
         except Exception as exc:
             raise Problem(
                 503, f"the store is unreachable: {type(exc).__name__}", {"Retry-After": "5"}
@@ -880,7 +732,7 @@ async def readyz(request: Request):
     if waited.cancelled_caught:
         raise Problem(
             503,
-            f"the store did not answer within {app.state.settings.ready_timeout_s:g} s",
+            f"the store did not answer within {svc.settings.ready_timeout_s:g} s",
             {"Retry-After": "5"},
         )
     return {"status": "ready"}
@@ -898,10 +750,10 @@ async def viewer():
     response_class=Response,
     **scoped(PUBLIC, responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}}),
 )
-async def metrics(request: Request):
+async def metrics(svc: ServiceDep):
     """Prometheus text format: requests and latency per route, lanes, cache, refreshes,
     uploads (from the event loop: it reads counters only, never the store)."""
-    return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+    return Response(generate_latest(svc.metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
 
 def create_app(settings: Settings | None = None, store: MapStore | None = None) -> FastAPI:
@@ -911,14 +763,14 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         app.state.ready_limiter = anyio.CapacityLimiter(1)
-        app.state.maps.open()  # a restarted app (tests) refreshes again
+        svc.maps.open()  # a restarted app (tests) refreshes again
         # what is loaded by now lives as long as the process: out of the collector's sight,
         # a full collection (triggered by a large JSON body's lists) scans only what requests
         # made, not the libraries' million objects (it held the GIL ~100 ms; RELIABILITY.md)
         gc.freeze()
         yield
-        app.state.jobs.shutdown()  # graceful: running fits finish and commit
-        app.state.maps.store.close()
+        svc.jobs.shutdown()  # graceful: running fits finish and commit
+        svc.maps.store.close()
 
     app = FastAPI(
         title="bdf-maps",
@@ -931,13 +783,10 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
         cache_mb=settings.cache_mb,
         isolate=True,
     )
-    app.state.settings = settings
-    app.state.maps = maps
-    app.state.jobs = Jobs()
-    app.state.lanes = Lanes(
+    lanes = Lanes(
         settings.threads, settings.queue, settings.heavy_threads, settings.heavy_queue, settings.max_waiting
     )
-    app.state.metrics = Metrics(maps, app.state.lanes)
+    svc = app.state.service = Service(settings, maps, Jobs(), lanes, Metrics(maps, lanes))
     problems.install(app, PATTERNS)
     if settings.cors_origins:  # off unless configured: browsers on other origins get no access
         app.add_middleware(
@@ -964,7 +813,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
     app.add_middleware(
         RequestMiddleware,
         max_body_bytes=int(settings.max_body_mb * 2**20),
-        metrics=app.state.metrics,
+        metrics=svc.metrics,
         timeout_s=settings.request_timeout_s,
     )
     app.include_router(router)

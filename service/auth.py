@@ -19,7 +19,7 @@ def require(scope: Scope):
     hand-off per request that cost more CPU than the check (bench/RESULTS.md, issue 20)."""
 
     async def check(request: Request) -> None:
-        settings: Settings = request.app.state.settings
+        settings: Settings = request.app.state.service.settings
         if settings.open:
             return
         header = request.headers.get("authorization", "")

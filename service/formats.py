@@ -21,9 +21,12 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.ipc
 import pyarrow.parquet as pq
+from fastapi import Response
+from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from bdf.region.spec import RegionSpec
+from service import slices
 from service.problems import Problem
 from service.wire import (
     ARROW,
@@ -470,3 +473,183 @@ def answer_bytes(rows: int, classes: int, modes: bool, media: str) -> float:
 
 def vector_columns(prefix: str, values: np.ndarray, names=("e", "n", "u")) -> dict[str, np.ndarray]:
     return {f"{prefix}{n}": np.ascontiguousarray(values[:, i]) for i, n in enumerate(names)}
+
+
+# -- encoders: a map's answer in the media type negotiated -------------------------------------
+PNG = "image/png"
+
+
+def mesh(axes) -> np.ndarray:
+    """The grid ``axes[0] x axes[1] x axes[2]`` as points (C order)."""
+    grids = np.meshgrid(*axes, indexing="ij")
+    return np.stack([g.ravel() for g in grids], axis=1)
+
+
+def check_json_size(voxels: int, max_json_voxels: int) -> None:
+    """422 for a grid answer too large for JSON."""
+    if voxels > max_json_voxels:
+        raise Problem(
+            422,
+            f"{voxels} voxels is too many for JSON (limit {max_json_voxels}): "
+            f"ask for Accept: {NPZ} or {ARROW}",
+        )
+
+
+def encode_points(out: str, spec: RegionSpec, pred, headers: dict) -> Response:
+    """A point query's answer: Arrow columns, or JSON streamed in chunks."""
+    m = pred.modes
+    if out == ARROW:
+        columns = {
+            **vector_columns("v", pred.mean),
+            **vector_columns("std_", pred.std),
+            "known": pred.known,
+        }
+        if m is not None:
+            for c in range(m.share.shape[1]):
+                columns[f"share{c}"] = np.ascontiguousarray(m.share[:, c])
+                columns |= vector_columns(f"mode{c}_v", m.mean[:, c])
+                columns |= vector_columns(f"mode{c}_std_", m.std[:, c])
+                columns[f"prior_only{c}"] = np.ascontiguousarray(m.prior_only[:, c])
+            columns["share_std"] = m.share_std
+        return Response(arrow_body(columns), media_type=ARROW, headers=headers)
+    content = {"mean": pred.mean, "std": pred.std, "known": pred.known, "region_version": pred.version}
+    if m is not None:
+        content["modes"] = {
+            "heading_deg": class_headings(spec),
+            "share": m.share,
+            "share_std": m.share_std,
+            "mean": m.mean,
+            "std": m.std,
+            "prior_only": m.prior_only,
+        }
+    return StreamingResponse(json_chunks(content), media_type=JSON, headers=headers)
+
+
+def encode_grid(out: str, spec: RegionSpec, axes, pred, headers: dict, max_json_voxels: int) -> Response:
+    """A grid's answer: npz (with the modes), Arrow (one row per voxel, ``shape`` in the
+    schema's metadata) or JSON."""
+    if out == NPZ:
+        extra = {}
+        if pred.modes is not None:
+            m = pred.modes
+            headings = [np.nan if h is None else h for h in class_headings(spec)]
+            extra = dict(
+                share=m.share,
+                share_std=m.share_std,
+                mode_mean=m.mean,
+                mode_std=m.std,
+                mode_prior_only=m.prior_only,
+                heading_deg=np.array(headings),
+            )
+        body = npz_bytes(
+            mean=pred.mean, std=pred.std, known=pred.known, x=axes[0], y=axes[1], z=axes[2], **extra
+        )
+        return Response(body, media_type=NPZ, headers=headers)
+    if out == ARROW:
+        columns = {
+            **vector_columns("", mesh(axes), ENU_COLUMNS),
+            **vector_columns("v", pred.mean.reshape(-1, 3)),
+            **vector_columns("std_", pred.std.reshape(-1, 3)),
+            "known": pred.known.ravel(),
+        }
+        shape = ",".join(map(str, pred.known.shape))
+        return Response(arrow_body(columns, {"shape": shape}), media_type=ARROW, headers=headers)
+    check_json_size(pred.known.size, max_json_voxels)
+    content = {
+        "x": axes[0].tolist(),
+        "y": axes[1].tolist(),
+        "z": axes[2].tolist(),
+        "mean": pred.mean.tolist(),
+        "std": pred.std.tolist(),
+        "known": pred.known.tolist(),
+        "region_version": pred.version,
+    }
+    return JSONResponse(content, headers=headers)
+
+
+@dataclass(frozen=True)
+class TubeBound:
+    """What bounds a tube: the std (all components or one), and with ``heading_deg`` the
+    mode of that heading, whose share must be at least ``min_share``."""
+
+    max_std_mps: float
+    component: str
+    heading_deg: float | None
+    min_share: float
+
+
+def encode_tube(
+    out: str, spec: RegionSpec, axes, pred, tube: TubeBound, headers: dict, max_json_voxels: int
+) -> Response:
+    """The voxels of a grid inside the tube, with their mean and std: npz (with the mask),
+    Arrow or GeoJSON points."""
+    mean_grid, std_grid, wide = pred.mean, pred.std, pred.known
+    if tube.heading_deg is not None:
+        sector = int(spec.sectors.sector_of_heading(tube.heading_deg))  # 0 in a region of one direction
+        mean_grid, std_grid = pred.modes.mean[..., sector, :], pred.modes.std[..., sector, :]
+        wide = wide & (pred.modes.share[..., sector] >= tube.min_share)
+    component = tube.component
+    bounded = std_grid if component == "all" else std_grid[..., ["e", "n", "u"].index(component), None]
+    inside = wide & (bounded < tube.max_std_mps).all(axis=-1)
+    idx = np.flatnonzero(inside)
+    X, mean, std = mesh(axes)[idx], mean_grid.reshape(-1, 3)[idx], std_grid.reshape(-1, 3)[idx]
+    if out == NPZ:
+        body = npz_bytes(points=X, mean=mean, std=std, mask=inside, x=axes[0], y=axes[1], z=axes[2])
+        return Response(body, media_type=NPZ, headers=headers)
+    if out == ARROW:
+        columns = {
+            **vector_columns("", X, ENU_COLUMNS),
+            **vector_columns("v", mean),
+            **vector_columns("std_", std),
+        }
+        return Response(arrow_body(columns), media_type=ARROW, headers=headers)
+    check_json_size(len(idx), max_json_voxels)
+    geo = spec.frame().to_geodetic(X)
+    features = [
+        {
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": [lon, lat, alt]},
+            "properties": {"enu": x, "mean": m, "std": s},
+        }
+        for (lat, lon, alt), x, m, s in zip(
+            geo.tolist(), X.tolist(), mean.tolist(), std.tolist(), strict=True
+        )
+    ]
+    content = {
+        "type": "FeatureCollection",
+        "features": features,
+        "properties": {
+            "max_std_mps": tube.max_std_mps,
+            "component": component,
+            "region_version": pred.version,
+        },
+    }
+    return JSONResponse(content, media_type=GEOJSON, headers=headers)
+
+
+def encode_slice(name: str, axes, pred, view: slices.SliceView, headers: dict) -> Response:
+    """One horizontal slice as a PNG with its colour scale (:func:`service.slices.render_slice`)."""
+    x, y, z = axes
+    per_class = {}
+    if pred.modes is not None:
+        per_class = dict(
+            share=pred.modes.share[:, :, 0],
+            share_std=pred.modes.share_std[:, :, 0],
+            mode_mean=pred.modes.mean[:, :, 0],
+            mode_known=~pred.modes.prior_only[:, :, 0],
+            min_share=view.min_share,
+        )
+    png = slices.render_slice(
+        x,
+        y,
+        pred.mean[:, :, 0],
+        pred.std[:, :, 0],
+        pred.known[:, :, 0],
+        alt_m=float(z[0]),
+        layer=view.layer,
+        component=view.component,
+        max_std_mps=view.max_std_mps,
+        title=f"{name} v{pred.version}",
+        **per_class,
+    )
+    return Response(png, media_type=PNG, headers=headers)

@@ -7,6 +7,7 @@ request threads can render at once. Every picture carries its colour scale and u
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -21,6 +22,19 @@ Layer = Literal["mean", "std", "tube", "modes", "share"]
 #: Arrows per horizontal axis on the modes layer.
 ARROWS_PER_SIDE = 24
 Component = Literal["e", "n", "u"]
+
+
+@dataclass(frozen=True)
+class SliceView:
+    """What a slice draws: the layer, the component, the tube's bound and the least share
+    of a drawn mode."""
+
+    layer: Layer
+    component: Component
+    max_std_mps: float
+    min_share: float
+
+
 COMPONENTS = ("e", "n", "u")
 MAX_SIDE = 256  # cells per horizontal axis of a slice: enough for a screen, cheap to predict
 

@@ -128,3 +128,21 @@ def test_the_library_wings_import_one_way():
             assert not wrong, f"{module} imports {sorted(wrong)}"
         elif module.startswith("bdf") and not module.startswith("bdf.region"):
             assert not {t for t in targets if t.startswith("bdf.region")}, module
+
+
+def test_the_library_imports_only_its_declared_dependencies():
+    """bdf's third-party imports are pyproject's core dependencies (llvmlite comes with
+    numba); what the clients, the service and the planner need is in their extras."""
+    import tomllib
+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    allowed = {d.split(">")[0].split("=")[0].split("[")[0].strip() for d in declared} | {"llvmlite"}
+    used = set()
+    for path in (ROOT / "bdf").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                used |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                used.add(node.module.split(".")[0])
+    third_party = used - set(sys.stdlib_module_names) - {"bdf"}
+    assert third_party == allowed, (sorted(third_party), sorted(allowed))

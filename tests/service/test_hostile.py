@@ -199,7 +199,7 @@ def test_rows_03_04_implausible_rows_are_rejected_and_counted(app, client, veloc
     answer = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ).json()
     assert np.all(np.abs(answer["mean"]) < 50) and np.all(np.array(answer["std"]) > 0.01)
     # a fresh process computes the same map from the store
-    fresh = create_app(app.state.settings)
+    fresh = create_app(app.state.service.settings)
     with TestClient(fresh, raise_server_exceptions=False) as c:
         again = c.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ)
         assert again.status_code == 200
@@ -224,8 +224,8 @@ def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, mo
 
     def recreate_then(*args, **kw):
         out = evidence(*args, **kw)
-        app.state.maps.store.delete_region(NAME)
-        app.state.maps.store.create_region(RegionSpec.model_validate(new_spec))
+        app.state.service.maps.store.delete_region(NAME)
+        app.state.service.maps.store.create_region(RegionSpec.model_validate(new_spec))
         return out
 
     monkeypatch.setattr(service.maps, "_evidence", recreate_then)
@@ -234,23 +234,23 @@ def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, mo
     monkeypatch.setattr(service.maps, "_evidence", evidence)
     view = client.get(f"/v1/regions/{NAME}", headers=READ).json()
     assert view["version"] == 0 and view["observations"] == 0 and view["tiles"] == 0
-    assert app.state.maps.store.verify() == {NAME: []}
+    assert app.state.service.maps.store.verify() == {NAME: []}
     q = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ)
     assert q.status_code == 200 and q.json()["known"] == [False] * 3
 
 
 def test_row_07_a_hyperparameter_fit_of_a_region_recreated_meanwhile_is_a_409(client, app, monkeypatch):
-    posterior = app.state.maps._posterior
+    posterior = app.state.service.maps._posterior
 
     def recreate_then(*args, **kw):
         out = posterior(*args, **kw)
-        app.state.maps.store.delete_region(NAME)
-        app.state.maps.store.create_region(RegionSpec.model_validate(SPEC))
+        app.state.service.maps.store.delete_region(NAME)
+        app.state.service.maps.store.create_region(RegionSpec.model_validate(SPEC))
         return out
 
-    monkeypatch.setattr(app.state.maps, "_schedule", lambda region: None)  # no refresh of version 2
+    monkeypatch.setattr(app.state.service.maps, "_schedule", lambda region: None)  # no refresh of version 2
     assert post_obs(client, rows(*data(8, n=20)), "b").status_code == 200
-    monkeypatch.setattr(app.state.maps, "_posterior", recreate_then)
+    monkeypatch.setattr(app.state.service.maps, "_posterior", recreate_then)
     problem(client.post(f"/v1/regions/{NAME}/hyperparameters", headers=WRITE), 409, "re-created")
     view = client.get(f"/v1/regions/{NAME}", headers=READ).json()
     assert view["version"] == 0 and view["hyperparameters"]["fitted_at"] is None
@@ -437,7 +437,7 @@ def test_row_16_unavailable_details_do_not_name_the_database(client, app, monkey
             'connection to server at "10.0.0.7", port 5432 failed: /var/run/postgresql/.s.PGSQL.5432'
         )
 
-    monkeypatch.setattr(app.state.maps.store, "region", down)
+    monkeypatch.setattr(app.state.service.maps.store, "region", down)
     r = client.get(f"/v1/regions/{NAME}", headers=READ)
     problem(r, 503, "retry")
     assert (
@@ -449,7 +449,7 @@ def test_row_16_an_internal_numeric_failure_is_a_500_with_a_request_id(client, a
     def singular(*args, **kw):
         raise ValueError("the precision is not positive definite: increase alpha")
 
-    monkeypatch.setattr(app.state.maps, "predict", singular)
+    monkeypatch.setattr(app.state.service.maps, "predict", singular)
     r = client.post(f"/v1/regions/{NAME}/query", json={"points": PROBE.tolist()}, headers=READ)
     problem(r, 500, "request id")
     assert r.json()["request_id"] == r.headers["x-request-id"] and "alpha" not in r.text

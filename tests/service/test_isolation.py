@@ -284,7 +284,7 @@ def test_a_500_is_one_log_line_with_its_traceback_and_closes_the_connection(tmp_
     app = create_app(Settings(store_url=f"sqlite:///{tmp_path}"))
     with TestClient(app, raise_server_exceptions=False) as client:
         client.post("/v1/regions", json=SPEC).raise_for_status()
-        monkeypatch.setattr(app.state.maps.store, "list_regions", lambda: 1 / 0)
+        monkeypatch.setattr(app.state.service.maps.store, "list_regions", lambda: 1 / 0)
         with caplog.at_level(logging.INFO):
             r = client.get("/v1/regions", headers={"X-Request-ID": "boom-1"})
     assert r.status_code == 500 and r.headers["connection"] == "close"

@@ -45,7 +45,7 @@ def test_every_error_carries_a_request_id_and_tokens_reach_no_log_error_or_metri
             ),
             422: c.post(f"/v1/regions/{NAME}/query", json={"points": [[1, 2]]}, headers=ADMIN),
         }
-        app.state.maps.predict = boom
+        app.state.service.maps.predict = boom
         errors[500] = c.post(f"/v1/regions/{NAME}/query", json={"points": [[1, 2, 3]]}, headers=ADMIN)
         ids = set()
         for status, r in errors.items():
