@@ -44,6 +44,6 @@ def in_threads(tasks: list) -> list:
     """The results of ``tasks`` (callables), run side by side in a thread per core with one
     BLAS thread each: for work that releases the GIL (the factorisations and inversions of
     :mod:`bdf.sparse`), which gains more from a core per task than from two BLAS threads
-    per task (the directional fit, bench/RESULTS.md)."""
+    per task (the directional fit in ``bench/bench_core.py``)."""
     with one_thread(), ThreadPoolExecutor(min(len(tasks), os.cpu_count() or 1)) as pool:
         return [f.result() for f in [pool.submit(task) for task in tasks]]

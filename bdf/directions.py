@@ -8,9 +8,8 @@ observation, the paper's model.
 
 Each observation goes to one class (hard assignment), so a class's evidence is exactly
 that of the observations in it. Splitting each between the two nearest sector centres
-(soft assignment, linear in angle) was measured on the Paris flight split with 8 sectors
-(``bench/bench_core.py --directions 8 --soft 8``): mixture MSLL -1.38 against -1.51 for
-hard, the same conditional RMSE (17.7 against 17.6 m/s): hard it is.
+(soft assignment, linear in angle) scores a worse mixture MSLL on the Paris flight split
+and the same conditional RMSE (``bench/bench_core.py --directions 8 --soft 8``): hard it is.
 """
 
 from __future__ import annotations

@@ -29,19 +29,20 @@ from bdf._blas import single_threaded
 from bdf.grid import Lattice
 from bdf.kernel import DEFAULT_CUTOFF, window
 
-#: Blocks grow (doubling) until they average this many points (measured: radar scans, Paris).
+#: Blocks grow (doubling) until they average this many points: fewer BLAS calls for sparse
+#: data (radar scans), no wasted window for dense (Paris).
 MIN_POINTS_PER_BLOCK = 32
 #: Gathers of at most this many points run point by point, compiled; more share BLAS
 #: products by blocks, unless the window's rows are short (:data:`SHORT_ROWS`), where the
-#: compiled path is faster at any size (bench_service.py's library rows, Paris map)
+#: compiled path is faster at any size (``bench/bench_service.py``, its library rows).
 POINTWISE_MAX_POINTS = 2048
 #: Rows of a window (its z values and channels, contiguous in a table) of at most this many
 #: values are summed in registers, :data:`LANES` at a time (two AVX2 vectors); longer ones
 #: (directional maps: every class side by side) stream through memory.
 SHORT_ROWS, LANES = 32, 8
-#: Points per BLAS call at most: its temporaries stay in cache (bench/RESULTS.md, builds).
+#: Points per BLAS call at most: its temporaries stay in cache (``bench/bench_build.py``).
 CHUNK_POINTS = 2048
-#: The same in a splat, whose operands are wider (one million points, measured).
+#: The same in a splat, whose operands are wider (``bench/bench_kernels.py``).
 SPLAT_CHUNK = 256
 
 
@@ -335,8 +336,8 @@ def _splat_blocks(
 @numba.njit(cache=True, nogil=True)
 def _splat_rows(t, scale, reach, ratio, cutoff, W, width, xc, yz):  # pragma: no cover (compiled)
     """The GEMM operands of a chunk of points ``p``: ``xc[p, i C + c] = fx_i W[p, c]``, and
-    ``yz[j Lz + k, p] = fy_j fz_k`` points last (vectorised over the points; this layout of
-    the larger operand, and its product, measured fastest), from the window factors
+    ``yz[j Lz + k, p] = fy_j fz_k`` points last (vectorised over the points; the fastest
+    layout of the larger operand and its product), from the window factors
     (:func:`_axis_factors`; ``t`` (n, 3) in steps from the window's start, ``scale``,
     ``reach`` and ``ratio`` (1 or n, 3) as :func:`_per_scale` gives them, ``width`` the
     window's (Lx, Ly, Lz))."""
@@ -363,8 +364,7 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
     Each point is summed over its own window by a compiled kernel (:func:`gather_pointwise`)
     when the window's rows are short (:data:`SHORT_ROWS`: maps of one class) or the points
     few (:data:`POINTWISE_MAX_POINTS`); else blocks of points share windows and BLAS
-    products (:func:`gather_blocked`), which reuse the table's values across points
-    (bench/RESULTS.md, "Reading the query-throughput tables")."""
+    products (:func:`gather_blocked`), which reuse the table's values across points."""
     if len(X) <= POINTWISE_MAX_POINTS or _row_values(lattice, T, k, cutoff) <= SHORT_ROWS:
         return gather_pointwise(lattice, X, T, k, cutoff=cutoff)
     return gather_blocked(lattice, X, T, k, cutoff=cutoff, block=block)
@@ -483,8 +483,8 @@ def _gather_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: no cove
     ``scale`` (1 or n, 3) k in steps^-2 (``reach``: the window's half-width for it,
     ``ratio``: ``exp(-2 scale)``), ``table`` (nx, ny, nz * C). Each row of the window
     (z and the channels, contiguous) is added into one running sum per value over y, two
-    rows a pass (half the running sum's loads and stores: 8-12 % faster on the demo's
-    8-sector map, four rows no better), then x: the innermost loop vectorises whatever C is."""
+    rows a pass (half the running sum's loads and stores; four rows gain nothing more), then
+    x: the innermost loop vectorises whatever C is."""
     nx, ny, nzc = table.shape
     C = out.shape[1]
     shape = (nx, ny, nzc // C)
@@ -615,9 +615,8 @@ def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.
     """:func:`gather` compiled point by point (each point's own window, no temporaries): the
     fast path of queries. Equal to :func:`gather_blocked` to rounding
     (tests/bdf/test_features.py). Long rows (directional maps: tables of megabytes) are
-    visited by lattice cell, so neighbours find most of their window in cache (a
-    1,000-point query of the demo's 8-sector map 10.8 -> 8.9 ms; one class's tables stay
-    in cache anyway, and sorting cost more than it saved)."""
+    visited by lattice cell, so neighbours find most of their window in cache (one class's
+    tables stay in cache anyway, and sorting costs more than it saves)."""
     X = np.asarray(X, float)
     T = np.ascontiguousarray(T, dtype=float)  # a view where it is already (the posteriors' tables)
     out = np.empty((len(X), T.shape[-1]))

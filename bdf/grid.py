@@ -8,8 +8,8 @@ import numpy as np
 
 from bdf._validate import as_vector3
 
-#: Largest hinge count a field accepts (its sparse factor grows about as M^(4/3) on a 3-D
-#: lattice: 56k hinges take 0.45 GB, bench/RESULTS.md).
+#: Largest hinge count a field accepts: its sparse factor grows about as M^(4/3) on a 3-D
+#: lattice (``bench/bench_tiles.py`` measures it).
 MAX_HINGES = 250_000
 
 

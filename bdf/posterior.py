@@ -299,13 +299,12 @@ class Mixture:
 
     Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
     shares use) and each mode at its own evidence maximum: traffic classes differ in how
-    smooth and how noisy they are (bench/RESULTS.md: an earlier version that shared the ratio
-    alpha / beta of the map with one class, the first "Directional maps" table, fitted 2.5x
-    faster and lost 0.12 of mixture MSLL on Paris).
+    smooth and how noisy they are (sharing the map's ratio alpha / beta fits faster and
+    loses mixture MSLL on Paris: ``bench/bench_core.py --directions``).
     Fixed values are (3,) for all, or (1 + C, 3): the map with one class, then each class.
 
     The modes are fitted and their variance densities computed at construction, side by
-    side in a thread per core (their algebra releases the GIL, :mod:`bdf._lapack`): a
+    side in a thread per core (their algebra releases the GIL, :mod:`bdf.sparse._lapack`): a
     directional map is only ever queried whole.
     """
 

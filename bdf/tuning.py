@@ -24,10 +24,9 @@ random sign vectors (one multi-column solve; about 1 % of error on ``gamma_eff``
 probes fixed, the curvature is the exact derivative of the estimated slope, so Newton's
 method converges quadratically to the slope's root, and that root is "auto": a function of
 the evidence alone, the same (to :data:`LOG_TOLERANCE`) from any start. A map refreshed
-after an upload starts at its previous optimum: three factorisations reach the new one
-(the first step's error is the curvature's change over it, about 1e-5 in ``ln lam`` after
-a 1,000-row upload to the Paris map; bench/RESULTS.md, "Calibrated under a stream of
-uploads"), two more than a map at given values.
+after an upload starts at its previous optimum: a few factorisations reach the new one
+(the first step's error is the curvature's change over it; ``bench/bench_stream.py``
+counts them).
 """
 
 from __future__ import annotations
@@ -48,11 +47,10 @@ EMPTY_ALPHA, EMPTY_BETA = 1e-2, 1e2
 MAX_AUTO_BETA = 1e6
 #: The search range of ``log(lam / mean(diag G))``: its top. Its bottom is
 #: :data:`FLOOR_PER_CUTOFF` times the kernel cutoff: ``G`` drops the pairs and tails below
-#: the cutoff, so its smallest eigenvalues are truncation noise (down to -1e-10 mean(diag G)
-#: at cutoff 1e-12, measured on a class of the synthetic city), and so is the evidence of a
-#: ratio near them. That class at 1e-10: 29,000 nats above its value at 1e-3 by the
-#: factorisation, 3,100 below it by a dense eigendecomposition (bench/bench_kernels.py), and
-#: a mode of 10^6 m/s between its lanes.
+#: the cutoff, so its smallest eigenvalues are truncation noise, and so is the evidence of a
+#: ratio near them: there the factorisation's evidence can exceed the dense
+#: eigendecomposition's by thousands of nats and put absurd modes between lanes
+#: (``bench/bench_kernels.py`` shows it on a class of the synthetic city).
 LOG_TOP = np.log(1e4)
 FLOOR_PER_CUTOFF = 1e4
 #: The search ends where Newton's step in ``ln lam`` is below this: the optimum is then

@@ -2,7 +2,7 @@
 
     python bench/bench_kernels.py            # evidence, digests, Arrow bodies, the search's floor
 
-* evidence: ``RegionSpec.increments`` of 200,000 synthetic-city points (``make_city``), in
+* evidence: ``bdf.region.evidence.increments`` of 200,000 synthetic-city points (``make_city``), in
   microseconds a point, best of 5, with 1 and 8 heading sectors;
 * digests: SHA-256 of a city Parquet file by ``hashlib.file_digest`` and by fresh 16 MB
   reads (the code before 2026-11-25), in nanoseconds a point;

@@ -17,7 +17,7 @@ HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
   then the same again while wrk queries (4 connections): the queries' latency while the
   map's posterior is recomputed after each burst of uploads;
 * the fixed cost of a request: ``GET /healthz`` and a 1-point Arrow query (wrk, 4 connections);
-* library: the same 1,000-point query through ``RegionSpec.predict`` in this process
+* library: the same 1,000-point query through ``RegionMap.predict`` in this process
   (median of 50): the compute inside one request, by the compiled gather queries use and
   by the blocked numpy/BLAS reference path; the same at 10,000 and 100,000 points (where
   directional tables switch to blocks; short rows stay point by point), and the

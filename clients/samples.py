@@ -67,21 +67,19 @@ def sample_origin(name: str = "paris") -> ENUFrame:
     return ENUFrame(*SAMPLES[name][2])
 
 
-#: The Paris map's hinge spacing (bench/RESULTS.md "core grid"), picked by hand, and its gamma.
+#: The Paris map's hinge spacing (``bench/bench_core.py``'s core grid), picked by hand, and its gamma.
 PARIS_SPACING_M = np.array([4000.0, 4000.0, 1000.0])
 PARIS_GAMMA = 1.0 / PARIS_SPACING_M**2
 #: Its local-noise lattice (:mod:`bdf.noise`), picked by weighted, flight-grouped CV on the
-#: bench's training flights (bench/RESULTS.md): within 0.005 of the best CV MSLL, with a
-#: quarter of the best lattice's points.
+#: bench's training flights (``bench/bench_core.py --cv``): within noise of the best CV
+#: MSLL, with a quarter of the best lattice's points.
 PARIS_NOISE_SPACING_M = np.array([1000.0, 1000.0, 125.0])
-#: The demo region's lattice: weighted, flight-grouped CV on the bench's training flights
-#: (`bench/bench_lattice.py`, bench/RESULTS.md) of lattices at most 2 km apart
-#: horizontally, gamma = 1 / spacing^2 (twice that ripples the prior std by about 40 %
-#: between hinges), of the map the demo serves, 8 heading sectors: 2 km x 2 km x 1 km,
-#: mixture CV MSLL -1.213 against -1.193 for 2 km x 2 km x 500 m (each sector has a
-#: fraction of the data; with one class the 500 m lattice scores better, -0.503 against
-#: -0.476). At the kernel cutoff 1e-9 (means within about 1e-6 of the climatology std of
-#: 1e-12's).
+#: The demo region's lattice: the best weighted, flight-grouped CV score
+#: (``bench/bench_lattice.py``) among lattices at most 2 km apart horizontally, gamma =
+#: 1 / spacing^2 (twice that ripples the prior std between hinges), for the map the demo
+#: serves, 8 heading sectors (each sector has a fraction of the data: with one class a
+#: finer vertical lattice scores better). At the kernel cutoff 1e-9, whose means are
+#: within about 1e-6 of the climatology std of 1e-12's (``bench/bench_tiles.py``).
 PARIS_REGION_SPACING_M = np.array([2000.0, 2000.0, 1000.0])
 PARIS_REGION_GAMMA = 1.0 / PARIS_REGION_SPACING_M**2
 PARIS_REGION_CUTOFF = 1e-9

@@ -68,7 +68,7 @@ class CostWeights:
     tube_penalty: float = 10.0
     risk_kind: Literal["std", "exceedance"] = "std"
     margin_mps: float = 5.0
-    conflict: float = 3.0  # bench/RESULTS.md "Directional planning": -34 % conflict exposure at +6 % length
+    conflict: float = 3.0  # much less conflict exposure for a little length (bench/bench_planner.py)
 
     def __post_init__(self):
         for name in ("max_std_mps", "cruise_mps", "margin_mps"):

@@ -83,15 +83,15 @@ class LocalPrediction:
 
 
 class LocalMap:
-    """A region's map in process, as a :class:`MapSource`: the spec, its posterior
-    (:meth:`RegionSpec.posterior`) and the keys of its tiles with data."""
+    """A region's map in process, as a :class:`MapSource`: the spec and its posterior
+    (:func:`bdf.region.map.compute_posterior`)."""
 
     def __init__(self, spec: RegionSpec, posterior):
-        self.spec, self.posterior = spec, posterior
+        self.spec, self.map = spec, RegionMap(spec, posterior)
 
     @classmethod
     def fit(cls, spec: RegionSpec, X, V, **kwargs) -> LocalMap:
-        """The map of observations ``(X, V)`` (keywords of :meth:`RegionSpec.increments`)."""
+        """The map of observations ``(X, V)`` (keywords of :func:`bdf.region.evidence.increments`)."""
         tile_increments = increments(spec, X, V, **kwargs)
         evidence = region_total(spec, {k: i.evidence for k, i in tile_increments.items()})
         return cls(spec, compute_posterior(spec, evidence))
@@ -108,15 +108,15 @@ class LocalMap:
         self._check(name)
         lo, hi = (self.spec.lower, self.spec.upper) if bbox is None else (bbox[:3], bbox[3:])
         axes = tuple(self.spec.box_axes(lo, hi, step))
-        m = RegionMap(self.spec, self.posterior).predict_grid_modes(axes) if modes else None
-        mean, std, known = RegionMap(self.spec, self.posterior).predict_grid(axes, m)
+        m = self.map.predict_grid_modes(axes) if modes else None
+        mean, std, known = self.map.predict_grid(axes, m)
         if m is None:
             return LocalGrid(axes, mean, std, known)
         return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std, m.share_std)
 
     def query(self, name: str, X, *, heading_deg=None) -> LocalPrediction:
         self._check(name)
-        mean, std, _ = RegionMap(self.spec, self.posterior).predict(np.asarray(X, float), heading_deg)
+        mean, std, _ = self.map.predict(np.asarray(X, float), heading_deg)
         return LocalPrediction(mean, std)
 
 

@@ -766,7 +766,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
         svc.maps.open()  # a restarted app (tests) refreshes again
         # what is loaded by now lives as long as the process: out of the collector's sight,
         # a full collection (triggered by a large JSON body's lists) scans only what requests
-        # made, not the libraries' million objects (it held the GIL ~100 ms; RELIABILITY.md)
+        # made, not the libraries' million objects, which it would scan holding the GIL
         gc.freeze()
         yield
         svc.jobs.shutdown()  # graceful: running fits finish and commit

@@ -16,7 +16,7 @@ PUBLIC = "public"
 def require(scope: Scope):
     """A route dependency that admits requests whose token holds ``scope``. A coroutine,
     though it never waits: FastAPI runs a plain function dependency in a worker thread, a
-    hand-off per request that cost more CPU than the check (bench/RESULTS.md, issue 20)."""
+    hand-off per request that costs more CPU than the check."""
 
     async def check(request: Request) -> None:
         settings: Settings = request.app.state.service.settings

@@ -70,9 +70,8 @@ _NUMERIC_COLUMNS = (
 
 #: Dask starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``. Setting either threshold
 #: turns off glibc's adaptive mmap threshold, which then stays at 128 kB: every larger
-#: temporary of the evidence kernels is a fresh mapping that page-faults (a slice took
-#: 1.65 s with the trim threshold alone, 1.33 s with both, 1.37 s in a plain process;
-#: bench/RESULTS.md). A worker's memory is bounded by its batch, so builds start workers
+#: temporary of the evidence kernels is a fresh mapping that page-faults (slower slices in
+#: ``bench/bench_build.py``). A worker's memory is bounded by its batch, so builds start workers
 #: with these instead (give them to ``dask worker`` on a cluster too).
 WORKER_ENV = {"MALLOC_TRIM_THRESHOLD_": str(128 * 2**20), "MALLOC_MMAP_THRESHOLD_": str(32 * 2**20)}
 
@@ -253,7 +252,7 @@ def slice_evidence(spec_json: str, piece: Slice, batch_rows: int = BATCH_ROWS) -
 
 def file_digest(path: str) -> str:
     """SHA-256 of a file's bytes (runs on a worker): ``hashlib.file_digest`` reads into one
-    reused buffer, a third faster than fresh 16 MB reads (bench/bench_kernels.py)."""
+    reused buffer, faster than fresh reads (``bench/bench_kernels.py``)."""
     with open(path, "rb") as fh:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 

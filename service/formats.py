@@ -390,8 +390,8 @@ def negotiate(accept: str | None, offered: list[str]) -> str:
 
 def arrow_body(columns: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> memoryview:
     """An Arrow IPC stream of ``columns`` in one buffer sized by a dry run, as a memoryview a
-    response sends without a copy: half the time of a growing stream copied into ``bytes``
-    for a 20 MB grid (bench/bench_kernels.py)."""
+    response sends without a copy (a growing stream copied into ``bytes`` takes about twice
+    as long on large grids: ``bench/bench_kernels.py``)."""
     table = pa.table(columns, metadata=metadata)
     size = pa.MockOutputStream()
     with pa.ipc.new_stream(size, table.schema) as writer:
@@ -408,8 +408,8 @@ def arrow_bytes(columns: dict[str, np.ndarray], metadata: dict[str, str] | None 
 
 
 def npz_bytes(**arrays: np.ndarray) -> bytes:
-    """``np.savez`` into a buffer sized once: grown write by write, a 14 MB grid spent half
-    its encoding in reallocations (bench/RESULTS.md, issue 20)."""
+    """``np.savez`` into a buffer sized once: grown write by write, a large grid spends
+    much of its encoding in reallocations."""
     buf = io.BytesIO()
     buf.seek(sum(np.asarray(a).nbytes for a in arrays.values()) + 4096 * (len(arrays) + 1))
     buf.write(b"\0")  # members and headers usually fit before this byte (if not, it grows)
@@ -457,8 +457,8 @@ def _json_parts(content):
         yield dumps(content.tolist() if isinstance(content, np.generic | np.ndarray) else content).encode()
 
 
-#: peak memory per number an answer holds, bytes, with room (measured 13-32 for streamed
-#: JSON, 18-25 for Arrow and npz: bench/bench_isolation.py): the arrays, the classes'
+#: peak memory per number an answer holds, bytes, with room over what
+#: ``bench/bench_isolation.py --parts memory`` measures: the arrays, the classes'
 #: intermediates of a chunk, the encoded body (JSON: a chunk of it at a time)
 BYTES_PER_NUMBER = {JSON: 60, GEOJSON: 60, NPZ: 40, ARROW: 40, "image/png": 40}
 

@@ -621,7 +621,7 @@ def _joined(parts: list[tuple], axis: int) -> tuple:
 
 
 def _compute_posterior(spec: RegionSpec, evidence, start, stored):
-    """:meth:`RegionSpec.posterior` (a module function: what the posterior process runs)."""
+    """:func:`bdf.region.map.compute_posterior` (a module function: what the posterior process runs)."""
     return compute_posterior(spec, evidence, start, stored=stored)
 
 

@@ -1,4 +1,4 @@
-"""The layering of DESIGN.md: no import cycle between this project's modules."""
+"""The layering of docs/ARCHITECTURE.md: no import cycle between this project's modules."""
 
 import ast
 import subprocess
@@ -67,7 +67,7 @@ def test_the_cycle_finder_finds_a_cycle():
 
 def test_packages_import_one_way():
     """bdf at the bottom; service and planner above it, neither importing the other nor
-    clients; clients on top (DESIGN.md, Layout)."""
+    clients; clients on top (docs/ARCHITECTURE.md, Layers)."""
     allowed = {"bdf": {"bdf"}, "service": {"bdf", "service"}, "planner": {"bdf", "planner"}}
     for module, targets in imports().items():
         package = module.split(".")[0]

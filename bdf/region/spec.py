@@ -40,13 +40,12 @@ MAX_TILES = 100_000
 MAX_EXTENT_M = 1e6
 #: Most hinge offsets per axis-aligned box the kernel reaches (checked first, cheaply), and
 #: most couplings (hinges x the stencil's offsets x traffic classes, each a float64 of the
-#: Gram band): what bounds a posterior's memory (the demo's Paris map: 13,448 x 571 x 9 =
-#: 6.9e7).
+#: Gram band): what bounds a posterior's memory.
 MAX_STENCIL = 5000
 MAX_COUPLINGS = 3e8
 #: Peak memory of computing a region's map, per coupling, where data covers the whole
-#: lattice (the factor's fill is largest; it grows with the lattice), with room: measured
-#: by ``bench/bench_isolation.py --parts maps`` (figures in RELIABILITY.md, "Isolation").
+#: lattice (the factor's fill is largest; it grows with the lattice), with room
+#: (``bench/bench_isolation.py --parts maps`` measures it).
 MAP_BYTES_PER_COUPLING = 45
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
