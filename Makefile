@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: install sparse browser nginx wrk test lint audit demo bench clean
+.PHONY: install sparse browser nginx wrk test test-fast lint audit demo bench clean
 
 $(PY):
 	python3 -m venv $(VENV)
@@ -59,6 +59,10 @@ audit: install
 
 test: lint browser nginx
 	$(PY) -m pytest
+
+# the tests not marked slow (no servers, subprocesses or real samples): under two minutes
+test-fast: lint
+	$(PY) -m pytest -m 'not slow'
 
 demo: install
 	$(VENV)/bin/bdf demo --out demo-output

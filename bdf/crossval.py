@@ -8,10 +8,10 @@ import numpy as np
 
 from bdf import metrics, noise
 from bdf._validate import as_observations, as_positive, as_sample_weight
-from bdf.directions import Sectors
 from bdf.grid import HingeGrid
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Posterior
+from bdf.sectors import Sectors
 from bdf.stats import SectorEvidence
 
 log = logging.getLogger(__name__)
@@ -57,7 +57,7 @@ def cross_validate(
     cutoff : float
         The kernel cutoff of every candidate (:mod:`bdf.features`; looser is faster).
     directions : int
-        Heading sectors of every candidate (:mod:`bdf.directions`): the MSLL is the
+        Heading sectors of every candidate (:mod:`bdf.sectors`): the MSLL is the
         mixture's (:func:`bdf.metrics.mixture_msll`), the RMSE its mean's.
 
     Returns

@@ -18,10 +18,10 @@ from bdf._validate import (
     as_sample_weight,
     as_vector3,
 )
-from bdf.directions import Sectors
 from bdf.grid import HingeGrid
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Modes, Posterior
+from bdf.sectors import Sectors
 from bdf.stats import FORMAT_VERSION, SectorEvidence
 
 
@@ -59,7 +59,7 @@ class BayesianDynamicField:
         sample weight (the data near a point outweigh it once they weigh more).
     directions : int
         1 (the paper's model) or S in 2-16: a mixture over S horizontal heading sectors
-        and a slow class, with a share field (:mod:`bdf.directions`).
+        and a slow class, with a share field (:mod:`bdf.sectors`).
     slow_mps : float
         With ``directions > 1``: horizontal speeds below it form the slow class.
 

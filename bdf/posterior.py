@@ -10,9 +10,9 @@ import numpy as np
 from scipy import special
 
 from bdf import _blas, features, noise, sparse, tuning
-from bdf.directions import Sectors, mixture_moments
 from bdf.grid import HingeGrid
 from bdf.kernel import Kernel
+from bdf.sectors import Sectors, mixture_moments
 from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence
 
 #: ``known``: the data within the kernel's reach weigh at least this (:func:`known`): one
@@ -283,7 +283,7 @@ def _per_row(hyper, rows: int) -> list:
 
 
 class Mixture:
-    """The posterior of a directional map (:mod:`bdf.directions`): one :class:`Posterior`
+    """The posterior of a directional map (:mod:`bdf.sectors`): one :class:`Posterior`
     per class (its *mode*) and the share field.
 
     The shares regress each class's indicator on the same features, with the map's overall
@@ -529,7 +529,7 @@ class Mixture:
 
 @numba.njit(cache=True, nogil=True)
 def _mixture_moments(at, var, prior_share, columns, inverse_beta, noise, mean, variance):  # pragma: no cover
-    """:func:`bdf.directions.mixture_moments` of the modes :meth:`Mixture.predict_modes`
+    """:func:`bdf.sectors.mixture_moments` of the modes :meth:`Mixture.predict_modes`
     makes, point by point from the gathered tables (no (n, C, 3) temporaries: grids are
     large): the shares (prior plus share weights ``at[:, 3C:]``, cut at 0, renormalised),
     each mode's mean ``at[:, 3c:3c+3]`` and variance (its density column over beta, at

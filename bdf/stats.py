@@ -31,7 +31,7 @@ present, the band ``gram_noisy`` (C order, K M values). Shapes follow from the t
 grid, noise lattice and stencil; the length tells whether ``gram_noisy`` is there. Version
 2 had no ``mass`` (read as zeros: a map of one class never uses it).
 
-A directional map (:mod:`bdf.directions`) keeps one :class:`Evidence` per traffic class
+A directional map (:mod:`bdf.sectors`) keeps one :class:`Evidence` per traffic class
 (:class:`SectorEvidence`); its blob is the classes' blobs one after the other, each
 preceded by its length in values (little-endian int64).
 """
@@ -44,9 +44,9 @@ import numpy as np
 
 from bdf import features, noise, sparse
 from bdf._validate import take_rows
-from bdf.directions import Sectors
 from bdf.grid import HingeGrid, Lattice
 from bdf.kernel import Kernel
+from bdf.sectors import Sectors
 
 FORMAT_VERSION = 3
 #: Blob formats this code reads.
@@ -270,7 +270,7 @@ class Evidence:
 
 @dataclass
 class SectorEvidence:
-    """The evidence of a map: one :class:`Evidence` per traffic class (:mod:`bdf.directions`),
+    """The evidence of a map: one :class:`Evidence` per traffic class (:mod:`bdf.sectors`),
     each made by :meth:`Evidence.from_points` from that class's observations. Additive like
     its parts; a map of one class is its one part."""
 

@@ -76,7 +76,7 @@ PROBES, PROBE_SEED = 64, 20261123
 
 
 @dataclass
-class Solution:
+class Factorisation:
     """One factorisation of ``G + lam I`` and what it gives."""
 
     lam: float
@@ -86,7 +86,7 @@ class Solution:
     residual: np.ndarray  # (3,) R per component
 
 
-def solve(stencil: sparse.Stencil, band, proj: np.ndarray, v_sq: np.ndarray, lam: float) -> Solution:
+def solve(stencil: sparse.Stencil, band, proj: np.ndarray, v_sq: np.ndarray, lam: float) -> Factorisation:
     """Factor ``G + lam I`` (``G`` given as its band on ``stencil``) and solve for the three
     components."""
     try:
@@ -98,10 +98,10 @@ def solve(stencil: sparse.Stencil, band, proj: np.ndarray, v_sq: np.ndarray, lam
         ) from None
     weights = factor.solve(proj)
     residual = np.maximum(v_sq - np.einsum("mc,mc->c", proj, weights), 1e-300)
-    return Solution(lam, factor, weights, factor.logdet(), residual)
+    return Factorisation(lam, factor, weights, factor.logdet(), residual)
 
 
-def log_evidence(sol: Solution, alpha, beta, count: float) -> np.ndarray:
+def log_evidence(sol: Factorisation, alpha, beta, count: float) -> np.ndarray:
     """ln p(v | alpha, beta) per component for ``alpha / beta == sol.lam``."""
     M = len(sol.weights)
     alpha, beta = np.asarray(alpha, float), np.asarray(beta, float)
@@ -114,7 +114,7 @@ def log_evidence(sol: Solution, alpha, beta, count: float) -> np.ndarray:
     )
 
 
-def _hyper_for(sol: Solution, alpha, beta, count: float):
+def _hyper_for(sol: Factorisation, alpha, beta, count: float):
     """alpha, beta (3,) implied by ``sol.lam`` and whichever of them is fixed."""
     if isinstance(beta, str):
         beta = count / sol.residual if isinstance(alpha, str) else alpha / sol.lam
@@ -126,7 +126,7 @@ def _hyper_for(sol: Solution, alpha, beta, count: float):
     return sol.lam * beta, beta
 
 
-def _at_ratios(stencil, band, proj, v_sq, lams) -> list[Solution]:
+def _at_ratios(stencil, band, proj, v_sq, lams) -> list[Factorisation]:
     """The solutions at ratios ``lams`` (3,); ratios equal to rounding (fitted values
     stored and read back) share a factorisation."""
     same = np.isclose(lams[:, None], lams[None, :], rtol=1e-12, atol=0)
@@ -140,7 +140,9 @@ def _probes(M: int) -> np.ndarray:
     return np.random.default_rng(PROBE_SEED).choice([-1.0, 1.0], size=(M, PROBES))
 
 
-def _derivatives(sol: Solution, a, b, count, comps, tied, profiled, probes) -> tuple[float, float, float]:
+def _derivatives(
+    sol: Factorisation, a, b, count, comps, tied, profiled, probes
+) -> tuple[float, float, float]:
     """Slope and curvature in ``x = ln lam`` of the cost (the negative log evidence summed
     over ``comps``) at ``sol``, with alpha ``a`` and beta ``b`` (3,) there, and MacKay's fixed
     point (the ``x`` his re-estimate gives). ``tied``: beta is ``alpha / lam`` with alpha

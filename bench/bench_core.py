@@ -4,7 +4,7 @@
         [--splits point flight] [--no-append]
     .venv/bin/python bench/bench_core.py --directions 1,4,8,12 [--splits ...]
 
-``--directions``: only the directional maps (``bdf.directions``), per number of sectors:
+``--directions``: only the directional maps (``bdf.sectors``), per number of sectors:
 the mixture's MSLL (its density), and the conditional given the test point's own class
 (its heading sector, or slow): RMSE, MSLL, 95% coverage; fit time, the search's floor
 (the same fit with alpha and beta given at the values "auto" found: no search, the same
@@ -43,8 +43,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bdf import BayesianDynamicField, crossval, ingest, metrics
-from bdf.directions import Sectors
 from bdf.kernel import DEFAULT_CUTOFF
+from bdf.sectors import Sectors
 from bdf.stats import Evidence, SectorEvidence
 from clients import samples
 from clients.samples import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M

@@ -11,7 +11,7 @@ or ``--directions`` heading sectors (the demo's map: the mixture's MSLL). Per
 candidate also the prior std's ripple between hinges (``1 - min / max`` of
 ``sqrt(phi(x)^T phi(x))`` over a lattice cell): a kernel narrow for its lattice shows the
 lattice as a pattern where there is no data. The demo's lattice
-(``bdf.samples.PARIS_REGION_SPACING_M``) is read from this table (bench/RESULTS.md).
+(``clients.samples.PARIS_REGION_SPACING_M``) is read from this table (bench/RESULTS.md).
 """
 
 from __future__ import annotations

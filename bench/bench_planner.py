@@ -40,9 +40,9 @@ from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE, across_flow, busiest_flow,
 from clients.local import LocalService
 from clients.sdk import BDFClient
 from planner.costmap import CostMap, CostWeights, path_metrics
-from planner.lattice import lattice_optimum
+from planner.dijkstra import lattice_optimum
 from planner.routes import LocalMap, plan_route
-from planner.search import PLANNERS, Problem, solve_in_worker
+from planner.search import PLANNERS, PlanningProblem, solve_in_worker
 
 CHECKPOINTS = (1.0, 5.0, 10.0)
 NOTE = (
@@ -112,7 +112,7 @@ def main() -> None:
 
 
 def planner_rows(costmap: CostMap, a, b) -> list[dict]:
-    problem = Problem(costmap, tuple(a), tuple(b), seed=1)
+    problem = PlanningProblem(costmap, tuple(a), tuple(b), seed=1)
     t0 = time.perf_counter()
     reference, _ = lattice_optimum(problem)
     lattice_s = time.perf_counter() - t0
@@ -126,7 +126,7 @@ def planner_rows(costmap: CostMap, a, b) -> list[dict]:
     ]
     for name in PLANNERS:
         sol = solve_in_worker(
-            Problem(
+            PlanningProblem(
                 costmap,
                 tuple(a),
                 tuple(b),

@@ -5,7 +5,7 @@
         [--directions 1,8] [--no-append]
 
 A real ``bdf serve`` (``--workers`` uvicorn workers, SQLite unless --postgres) holds the
-demo's Paris map (its lattice, ``bdf.samples.paris_demo_region``; flight split, fitted over
+demo's Paris map (its lattice, ``clients.samples.paris_demo_region``; flight split, fitted over
 HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
 
 * queries: ``wrk`` (a C load generator: microseconds of CPU per request, so the server's

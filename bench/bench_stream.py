@@ -3,10 +3,10 @@
     .venv/bin/python bench/bench_stream.py [--directions 1,8] [--uploads 1,10,100]
         [--seconds 30] [--parts calibration,refresh,staleness] [--uploaders 8] [--no-append]
 
-Data: the flight split of the core benchmark (`bdf.samples.load_paris`: 20 % of whole
+Data: the flight split of the core benchmark (`clients.samples.load_paris`: 20 % of whole
 flights held out, seed 0), track weights (`bdf.ingest.track_weights` on the core
 benchmark's 4 km x 4 km x 1 km cells, as bench_core.py). Region: the demo's
-(`bdf.samples.paris_demo_region`, 2 km x 2 km x 1 km hinges, cutoff 1e-9), with 1 and with
+(`clients.samples.paris_demo_region`, 2 km x 2 km x 1 km hinges, cutoff 1e-9), with 1 and with
 8 heading sectors.
 
 1. Calibration: the region built in process through `RegionMaps` on SQLite from the

@@ -3,7 +3,7 @@
     .venv/bin/python bench/bench_tiles.py [--spacing 4000,4000,1000 ...] [--cutoff 1e-12]
         [--cutoffs 1e-6,1e-8,1e-10] [--directions 8] [--no-append]
 
-Region: the demo's (`bdf.samples.paris_region`: the core benchmark's 80 km x 80 km box,
+Region: the demo's (`clients.samples.paris_region`: the core benchmark's 80 km x 80 km box,
 10 km tiles over the whole altitude band, gamma = 1/spacing^2). Training data: the flight
 split of the core benchmark (20 % of whole flights held out, seed 0), track-weighted.
 Everything runs in process through `RegionMaps` on SQLite in a temporary directory.

@@ -14,7 +14,7 @@ A route's cost is ``∫ (1 + risk(x) + flow(x, direction)) ds`` along it (metres
   mean (the prior, 0) is not held against the route.
 
 On a directional map (``modes``: each traffic class's share, mean and std, the classes of
-:class:`bdf.directions.Sectors`) a segment flies in one class, the sector of its heading
+:class:`bdf.sectors.Sectors`) a segment flies in one class, the sector of its heading
 (the slow class when its horizontal speed at ``cruise_mps`` is below ``slow_mps``): risk,
 tube and flow are that mode's, and a *conflict* term is added,
 ``w_conflict * sum over the other classes c of share_c * c_c * |cruise * direction -
@@ -40,7 +40,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import erfc
 
-from bdf.directions import MIN_SHARE, Sectors
+from bdf.sectors import MIN_SHARE, Sectors
 
 #: Where no tile has data, the std is at least this many tube bounds.
 UNKNOWN_STD_RATIO = 10.0
@@ -84,7 +84,7 @@ class CostWeights:
 
 
 @dataclass(frozen=True)
-class Modes:
+class ModeGrids:
     """A directional map on the grid: ``share`` (nx, ny, nz, C), ``mean`` and ``std`` (nx, ny,
     nz, C, 3) of each traffic class of ``sectors`` (the service's grid with ``modes``)."""
 
@@ -109,7 +109,7 @@ class CostMap:
     weights: CostWeights
     known: np.ndarray | None = None
     sample_m: float | None = None
-    modes: Modes | None = None
+    modes: ModeGrids | None = None
     table: np.ndarray = field(init=False, repr=False)  # (nx * ny * nz, 6) per-voxel fields
     curvature: np.ndarray = field(init=False, repr=False)  # (cells, 3) of s, see max_std_high
     classes: np.ndarray | None = field(init=False, repr=False)  # (nx * ny * nz, C * 7) per class

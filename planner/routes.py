@@ -23,8 +23,8 @@ import numpy as np
 from bdf.region.evidence import increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.spec import RegionSpec
-from planner.costmap import CostMap, CostWeights, Modes, path_metrics
-from planner.search import Box, Problem, Solution, solve
+from planner.costmap import CostMap, CostWeights, ModeGrids, path_metrics
+from planner.search import Box, PlanningProblem, PlanResult, solve
 
 log = logging.getLogger(__name__)
 MAX_VOXELS = 400_000
@@ -128,7 +128,7 @@ class Route:
     enu: np.ndarray
     wgs84: np.ndarray
     metrics: dict[str, float]
-    solution: Solution | None  # None for the straight line
+    solution: PlanResult | None  # None for the straight line
 
 
 @dataclass
@@ -243,7 +243,7 @@ def plan_route(
     start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
     box = planning_box(spec, start, goal, altitude_m, margin_m)
     step = grid_step(spec, *box, step)
-    # the planner settings of every attempt: Problem's keyword arguments
+    # the planner settings of every attempt: PlanningProblem's keyword arguments
     run = dict(no_fly=tuple(no_fly), planner=planner, time_s=time_s, max_iterations=max_iterations, seed=seed)
     for refine in range(REFINES + 1):
         plan = _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m)
@@ -271,11 +271,11 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, ch
     lo[:2] = spec.lower[:2] + np.floor((lo[:2] - spec.lower[:2]) / step[:2] + 1e-9) * step[:2]
     directional = spec.directions > 1
     grid = client.grid(region, step, bbox=[*lo, *hi], modes=directional)
-    modes = Modes(grid.share, grid.mode_mean, grid.mode_std, spec.sectors) if directional else None
+    modes = ModeGrids(grid.share, grid.mode_mean, grid.mode_std, spec.sectors) if directional else None
     costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known, modes=modes)
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))
-    risk = Problem(costmap, tuple(start), tuple(goal), band, **run)
+    risk = PlanningProblem(costmap, tuple(start), tuple(goal), band, **run)
     shortest = dataclasses.replace(risk, objective="length")
     straight = shortest.segments_valid(start[None], goal[None])[0]
     context = multiprocessing.get_context("spawn")

@@ -63,7 +63,7 @@ class Box:
 
 
 @dataclass(frozen=True)
-class Problem:
+class PlanningProblem:
     """A planning problem in the cost map's ENU frame.
 
     ``altitude_m``: the band (min, max) to fly in (default: the grid's). ``time_s``: the
@@ -152,7 +152,7 @@ class Problem:
 
 
 @dataclass
-class Solution:
+class PlanResult:
     """What a run found; picklable (it crosses the worker process boundary)."""
 
     waypoints: np.ndarray  # (k, 3) ENU; empty when nothing was found
@@ -176,7 +176,7 @@ def _ompl():
     return ob, og, ou
 
 
-def solve(problem: Problem) -> Solution:
+def solve(problem: PlanningProblem) -> PlanResult:
     """Plan in this process (it blocks: ``solve()`` holds the GIL). See :func:`solve_in_worker`."""
     ob, og, ou = _ompl()
     if problem.seed is not None:
@@ -297,7 +297,7 @@ def solve(problem: Problem) -> Solution:
     if P is not None and problem.simplify:
         P = _shortcut(og, si, ss, objective, problem, P, xyz)
     iterations = planner.numIterations() if hasattr(planner, "numIterations") else None
-    return Solution(
+    return PlanResult(
         waypoints=np.empty((0, 3)) if P is None else P,
         status=status.asString(),
         exact=P is not None,
@@ -311,7 +311,7 @@ def solve(problem: Problem) -> Solution:
     )
 
 
-def _planner(og, si, problem: Problem):
+def _planner(og, si, problem: PlanningProblem):
     if problem.planner == "bitstar":
         return og.BITstar(si)
     if problem.planner == "fmt":
@@ -325,7 +325,7 @@ def _planner(og, si, problem: Problem):
     return p
 
 
-def _shortcut(og, si, ss, objective, problem: Problem, P: np.ndarray, xyz) -> np.ndarray:
+def _shortcut(og, si, ss, objective, problem: PlanningProblem, P: np.ndarray, xyz) -> np.ndarray:
     """partialShortcutPath (it honours the objective), kept only when the cost goes down and
     every segment stays valid."""
     states = []
@@ -345,7 +345,7 @@ def _shortcut(og, si, ss, objective, problem: Problem, P: np.ndarray, xyz) -> np
     return best
 
 
-def solve_in_worker(problem: Problem) -> Solution:
+def solve_in_worker(problem: PlanningProblem) -> PlanResult:
     """:func:`solve` in a fresh spawned process: the caller's threads keep running, and a
     seed takes effect (OMPL seeds once per process)."""
     context = multiprocessing.get_context("spawn")

@@ -28,7 +28,7 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
-from bdf import directions
+from bdf import sectors
 from bdf.region.spec import RegionSpec, key_str
 from service import formats, problems, slices, wire
 from service.auth import PUBLIC, require
@@ -97,7 +97,7 @@ class RegionView(BaseModel):
     hyperparameters: Hyperparameters
 
 
-class UploadResult(BaseModel):
+class UploadView(BaseModel):
     accepted: int
     rejected: dict[str, int]
     upload_id: str
@@ -113,7 +113,7 @@ class JobView(BaseModel):
     upload_id: str
     state: Literal["queued", "running", "succeeded", "failed"]
     progress: float
-    result: UploadResult | None
+    result: UploadView | None
     error: str | None
     created_at: float
     finished_at: float | None
@@ -385,7 +385,7 @@ IdempotencyKey = Annotated[
 
 @router.post(
     "/regions/{name}/observations",
-    response_model=UploadResult,
+    response_model=UploadView,
     **scoped("write", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
 async def post_observations(name: RegionName, request: Request, upload_id: IdempotencyKey, svc: ServiceDep):
@@ -414,7 +414,7 @@ def _observations(svc: Service, name: str, body: bytes, content_type: str | None
     return spec, obs
 
 
-def _apply(svc: Service, name: str, upload_id: str, obs: formats.Observations, retract=False, **kw) -> dict:
+def _apply(svc: Service, name: str, upload_id: str, obs: formats.UploadRows, retract=False, **kw) -> dict:
     """Upload (or, with ``replace=True``, fit; with ``retract``, retract) and count it in
     the metrics."""
     maps = svc.maps
@@ -433,7 +433,7 @@ def _apply(svc: Service, name: str, upload_id: str, obs: formats.Observations, r
 
 @router.post(
     "/regions/{name}/fit",
-    response_model=UploadResult,
+    response_model=UploadView,
     **scoped(
         "write",
         **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET)),
@@ -460,7 +460,7 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
 
 @router.post(
     "/regions/{name}/retractions",
-    response_model=UploadResult,
+    response_model=UploadView,
     **scoped("admin", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
 )
 async def post_retraction(name: RegionName, request: Request, upload_id: IdempotencyKey, svc: ServiceDep):
@@ -612,7 +612,7 @@ async def tubes(
     ] = None,
     min_share: Annotated[
         float, Query(ge=0, le=1, description="with heading_deg: the least share")
-    ] = directions.MIN_SHARE,
+    ] = sectors.MIN_SHARE,
 ):
     """The voxels whose predictive std is below ``max_std_mps`` (all components, or one),
     where data lies within the kernel's reach, with their mean velocity: GeoJSON points (lon, lat, alt),
@@ -657,7 +657,7 @@ async def slice_png(
     min_version: MinVersion = 0,
     min_share: Annotated[
         float, Query(ge=0, le=1, description="layer=modes: the least share drawn")
-    ] = directions.MIN_SHARE,
+    ] = sectors.MIN_SHARE,
 ):
     """A PNG of one horizontal slice with its colour scale and units (the viewer's image).
     ``modes`` draws each traffic class's arrows, ``share`` the largest class's share."""

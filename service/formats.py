@@ -120,7 +120,7 @@ def class_headings(spec: RegionSpec) -> list[float | None]:
 
 
 @dataclass
-class Observations:
+class UploadRows:
     X: np.ndarray  # (n, 3) region ENU
     V: np.ndarray  # (n, 3) region ENU axes
     input_noise_std: np.ndarray | None
@@ -284,7 +284,7 @@ def json_body(body: bytes, limits: Limits) -> bytes:
     return body or b"{}"
 
 
-def read_observations(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> Observations:
+def read_observations(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> UploadRows:
     """Decode an upload or fit body (JSON, Arrow or Parquet) into region ENU arrays."""
     if media == JSON:
         obs = ObservationsBody.model_validate_json(json_body(body, limits))
@@ -307,7 +307,7 @@ def read_observations(spec: RegionSpec, body: bytes, media: str, limits: Limits)
     raise Problem(415, f"send {JSON}, {ARROW} or {PARQUET}, not {media or 'no Content-Type'}")
 
 
-def table_observations(spec: RegionSpec, table: pa.Table | pa.RecordBatch) -> Observations:
+def table_observations(spec: RegionSpec, table: pa.Table | pa.RecordBatch) -> UploadRows:
     """The observations of a table with the upload columns (an Arrow or Parquet body, or a
     slice of a build's file)."""
     missing = [c for c in VELOCITY_COLUMNS if c not in table.column_names]
@@ -322,11 +322,11 @@ def table_observations(spec: RegionSpec, table: pa.Table | pa.RecordBatch) -> Ob
     return _observations(spec, frame, P, V, noise, weight)
 
 
-def _observations(spec: RegionSpec, frame: str, P, V, noise, weight) -> Observations:
+def _observations(spec: RegionSpec, frame: str, P, V, noise, weight) -> UploadRows:
     if len(P) == 0:
         raise Problem(422, "the body holds no observations")
     X, V = _to_region(spec, frame, P, V)
-    return Observations(
+    return UploadRows(
         X,
         V,
         None if noise is None else np.asarray(noise, float),

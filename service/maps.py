@@ -11,7 +11,7 @@ skipped, not queued: the next refresh starts from the newest), warm from the las
 tiles' decoded evidence whose version has not changed, the previous optimum as the
 search's start, the symbolic analysis of an unchanged support in the posterior process).
 Until it is ready, queries answer from the newest map this process has, and each answer
-says which version it is and how far behind (:class:`Prediction`); a query that asks for
+says which version it is and how far behind (:class:`MapPrediction`); a query that asks for
 at least a version (``min_version``: read your own writes) waits for the refresh, until
 its deadline (:mod:`service.lanes`). Only refreshes compute a version's map, so a reader
 that gives up wastes nothing: the map it waited for is ready for the next.
@@ -121,7 +121,7 @@ class PosteriorCache:
 
 
 @dataclass
-class Prediction:
+class MapPrediction:
     mean: np.ndarray  # (n, 3) m/s
     std: np.ndarray  # (n, 3) predictive std, m/s
     known: np.ndarray  # (n,) data lies within the kernel's reach
@@ -324,7 +324,7 @@ class RegionMaps:
         *,
         heading_deg=None,
         modes: bool = False,
-    ) -> Prediction:
+    ) -> MapPrediction:
         """Mean, std and ``known`` at ENU points ``X`` (n, 3) inside the region.
 
         ``info``: the region as the caller read it (its version names the map wanted).
@@ -345,13 +345,13 @@ class RegionMaps:
             per_class = state.map.predict_modes(X[part]) if modes else None
             parts.append((*state.map.predict(X[part], heading, per_class), per_class))
         mean, std, known, per_class = _joined(parts, axis=0)
-        return Prediction(
+        return MapPrediction(
             mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
         )
 
     def predict_grid(
         self, region: str, axes, info: RegionInfo | None = None, min_version: int = 0, *, modes: bool = False
-    ) -> Prediction:
+    ) -> MapPrediction:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]``: arrays shaped
         (nx, ny, nz, 3) and (nx, ny, nz), the modes' (nx, ny, nz, C, ...)."""
         info = info or self.store.region(region)
@@ -365,7 +365,7 @@ class RegionMaps:
             per_class = state.map.predict_grid_modes(sub) if modes else None
             parts.append((*state.map.predict_grid(sub, per_class), per_class))
         mean, std, known, per_class = _joined(parts, axis=0)
-        return Prediction(
+        return MapPrediction(
             mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
         )
 

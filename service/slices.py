@@ -15,8 +15,8 @@ from matplotlib.cm import ScalarMappable
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
-from bdf.directions import MIN_SHARE
 from bdf.grid import axis_counts
+from bdf.sectors import MIN_SHARE
 
 Layer = Literal["mean", "std", "tube", "modes", "share"]
 #: Arrows per horizontal axis on the modes layer.

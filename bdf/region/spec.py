@@ -25,11 +25,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bdf import features, noise, sparse
 from bdf._validate import _bad_rows, as_points, rows_all
-from bdf.directions import MAX_DIRECTIONS, Sectors
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice, axis_counts
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
+from bdf.sectors import MAX_DIRECTIONS, Sectors
 from bdf.stats import SectorEvidence
 
 log = logging.getLogger(__name__)
@@ -144,7 +144,7 @@ class RegionSpec(BaseModel):
     #: Kernel cutoff (:mod:`bdf.kernel`): it sets the precision's stencil, so the cost of
     #: a solve; looser values trade exactness for speed.
     cutoff: Annotated[float, Field(gt=0, lt=1)] = DEFAULT_CUTOFF
-    #: Heading sectors (1: the paper's model; more: a mixture, :mod:`bdf.directions`).
+    #: Heading sectors (1: the paper's model; more: a mixture, :mod:`bdf.sectors`).
     directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] = 1
     slow_mps: Positive = 5.0
     envelope: Envelope = Envelope()

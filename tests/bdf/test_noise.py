@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
-from bdf.directions import Sectors
 from bdf.noise import NOISE_CUTOFF
+from bdf.sectors import Sectors
 from bdf.stats import SectorEvidence
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER
 from tests.bdf.test_field import assert_close

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from bdf.directions import Sectors
-from planner.costmap import CURVATURE_SAFETY, CostMap, CostWeights, Modes, path_metrics
-from planner.search import Box, Problem
+from bdf.sectors import Sectors
+from planner.costmap import CURVATURE_SAFETY, CostMap, CostWeights, ModeGrids, path_metrics
+from planner.search import Box, PlanningProblem
 
 AXES = (np.linspace(0, 1000, 21), np.linspace(-500, 500, 11), np.linspace(0, 300, 7))
 
@@ -157,15 +157,15 @@ def test_problem_rejects_bad_input_with_a_reason():
     cm = costmap(lambda G: np.where(G[..., 0] < 500, 1.0, 4.0))
     ok = dict(costmap=cm, start=(100.0, 0, 100), goal=(200.0, 0, 100))
     with pytest.raises(ValueError, match="outside the tube"):
-        Problem(**{**ok, "goal": (900.0, 0, 100)})
+        PlanningProblem(**{**ok, "goal": (900.0, 0, 100)})
     with pytest.raises(ValueError, match="deadlocks"):
-        Problem(**ok, planner="prmstar")
+        PlanningProblem(**ok, planner="prmstar")
     with pytest.raises(ValueError, match="unknown planner"):
-        Problem(**ok, planner="astar")
+        PlanningProblem(**ok, planner="astar")
     with pytest.raises(ValueError, match="outside the planning box"):
-        Problem(**ok, altitude_m=(150.0, 300.0))
+        PlanningProblem(**ok, altitude_m=(150.0, 300.0))
     with pytest.raises(ValueError, match="no-fly"):
-        Problem(**ok, no_fly=(Box((50.0, -10, 0), (150.0, 10, 300)),))
+        PlanningProblem(**ok, no_fly=(Box((50.0, -10, 0), (150.0, 10, 300)),))
     with pytest.raises(ValueError, match="must be positive"):
         CostWeights(max_std_mps=0)
     with pytest.raises(ValueError, match="evenly spaced"):
@@ -201,7 +201,7 @@ def lanes(S=4):
     std[..., west, :] = np.where(north, 0.5, 8.0)[..., None]
     mix_mean = np.einsum("...c,...cd->...d", share, mean)
     mix_std = np.sqrt(np.einsum("...c,...cd->...d", share, std**2 + mean**2) - mix_mean**2)
-    return mix_mean, mix_std, Modes(share, mean, std, sectors)
+    return mix_mean, mix_std, ModeGrids(share, mean, std, sectors)
 
 
 def test_a_directional_map_costs_the_mode_flown_and_the_traffic_met():
@@ -244,7 +244,7 @@ def test_a_directional_map_of_one_class_is_the_plain_map():
         mean,
         std,
         w,
-        modes=Modes(np.ones((*std.shape[:3], 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
+        modes=ModeGrids(np.ones((*std.shape[:3], 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
     )
     P = random_points(40, seed=3)
     np.testing.assert_allclose(
@@ -257,7 +257,7 @@ def test_a_directional_map_of_one_class_is_the_plain_map():
             mean,
             std,
             w,
-            modes=Modes(np.ones((2, 2, 2, 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
+            modes=ModeGrids(np.ones((2, 2, 2, 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
         )
 
 
@@ -268,13 +268,13 @@ def test_a_class_without_traffic_does_not_open_the_tube():
     w = CostWeights(max_std_mps=2.0, cruise_mps=20.0, conflict=1.0)
     std = modes.std.copy()
     std[mesh()[..., 0] > 500, :-1, :] = 8.0  # east of x = 500 m the lanes are unknown
-    modes = Modes(modes.share, modes.mean, std.copy(), modes.sectors)
+    modes = ModeGrids(modes.share, modes.mean, std.copy(), modes.sectors)
     lanes_only = CostMap(AXES, mix_mean, mix_std, w, modes=modes)
     std[..., -1, :] = 0.001  # the slow class: certain, and no traffic in it
     share = modes.share.copy()
     share[..., -1] = 0.04
     share[..., :-1] *= 0.96
-    empty_slow = CostMap(AXES, mix_mean, mix_std, w, modes=Modes(share, modes.mean, std, modes.sectors))
+    empty_slow = CostMap(AXES, mix_mean, mix_std, w, modes=ModeGrids(share, modes.mean, std, modes.sectors))
     P = random_points(200, seed=5)
     states = empty_slow.segments_in_tube(P, P)  # a state (no length): in the tube if any flow is
     np.testing.assert_array_equal(states, lanes_only.segments_in_tube(P, P))
@@ -282,5 +282,5 @@ def test_a_class_without_traffic_does_not_open_the_tube():
     np.testing.assert_allclose(empty_slow.fields(P)[:, :3], lanes_only.fields(P)[:, :3], rtol=1e-12)
     share[..., -1] = 1.0  # with all the traffic it is a flow like any other
     share[..., :-1] = 0.0
-    slow = CostMap(AXES, mix_mean, mix_std, w, modes=Modes(share, modes.mean, std, modes.sectors))
+    slow = CostMap(AXES, mix_mean, mix_std, w, modes=ModeGrids(share, modes.mean, std, modes.sectors))
     assert (slow.fields(P)[:, 0] < 0.01).all()

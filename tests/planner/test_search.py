@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from planner.costmap import CostMap, CostWeights
-from planner.lattice import lattice_optimum
+from planner.dijkstra import lattice_optimum
 from planner.routes import densify
-from planner.search import PLANNERS, Box, Problem, solve_in_worker
+from planner.search import PLANNERS, Box, PlanningProblem, solve_in_worker
 
 AXES = (np.linspace(0, 2000, 41), np.linspace(0, 2000, 41), np.linspace(0, 300, 7))
 START, GOAL = (100.0, 1000.0, 100.0), (1900.0, 1000.0, 100.0)
@@ -31,7 +31,7 @@ def blocked() -> CostMap:
 def test_every_planner_detours_inside_the_tube(blocked, planner):
     # bounded by seeded iterations, not the clock (BIT* needs more, its iterations are cheap)
     iterations = 1000 if planner == "bitstar" else 300
-    problem = Problem(
+    problem = PlanningProblem(
         blocked, START, GOAL, planner=planner, time_s=120.0, max_iterations=iterations, fmt_samples=60, seed=1
     )
     assert not problem.segments_valid(np.array([START]), np.array([GOAL]))[0]
@@ -51,7 +51,9 @@ def test_every_planner_detours_inside_the_tube(blocked, planner):
 def test_seeded_iteration_bounded_runs_repeat_and_simplifying_never_raises_the_cost(blocked):
     runs = [
         solve_in_worker(
-            Problem(blocked, START, GOAL, planner="rrtstar", seed=seed, max_iterations=400, simplify=simplify)
+            PlanningProblem(
+                blocked, START, GOAL, planner="rrtstar", seed=seed, max_iterations=400, simplify=simplify
+            )
         )
         for seed, simplify in ((7, True), (7, True), (8, True), (7, False))
     ]
@@ -62,7 +64,7 @@ def test_seeded_iteration_bounded_runs_repeat_and_simplifying_never_raises_the_c
 
 def test_no_fly_box_is_avoided_by_the_shortest_path(blocked):
     wall = Box((900.0, 0.0, 0.0), (1100.0, 1500.0, 300.0))
-    problem = Problem(blocked, START, GOAL, no_fly=(wall,), objective="length", time_s=1.5)
+    problem = PlanningProblem(blocked, START, GOAL, no_fly=(wall,), objective="length", time_s=1.5)
     sol = solve_in_worker(problem)
     assert sol.exact and not wall.hits(sol.waypoints[:-1], sol.waypoints[1:]).any()
     assert sol.waypoints[:, 1].max() > 1500  # over the wall's end: the only way round
@@ -79,7 +81,7 @@ def test_planning_in_a_worker_leaves_the_callers_threads_running(blocked):
     thread = threading.Thread(target=tick)
     thread.start()
     t0 = time.perf_counter()
-    solve_in_worker(Problem(blocked, START, GOAL, time_s=1.5))
+    solve_in_worker(PlanningProblem(blocked, START, GOAL, time_s=1.5))
     elapsed = time.perf_counter() - t0
     done.set()
     thread.join()
@@ -87,13 +89,13 @@ def test_planning_in_a_worker_leaves_the_callers_threads_running(blocked):
 
 
 def test_lattice_optimum_bounds_the_planner_from_near_and_matches_a_straight_corridor(blocked):
-    problem = Problem(blocked, START, GOAL, time_s=2.0, seed=3)
+    problem = PlanningProblem(blocked, START, GOAL, time_s=2.0, seed=3)
     lattice_cost, P = lattice_optimum(problem)
     assert problem.segments_valid(P[1:-2], P[2:-1]).all()
     sol = solve_in_worker(problem)
     # the sampling planner is near the lattice optimum (which is only 26-connected)
     assert 0.8 * lattice_cost < sol.cost < 1.3 * lattice_cost
     # along an axis-aligned, obstacle-free line, the lattice path is the straight line
-    free = Problem(blocked, (100.0, 200.0, 100.0), (1900.0, 200.0, 100.0), objective="length")
+    free = PlanningProblem(blocked, (100.0, 200.0, 100.0), (1900.0, 200.0, 100.0), objective="length")
     cost, _ = lattice_optimum(free)
     assert cost == pytest.approx(1800.0)

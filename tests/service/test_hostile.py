@@ -19,6 +19,7 @@ from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 
 import service.maps
+from bdf.region.evidence import increments
 from bdf.region.spec import RegionSpec
 from service import slices
 from service.app import create_app
@@ -468,8 +469,8 @@ def test_row_17_verify_reports_implausible_statistics_and_a_file_that_is_no_stor
     region_id = store.create_region(spec).region_id
     X, V = data(5, n=30)
     V[0, 0] = 1e20  # what an older server accepted, written past today's envelope
-    increments = RegionSpec.model_validate(loose).increments(X, V)
-    store.apply(NAME, region_id, "old", "digest", increments, observations=30)
+    tile_increments = increments(RegionSpec.model_validate(loose), X, V)
+    store.apply(NAME, region_id, "old", "digest", tile_increments, observations=30)
     store.close()
     done = verify(tmp_path / "data")
     assert done.returncode == 1 and "beyond the envelope" in done.stdout and "1 problems" in done.stdout

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
-from bdf.directions import Sectors, mixture_moments
 from bdf.region.evidence import decode_tile, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.spec import RegionSpec
+from bdf.sectors import Sectors, mixture_moments
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER, dense_features
 from tests.bdf.region.conftest import SMALL
 from tests.bdf.test_field import assert_close

@@ -13,10 +13,10 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from planner.search import Problem
+from planner.search import PlanningProblem
 
 
-def lattice_optimum(problem: Problem) -> tuple[float, np.ndarray]:
+def lattice_optimum(problem: PlanningProblem) -> tuple[float, np.ndarray]:
     """(cost, waypoints) of the cheapest lattice path from the node nearest the start to the
     node nearest the goal, plus the exact start and goal legs; ``inf`` if none is valid."""
     cm = problem.costmap
