@@ -13,6 +13,8 @@ import pytest
 from clients.sdk import BDFClient
 from tests.service.test_store import SPEC, data
 
+pytestmark = pytest.mark.slow  # the bdf command against a server
+
 NAME = SPEC["name"]
 PNG = b"\x89PNG\r\n\x1a\n"
 

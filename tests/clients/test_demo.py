@@ -6,6 +6,8 @@ import pytest
 from bdf.ingest import Observations
 from clients.demo import across_flow, busiest_flow
 
+pytestmark = pytest.mark.slow  # the demo end to end
+
 
 def test_the_busiest_flow_is_the_cell_most_flights_cross_and_their_heading():
     rng = np.random.default_rng(0)

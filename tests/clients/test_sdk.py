@@ -12,6 +12,8 @@ from clients.sdk import AsyncBDFClient, BDFClient, BDFError
 from tests.service.test_api import library
 from tests.service.test_store import SPEC, data
 
+pytestmark = pytest.mark.slow  # the SDK against a server
+
 NAME = SPEC["name"]
 
 

@@ -27,6 +27,8 @@ from clients.local import LocalService, free_port
 from tests.service.test_api import enu_columns, library
 from tests.service.test_store import SPEC, data
 
+pytestmark = pytest.mark.slow  # the image's command lines and the nginx edge
+
 DOCKER = Path(__file__).parents[2] / "docker"
 BIN = Path(sys.executable).parent
 TOKENS = '{"tok-0123456789abcdef": ["read", "write", "admin"]}'

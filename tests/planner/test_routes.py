@@ -13,6 +13,8 @@ from planner.costmap import CostWeights
 from planner.routes import densify, plan_route
 from tests.service.test_store import SPEC as STORE_SPEC
 
+pytestmark = pytest.mark.slow  # routes planned against a server
+
 BOUND = 0.3
 SPEC = {**STORE_SPEC, "name": "corridor"}  # 300 x 200 x 60 m, 25 m hinges
 START, GOAL = (20.0, 100.0, 30.0), (280.0, 100.0, 30.0)

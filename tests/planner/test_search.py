@@ -13,6 +13,8 @@ from planner.dijkstra import lattice_optimum
 from planner.routes import densify
 from planner.search import PLANNERS, Box, PlanningProblem, solve_in_worker
 
+pytestmark = pytest.mark.slow  # OMPL planners run for seconds
+
 AXES = (np.linspace(0, 2000, 41), np.linspace(0, 2000, 41), np.linspace(0, 300, 7))
 START, GOAL = (100.0, 1000.0, 100.0), (1900.0, 1000.0, 100.0)
 

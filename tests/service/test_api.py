@@ -20,6 +20,8 @@ from service.settings import Settings
 from service.wire import ARROW, GEOJSON, NPZ, PARQUET
 from tests.service.test_store import NO_REJECTS, SPEC, data
 
+pytestmark = pytest.mark.slow  # the HTTP API end to end
+
 NAME = SPEC["name"]
 
 

@@ -24,6 +24,8 @@ from service.store import open_store
 from tests.service.test_api import enu_columns
 from tests.service.test_store import NO_REJECTS, SPEC, assert_evidence_equal, data
 
+pytestmark = pytest.mark.slow  # Dask clusters
+
 
 def write(path, X, V, weight=None, rows=None):
     """``X, V`` in the format of ``path``'s suffix, in chunks of ``rows`` rows (row groups,

@@ -26,6 +26,8 @@ from service.store.sqlite import FILE_NAME
 from tests.service.conftest import POSTGRES_ENV
 from tests.service.test_store import SPEC, assert_evidence_equal, data
 
+pytestmark = pytest.mark.slow  # servers killed, disks full, subprocesses
+
 NAME = SPEC["name"]
 OBS = f"/v1/regions/{NAME}/observations"
 QUERY = f"/v1/regions/{NAME}/query"

@@ -32,6 +32,8 @@ from service.settings import Settings
 from service.wire import ARROW, PARQUET
 from tests.service.test_store import SPEC, data
 
+pytestmark = pytest.mark.slow  # fuzzing every route
+
 NAME = SPEC["name"]
 TOKEN = "fuzz-admin-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

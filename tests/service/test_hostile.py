@@ -29,6 +29,8 @@ from service.store import RegionExists, StoreUnavailable, open_store
 from service.wire import ARROW, NPZ, PARQUET
 from tests.service.test_store import SPEC, data
 
+pytestmark = pytest.mark.slow  # hostile clients against a server, property tests of whole maps
+
 NAME = SPEC["name"]
 TOKENS = {
     "read-0123456789abcdef": ["read"],

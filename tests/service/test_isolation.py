@@ -32,6 +32,8 @@ from tests.service.conftest import POSTGRES_ENV
 from tests.service.tcp_proxy import PausableProxy
 from tests.service.test_store import SPEC, data
 
+pytestmark = pytest.mark.slow  # stress servers on loopback
+
 TIMEOUT_S = 8.0  # the request deadline of the stress server
 MEMORY_MB = 1024  # the memory budget (the default): no process of the service above it
 #: a directional region whose maps take seconds: 21 x 21 x 7 hinges, 8 sectors

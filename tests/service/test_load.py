@@ -5,11 +5,14 @@ import asyncio
 import os
 
 import httpx
+import pytest
 
 from bdf.region.spec import RegionSpec
 from clients.load import WEIGHTS, mixed_load, stored_difference, upload_batch
 from clients.local import LocalService
 from tests.service.test_store import SPEC
+
+pytestmark = pytest.mark.slow  # a mixed load against a server
 
 #: seconds of load per backend (bench/bench_load.py runs 60)
 SECONDS = float(os.environ.get("BDF_LOAD_SECONDS", "30"))

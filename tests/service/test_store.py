@@ -258,6 +258,7 @@ def test_a_fit_that_cannot_be_solved_stores_nothing(store, spec):
     assert (info.version, info.tiles, info.observations) == (0, 0, 0)
 
 
+@pytest.mark.slow  # a child process
 @pytest.mark.parametrize("directions", [1, 4])
 def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(store, spec, directions):
     """The service computes posteriors in a child process (seconds of CPU on a city's
@@ -337,6 +338,7 @@ def _reader(url, stop, out):
     store.close()
 
 
+@pytest.mark.slow  # threads of writers and readers
 @pytest.mark.parametrize("directions", [1, 4])  # a directional region: evidence per class
 def test_concurrent_writers_equal_one_batch_and_readers_never_see_half_an_upload(store_url, directions):
     spec = RegionSpec.model_validate({**SPEC, "directions": directions, "slow_mps": 0.1})
@@ -388,6 +390,7 @@ CRASHER = textwrap.dedent(
 )
 
 
+@pytest.mark.slow  # a writer process killed
 def test_a_writer_killed_mid_upload_leaves_all_or_nothing(store_url):
     # 6 x 4 tiles: an upload everywhere writes more than one batch of tile rows
     spec = RegionSpec.model_validate(

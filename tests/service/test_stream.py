@@ -12,6 +12,8 @@ from bdf.tuning import LOG_TOLERANCE
 from service.maps import RegionMaps
 from tests.service.test_store import SPEC
 
+pytestmark = pytest.mark.slow  # maps built from many uploads
+
 
 def lanes(n: int, seed: int = 0):
     """Traffic over the town: four lanes flying east, west, north and south (so a map of 8

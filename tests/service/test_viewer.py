@@ -13,6 +13,8 @@ from matplotlib.image import imread
 from service.slices import MAX_SIDE, render_slice, slice_axes
 from tests.service.test_store import SPEC, data
 
+pytestmark = pytest.mark.slow  # a browser
+
 NAME = SPEC["name"]
 ARTIFACTS = Path(os.environ.get("BDF_TEST_ARTIFACTS", Path(__file__).parents[2] / "test-artifacts"))
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
