@@ -21,6 +21,18 @@ def axis_counts(lower, upper, step) -> np.ndarray:
         return np.floor((np.asarray(upper) - lower) / step + 1e-9) + 1
 
 
+def bounded_counts(lower, upper, step, limit: float, what: str, advice: str) -> np.ndarray:
+    """:func:`axis_counts`, refused with a ``ValueError`` where their product exceeds
+    ``limit``: ``what`` names the lattice, ``advice`` says what to change."""
+    counts = axis_counts(lower, upper, step)
+    size = float(np.prod(counts))
+    if not size <= limit:
+        raise ValueError(
+            f"{what} would have {size:.6g} points ({counts.tolist()} per axis), more than {limit:.12g}; {advice}"
+        )
+    return counts
+
+
 @dataclass(frozen=True)
 class Lattice:
     """Points ``origin + i * step`` for ``i`` in ``[0, shape)`` per axis, in C order."""
@@ -57,13 +69,7 @@ class HingeGrid(Lattice):
         spacing = as_vector3(spacing, "spacing", positive=True)
         if np.any(upper <= lower):
             raise ValueError(f"upper {upper.tolist()} must exceed lower {lower.tolist()} on every axis")
-        counts = axis_counts(lower, upper, spacing)
-        size = float(np.prod(counts))
-        if not size <= MAX_HINGES:
-            raise ValueError(
-                f"the grid would have {size:.6g} hinges ({counts.tolist()} per axis), more than "
-                f"{MAX_HINGES}; increase spacing"
-            )
+        counts = bounded_counts(lower, upper, spacing, MAX_HINGES, "the hinge grid", "increase spacing")
         super().__init__(lower, spacing, tuple(int(c) for c in counts))
 
     def midpoints(self) -> Lattice:

@@ -30,7 +30,7 @@ import numpy as np
 
 from bdf import features
 from bdf._validate import as_vector3
-from bdf.grid import Lattice, axis_counts
+from bdf.grid import Lattice, bounded_counts
 
 #: Largest noise lattice (7 float64 channels per point: 56 bytes each).
 MAX_NOISE_CELLS = 2_000_000
@@ -48,12 +48,9 @@ def noise_lattice(lower, upper, spacing) -> Lattice:
     """The lattice ``lower + i * spacing`` per axis covering ``[lower, upper]``."""
     lower, upper = as_vector3(lower, "lower"), as_vector3(upper, "upper")
     step = as_vector3(spacing, "noise_spacing", positive=True)
-    counts = axis_counts(lower, upper, step)  # floats: a tiny step never overflows
-    if not np.prod(counts) <= MAX_NOISE_CELLS:
-        raise ValueError(
-            f"the noise lattice would have {np.prod(counts):.6g} points ({counts.tolist()} per axis), "
-            f"more than {MAX_NOISE_CELLS}; increase noise_spacing"
-        )
+    counts = bounded_counts(
+        lower, upper, step, MAX_NOISE_CELLS, "the noise lattice", "increase noise_spacing"
+    )
     return Lattice(lower, step, tuple(int(n) for n in counts))
 
 

@@ -27,7 +27,7 @@ from bdf import features, noise, sparse
 from bdf._validate import _bad_rows, as_points, rows_all
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
-from bdf.grid import HingeGrid, Lattice, axis_counts
+from bdf.grid import HingeGrid, Lattice, bounded_counts
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.sectors import MAX_DIRECTIONS, Sectors
 from bdf.stats import SectorEvidence
@@ -343,13 +343,9 @@ class RegionSpec(BaseModel):
         ``ValueError`` above ``max_voxels``, checked before anything is allocated."""
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         step = np.broadcast_to(np.asarray(step, float), (3,))
-        counts = axis_counts(lo, hi, step)
-        voxels = float(np.prod(counts))
-        if not voxels <= max_voxels:
-            raise ValueError(
-                f"the grid would have {voxels:.6g} voxels ({counts.tolist()} per axis); the limit is "
-                f"{max_voxels}"
-            )
+        counts = bounded_counts(
+            lo, hi, step, max_voxels, "the voxel grid", "raise the step or shrink the box"
+        )
         # the last point may pass hi by rounding (far from the origin): it is hi
         return [np.minimum(lo[d] + step[d] * np.arange(int(counts[d])), hi[d]) for d in range(3)]
 
