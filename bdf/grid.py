@@ -28,7 +28,8 @@ def bounded_counts(lower, upper, step, limit: float, what: str, advice: str) -> 
     size = float(np.prod(counts))
     if not size <= limit:
         raise ValueError(
-            f"{what} would have {size:.6g} points ({counts.tolist()} per axis), more than {limit:.12g}; {advice}"
+            f"{what} would have {size:.6g} points ({counts.tolist()} per axis), "
+            f"more than {limit:.12g}; {advice}"
         )
     return counts
 
