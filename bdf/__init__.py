@@ -1,6 +1,6 @@
 """Bayesian Dynamic Fields: 3D velocity maps with calibrated uncertainty."""
 
 from bdf.field import BayesianDynamicField
-from bdf.stats import Evidence
+from bdf.statistics import Evidence
 
 __all__ = ["BayesianDynamicField", "Evidence"]

@@ -12,7 +12,7 @@ from bdf.grid import HingeGrid
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Posterior
 from bdf.sectors import Sectors
-from bdf.stats import SectorEvidence
+from bdf.statistics import SectorEvidence
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ from bdf.grid import HingeGrid
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.sectors import Sectors
-from bdf.stats import FORMAT_VERSION, SectorEvidence
+from bdf.statistics import FORMAT_VERSION, SectorEvidence
 
 
 class BayesianDynamicField:

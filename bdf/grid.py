@@ -61,7 +61,7 @@ class HingeGrid(Lattice):
     The midpoints of all hinge pairs lie on the half-spacing lattice returned by
     :meth:`midpoints`; hinges ``(i, j, k)`` and ``(i', j', k')`` have their midpoint at
     index ``(i + i', j + j', k + k')`` there, which is what makes the Gram identity and
-    the variance identity of :mod:`bdf.stats` cheap.
+    the variance identity of :mod:`bdf.statistics` cheap.
     """
 
     def __init__(self, lower, upper, spacing):

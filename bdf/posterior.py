@@ -9,11 +9,11 @@ import numba
 import numpy as np
 from scipy import special
 
-from bdf import _blas, features, noise, sparse, tuning
+from bdf import _blas, features, hyperparameters, noise, sparse
 from bdf.grid import HingeGrid
 from bdf.kernel import Kernel
 from bdf.sectors import Sectors, mixture_moments
-from bdf.stats import MIDPOINT_BLOCK, Evidence, SectorEvidence
+from bdf.statistics import MIDPOINT_BLOCK, Evidence, SectorEvidence
 
 #: ``known``: the data within the kernel's reach weigh at least this (:func:`known`): one
 #: observation of weight 1 at the kernel's 1 % reach, or a track's unit of weight
@@ -97,11 +97,14 @@ class Posterior:
             G_w0 = sparse.band_product(self.stencil, band, w0)
             v_sq = v_sq - 2.0 * np.einsum("mc,mc->c", w0, proj) + np.einsum("mc,mc->c", w0, G_w0)
             proj = proj - G_w0
-        self.alpha, self.beta, sols, self.factorisations = tuning.fit_evidence(
+        self.alpha, self.beta, sols, self.factorisations = hyperparameters.fit_evidence(
             self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start, anchor
         )
         self.log_evidence = np.array(
-            [tuning.log_evidence(s, self.alpha, self.beta, evidence.count)[c] for c, s in enumerate(sols)]
+            [
+                hyperparameters.log_evidence(s, self.alpha, self.beta, evidence.count)[c]
+                for c, s in enumerate(sols)
+            ]
         )
         self.weights = w0 + np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
         self._solutions = sols
@@ -230,7 +233,7 @@ class Posterior:
 
 def _normalised(grid: HingeGrid, gamma, at: np.ndarray, X: np.ndarray) -> np.ndarray:
     """``sum_i w_i exp(-sum_d gamma_d (x_d - x_id)^2)`` (n, C) from data densities on the
-    midpoint lattice (kernel ``2 gamma``, :mod:`bdf.stats`; C of them) gathered at ``X``
+    midpoint lattice (kernel ``2 gamma``, :mod:`bdf.statistics`; C of them) gathered at ``X``
     with the same kernel (``at``): each pair of an observation and ``x`` meets at their
     midpoint with the lattice's sum of ``exp(-4 gamma (g - midpoint)^2)``, which
     :func:`_lattice_sum` divides out (near ``x``: it falls to half at the lattice's edge)."""
@@ -369,7 +372,9 @@ class Mixture:
         self.share_weights = sol.factor.solve(rhs)
         residual = np.sum(counts * (1.0 - self.prior_share)) - np.sum(rhs * self.share_weights)
         self.share_beta = (
-            min(C * n / max(residual, 1e-300), tuning.MAX_AUTO_BETA) if n > 0 else tuning.EMPTY_BETA
+            min(C * n / max(residual, 1e-300), hyperparameters.MAX_AUTO_BETA)
+            if n > 0
+            else hyperparameters.EMPTY_BETA
         )
         self._tables = None
 

@@ -45,7 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bdf import BayesianDynamicField, crossval, ingest, metrics
 from bdf.kernel import DEFAULT_CUTOFF
 from bdf.sectors import Sectors
-from bdf.stats import Evidence, SectorEvidence
+from bdf.statistics import Evidence, SectorEvidence
 from clients import samples
 from clients.samples import PARIS_GAMMA, PARIS_NOISE_SPACING_M, PARIS_SPACING_M
 

@@ -30,7 +30,7 @@ import pyarrow as pa
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_city
 
-from bdf import sparse, tuning
+from bdf import hyperparameters, sparse
 from bdf.posterior import _layer_prior
 from bdf.region.evidence import increments, region_total
 from bdf.region.spec import RegionSpec
@@ -149,9 +149,9 @@ def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
     rows = [(f"class {klass}: smallest eigenvalue of G / mean(diag G)", f"{values.min() / scale:.2g}")]
     for ratio in (1e-10, 1e-3):
         lam = ratio * scale
-        sol = tuning.solve(stencil, band, proj, v_sq, lam)
+        sol = hyperparameters.solve(stencil, band, proj, v_sq, lam)
         beta = evidence.count / sol.residual
-        factored = tuning.log_evidence(sol, lam * beta, beta, evidence.count)[0]
+        factored = hyperparameters.log_evidence(sol, lam * beta, beta, evidence.count)[0]
         residual = v_sq - np.einsum("mc,mc->c", projected, projected / (values + lam)[:, None])
         beta = evidence.count / residual
         dense = (

@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bdf import BayesianDynamicField, ingest, posterior, sparse, tuning
+from bdf import BayesianDynamicField, hyperparameters, ingest, posterior, sparse
 from clients import samples
 from clients.samples import PARIS_GAMMA, PARIS_SPACING_M
 
@@ -37,8 +37,8 @@ from clients.samples import PARIS_GAMMA, PARIS_SPACING_M
 def configured(cover: float, supports: int, optima: dict | None):
     """``sparse.stencil.COVER`` and ``Stencil.SUPPORTS`` set, and with ``optima`` (class count ->
     ratio) the modes' searches started there instead of at the total's optimum."""
-    saved = sparse.stencil.COVER, sparse.Stencil.SUPPORTS, posterior.tuning.fit_evidence
-    search = tuning.fit_evidence
+    saved = sparse.stencil.COVER, sparse.Stencil.SUPPORTS, posterior.hyperparameters.fit_evidence
+    search = hyperparameters.fit_evidence
 
     def started_at_optimum(stencil, band, proj, v_sq, count, alpha, beta, start=None):
         if start is not None:  # a mode (the total starts cold)
@@ -47,11 +47,11 @@ def configured(cover: float, supports: int, optima: dict | None):
 
     sparse.stencil.COVER, sparse.Stencil.SUPPORTS = cover, supports
     if optima is not None:
-        posterior.tuning.fit_evidence = started_at_optimum
+        posterior.hyperparameters.fit_evidence = started_at_optimum
     try:
         yield
     finally:
-        sparse.stencil.COVER, sparse.Stencil.SUPPORTS, posterior.tuning.fit_evidence = saved
+        sparse.stencil.COVER, sparse.Stencil.SUPPORTS, posterior.hyperparameters.fit_evidence = saved
 
 
 def main() -> int:

@@ -137,7 +137,7 @@ def calibration(directions, counts, train, weight, test, lower, upper, tmp) -> t
 
 
 class _SearchPoints(logging.Handler):
-    """The points ``x = ln lam`` the first search evaluated (:mod:`bdf.tuning`'s debug log,
+    """The points ``x = ln lam`` the first search evaluated (:mod:`bdf.hyperparameters`'s debug log,
     up to its end: the map with one class's)."""
 
     def __init__(self):
@@ -175,7 +175,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
     maps.refresh(spec.name)
     maps._schedule = lambda region: None  # each refresh is timed here, not in the background
     warm, warm_f, upload, fixed = [], [], [], []
-    search = logging.getLogger("bdf.tuning")
+    search = logging.getLogger("bdf.hyperparameters")
     for r in range(rounds):
         rows = extra[1000 * r : 1000 * (r + 1)]
         t0 = time.perf_counter()

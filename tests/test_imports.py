@@ -55,8 +55,8 @@ def find_cycle(graph):
 
 def test_no_module_imports_itself_through_others():
     graph = imports()
-    assert {"bdf.field", "bdf.posterior", "bdf.tuning"} <= set(graph)
-    assert "bdf.tuning" not in graph["bdf.field"] and "bdf.posterior" in graph["bdf.field"]
+    assert {"bdf.field", "bdf.posterior", "bdf.hyperparameters"} <= set(graph)
+    assert "bdf.hyperparameters" not in graph["bdf.field"] and "bdf.posterior" in graph["bdf.field"]
     assert find_cycle(graph) is None, " -> ".join(find_cycle(graph))
 
 

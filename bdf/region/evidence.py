@@ -2,7 +2,7 @@
 
 Each observation belongs to the tile whose core holds it (:meth:`RegionSpec.home_tiles`);
 the tile's increment is what its core's points add to the region's evidence over the
-tile's support (:func:`increments`, by :meth:`bdf.stats.SectorEvidence.from_points`: the
+tile's support (:func:`increments`, by :meth:`bdf.statistics.SectorEvidence.from_points`: the
 one function everything that learns calls). Stored increments are decoded on the tile's
 support (:func:`decode_tile`) and the region's evidence is their sum on the region's
 lattice (:func:`region_total`), each observation counted once: tiles are independently
@@ -23,7 +23,7 @@ import numpy as np
 from bdf import sparse
 from bdf._validate import as_noise_std, as_observations, as_sample_weight, take_rows
 from bdf.region.spec import RegionSpec, TileKey
-from bdf.stats import FORMAT_VERSION, Evidence, SectorEvidence
+from bdf.statistics import FORMAT_VERSION, Evidence, SectorEvidence
 
 
 class Increment(NamedTuple):

@@ -25,7 +25,7 @@ from bdf._validate import as_headings
 from bdf.posterior import Mixture, Modes, Posterior, known
 from bdf.region.spec import RegionSpec
 from bdf.sparse import NotPositiveDefinite
-from bdf.stats import SectorEvidence
+from bdf.statistics import SectorEvidence
 
 log = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice, bounded_counts
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.sectors import MAX_DIRECTIONS, Sectors
-from bdf.stats import SectorEvidence
+from bdf.statistics import SectorEvidence
 
 log = logging.getLogger(__name__)
 TileKey = tuple[int, int, int]

@@ -1,7 +1,7 @@
 """The precision's stencil and the matrices on it: bands, supports and factors.
 
 Two hinges couple through ``c(h_m - h_m') = exp(-sum_d gamma_d (h_md - h_m'd)^2 / 2)``
-(:mod:`bdf.stats`), so pairs whose coupling is below the kernel's cutoff are dropped: the
+(:mod:`bdf.statistics`), so pairs whose coupling is below the kernel's cutoff are dropped: the
 precision is a 3-D *stencil* (the offsets ``o`` with ``c(o) >= cutoff``) around every
 hinge. Matrices on that pattern are kept as *bands*: ``band[k, m] = A[m, m + o_k]`` for
 the half of the offsets that is lexicographically >= 0 (the other half by symmetry),

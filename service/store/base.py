@@ -10,8 +10,8 @@ What is stored (schema version 4; both backends, same tables):
     uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
     versions region_id, version, committed_at                                 (when each was written)
 
-``tiles.stats`` is :meth:`bdf.stats.SectorEvidence.to_bytes` (little-endian float64, layout in
-:mod:`bdf.stats`, ``format_version`` there). A tile row exists only once data reached the
+``tiles.stats`` is :meth:`bdf.statistics.SectorEvidence.to_bytes` (little-endian float64, layout in
+:mod:`bdf.statistics`, ``format_version`` there). A tile row exists only once data reached the
 tile. Versions: every applied upload, fit or retraction bumps the region's version by one
 and stamps every tile it touched with the new version, so ``(region_id, key, version)``
 names one state of a tile's statistics (``region_id`` is new for every created region, so
@@ -64,7 +64,7 @@ import numpy as np
 
 from bdf.region.evidence import Increment, decode_tile
 from bdf.region.spec import RegionSpec, TileKey, key_str, parse_key
-from bdf.stats import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence
+from bdf.statistics import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence
 
 SCHEMA_VERSION = 4
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).

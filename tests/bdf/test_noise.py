@@ -6,7 +6,7 @@ import pytest
 from bdf import BayesianDynamicField
 from bdf.noise import NOISE_CUTOFF
 from bdf.sectors import Sectors
-from bdf.stats import SectorEvidence
+from bdf.statistics import SectorEvidence
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER
 from tests.bdf.test_field import assert_close
 

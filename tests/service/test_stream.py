@@ -7,8 +7,8 @@ import threading
 import numpy as np
 import pytest
 
+from bdf.hyperparameters import LOG_TOLERANCE
 from bdf.region.spec import RegionSpec
-from bdf.tuning import LOG_TOLERANCE
 from service.maps import RegionMaps
 from tests.service.test_store import SPEC
 

@@ -61,7 +61,7 @@ def test_cross_validation_rejects_bad_arguments():
 
 def test_auto_beta_is_bounded_for_a_constant_component():
     """Vertical speed exactly 0 everywhere: the noise std stops at 1 mm/s, not 1e-150."""
-    from bdf.tuning import MAX_AUTO_BETA
+    from bdf.hyperparameters import MAX_AUTO_BETA
 
     rng = np.random.default_rng(0)
     X = rng.uniform(0, 100, (400, 3))
@@ -75,7 +75,7 @@ def test_auto_beta_is_bounded_for_a_constant_component():
 def test_a_fixed_alpha_stays_fixed_where_auto_beta_meets_its_bound():
     """beta = alpha / lam with alpha fixed: the search keeps lam above alpha / MAX_AUTO_BETA,
     so the bound on beta never moves alpha off the value given (it used to: 0.64 for 1)."""
-    from bdf.tuning import MAX_AUTO_BETA
+    from bdf.hyperparameters import MAX_AUTO_BETA
 
     X = np.zeros((2, 3))
     V = np.array([[0.0, -1.0, 0.0]] * 2)
@@ -94,7 +94,7 @@ def test_search_derivatives_equal_finite_differences_of_the_evidence(alpha, beta
     """The search's slope and curvature in ln(alpha / beta), with exact traces (the probes
     sqrt(M) times the unit vectors), against central differences of the exact evidence;
     and the 64 random probes stay within 3 % of the slope's scale."""
-    from bdf import tuning
+    from bdf import hyperparameters
     from bdf.sparse import stencil_on
 
     rng = np.random.default_rng(3)
@@ -111,17 +111,17 @@ def test_search_derivatives_equal_finite_differences_of_the_evidence(alpha, beta
     tied, profiled = alpha != "auto", np.full(3, alpha == "auto" and beta == "auto")
 
     def at(x, probes=exact):
-        sol = tuning.solve(stencil, band, ev.proj, ev.v_sq, np.exp(x))
-        a, b = tuning._hyper_for(sol, alpha, beta, ev.count)
-        cost = -float(np.sum(tuning.log_evidence(sol, a, b, ev.count)[comps]))
-        return cost, tuning._derivatives(sol, a, b, ev.count, comps, tied, profiled, probes)
+        sol = hyperparameters.solve(stencil, band, ev.proj, ev.v_sq, np.exp(x))
+        a, b = hyperparameters._hyper_for(sol, alpha, beta, ev.count)
+        cost = -float(np.sum(hyperparameters.log_evidence(sol, a, b, ev.count)[comps]))
+        return cost, hyperparameters._derivatives(sol, a, b, ev.count, comps, tied, profiled, probes)
 
     x, h = np.log(0.05), 1e-4
     _, (slope, curvature, _) = at(x)
     (up, (up_slope, _, _)), (down, (down_slope, _, _)) = at(x + h), at(x - h)
     assert slope == pytest.approx((up - down) / (2 * h), rel=1e-5)
     assert curvature == pytest.approx((up_slope - down_slope) / (2 * h), rel=1e-5)
-    _, (estimate, _, _) = at(x, tuning._probes(M))
+    _, (estimate, _, _) = at(x, hyperparameters._probes(M))
     assert abs(estimate - slope) < 0.03 * M
 
 
@@ -145,7 +145,7 @@ def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
     """Below ``FLOOR_PER_CUTOFF x cutoff x mean(diag G)`` the smallest eigenvalues of ``G``
     are truncation noise and so is the evidence: a search started far below (as a mode's
     starts at its map's ratio) never factors there, and ends inside the bounds."""
-    from bdf import tuning
+    from bdf import hyperparameters
 
     rng = np.random.default_rng(0)
     X = rng.uniform(0, 100, (400, 3))
@@ -153,9 +153,9 @@ def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
     f = BayesianDynamicField([0, 0, 0], [100, 100, 100], 20, 1 / 400, cutoff=1e-12).fit(X, V)
     evidence, stencil = f.evidence_.total(), f.posterior_.stencil
     band = evidence.gram_band(stencil)
-    floor = tuning.FLOOR_PER_CUTOFF * 1e-12 * np.mean(band[0])
-    with mock.patch.object(tuning, "solve", wraps=tuning.solve) as solve:
-        alpha, beta, _, _ = tuning.fit_evidence(
+    floor = hyperparameters.FLOOR_PER_CUTOFF * 1e-12 * np.mean(band[0])
+    with mock.patch.object(hyperparameters, "solve", wraps=hyperparameters.solve) as solve:
+        alpha, beta, _, _ = hyperparameters.fit_evidence(
             stencil, band, evidence.proj, evidence.v_sq, evidence.count, "auto", "auto", start=1e-20
         )
         seen = [call.args[4] for call in solve.call_args_list]
@@ -168,5 +168,5 @@ def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
         xs.append(x)
         return 1.0, 1.0, x - 10.0
 
-    tuning._search(falling, -5.0, (-8.0, 3.0))
+    hyperparameters._search(falling, -5.0, (-8.0, 3.0))
     assert min(xs) == -8.0 and all(-8.0 <= x <= 3.0 for x in xs)
