@@ -7,12 +7,12 @@ import logging
 import numpy as np
 
 from bdf import metrics, noise
-from bdf._validate import as_observations, as_positive, as_sample_weight
 from bdf.grid import HingeGrid
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Posterior
 from bdf.sectors import Sectors
 from bdf.statistics import SectorEvidence
+from bdf.validation import as_observations, as_positive, as_sample_weight
 
 log = logging.getLogger(__name__)
 

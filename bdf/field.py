@@ -8,7 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from bdf import noise, sparse
-from bdf._validate import (
+from bdf.grid import HingeGrid
+from bdf.kernel import DEFAULT_CUTOFF, Kernel
+from bdf.posterior import Mixture, Modes, Posterior
+from bdf.sectors import Sectors
+from bdf.statistics import FORMAT_VERSION, SectorEvidence
+from bdf.validation import (
     as_headings,
     as_hyper,
     as_noise_std,
@@ -18,11 +23,6 @@ from bdf._validate import (
     as_sample_weight,
     as_vector3,
 )
-from bdf.grid import HingeGrid
-from bdf.kernel import DEFAULT_CUTOFF, Kernel
-from bdf.posterior import Mixture, Modes, Posterior
-from bdf.sectors import Sectors
-from bdf.statistics import FORMAT_VERSION, SectorEvidence
 
 
 class BayesianDynamicField:

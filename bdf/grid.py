@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bdf._validate import as_vector3
+from bdf.validation import as_vector3
 
 #: Largest hinge count a field accepts: its sparse factor grows about as M^(4/3) on a 3-D
 #: lattice (``bench/bench_tiles.py`` measures it).

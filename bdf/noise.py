@@ -29,8 +29,8 @@ from __future__ import annotations
 import numpy as np
 
 from bdf import features
-from bdf._validate import as_vector3
 from bdf.grid import Lattice, bounded_counts
+from bdf.validation import as_vector3
 
 #: Largest noise lattice (7 float64 channels per point: 56 bytes each).
 MAX_NOISE_CELLS = 2_000_000

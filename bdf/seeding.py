@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import qmc
 
-from bdf._validate import as_points, as_vector3
+from bdf.validation import as_points, as_vector3
 
 
 def free_space_seeds(lower, upper, n, near=None, radius=0.0, *, method="sobol", seed=0):

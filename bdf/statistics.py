@@ -43,10 +43,10 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from bdf import features, noise, sparse
-from bdf._validate import take_rows
 from bdf.grid import HingeGrid, Lattice
 from bdf.kernel import Kernel
 from bdf.sectors import Sectors
+from bdf.validation import take_rows
 
 FORMAT_VERSION = 3
 #: Blob formats this code reads.

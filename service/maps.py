@@ -34,11 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bdf._validate import noise_std_rows, rows_all
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.region.evidence import Increment, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.spec import RegionSpec, TileKey
+from bdf.validation import noise_std_rows, rows_all
 from service import lanes
 from service.store import (
     MapStore,

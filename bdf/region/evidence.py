@@ -21,9 +21,9 @@ from typing import NamedTuple
 import numpy as np
 
 from bdf import sparse
-from bdf._validate import as_noise_std, as_observations, as_sample_weight, take_rows
 from bdf.region.spec import RegionSpec, TileKey
 from bdf.statistics import FORMAT_VERSION, Evidence, SectorEvidence
+from bdf.validation import as_noise_std, as_observations, as_sample_weight, take_rows
 
 
 class Increment(NamedTuple):

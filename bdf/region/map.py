@@ -21,11 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bdf._validate import as_headings
 from bdf.posterior import Mixture, Modes, Posterior, known
 from bdf.region.spec import RegionSpec
 from bdf.sparse import NotPositiveDefinite
 from bdf.statistics import SectorEvidence
+from bdf.validation import as_headings
 
 log = logging.getLogger(__name__)
 

@@ -24,13 +24,13 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from bdf import features, noise, sparse
-from bdf._validate import _bad_rows, as_points, rows_all
 from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice, bounded_counts
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.sectors import MAX_DIRECTIONS, Sectors
 from bdf.statistics import SectorEvidence
+from bdf.validation import as_points, bad_rows, rows_all
 
 log = logging.getLogger(__name__)
 TileKey = tuple[int, int, int]
@@ -333,7 +333,7 @@ class RegionSpec(BaseModel):
         X = as_points(X, "X", allow_empty=True)
         in_box = self._in_box(X)
         if not in_box.all():  # rows only for the message
-            raise ValueError(f"points outside region {self.name!r} bounds: {_bad_rows(~rows_all(in_box))}")
+            raise ValueError(f"points outside region {self.name!r} bounds: {bad_rows(~rows_all(in_box))}")
         return X
 
     # -- grids of voxels ----------------------------------------------------------------

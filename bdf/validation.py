@@ -1,4 +1,5 @@
-"""Input checks shared by the library: every failure is a ValueError saying what and where."""
+"""Input checks shared by the library and the service's decoders: every failure is a ValueError
+saying what and where."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ def as_vector3(value, name: str, *, positive: bool = False) -> np.ndarray:
     return arr
 
 
-def _bad_rows(mask: np.ndarray) -> str:
+def bad_rows(mask: np.ndarray) -> str:
     rows = np.flatnonzero(mask)
     shown = ", ".join(str(r) for r in rows[:5])
     return f"rows [{shown}{', ...' if rows.size > 5 else ''}] ({rows.size} in all)"
@@ -37,7 +38,7 @@ def as_points(value, name: str, *, allow_empty: bool = False) -> np.ndarray:
         raise ValueError(f"{name} is empty: at least one row is needed")
     if not np.isfinite(arr).all():
         bad = ~np.all(np.isfinite(arr), axis=1)
-        raise ValueError(f"{name} has NaN or infinite values in {_bad_rows(bad)}")
+        raise ValueError(f"{name} has NaN or infinite values in {bad_rows(bad)}")
     return arr
 
 
@@ -84,7 +85,7 @@ def as_noise_std(value, n: int) -> np.ndarray | None:
     arr = noise_std_rows(value, n)
     bad = ~np.all(np.isfinite(arr) & (arr >= 0), axis=1)
     if bad.any():
-        raise ValueError(f"input_noise_std must be finite and >= 0; bad {_bad_rows(bad)}")
+        raise ValueError(f"input_noise_std must be finite and >= 0; bad {bad_rows(bad)}")
     return arr if np.any(arr > 0) else None
 
 
@@ -133,5 +134,5 @@ def as_sample_weight(value, n: int) -> np.ndarray | None:
         raise ValueError(f"sample_weight must have shape ({n},), got {arr.shape}")
     bad = ~(np.isfinite(arr) & (arr >= 0))
     if bad.any():
-        raise ValueError(f"sample_weight must be finite and >= 0; bad {_bad_rows(bad)}")
+        raise ValueError(f"sample_weight must be finite and >= 0; bad {bad_rows(bad)}")
     return arr
