@@ -21,14 +21,14 @@ def axis_counts(lower, upper, step) -> np.ndarray:
         return np.floor((np.asarray(upper) - lower) / step + 1e-9) + 1
 
 
-def bounded_counts(lower, upper, step, limit: float, what: str, advice: str) -> np.ndarray:
+def bounded_counts(lower, upper, step, limit: float, what: str, unit: str, advice: str) -> np.ndarray:
     """:func:`axis_counts`, refused with a ``ValueError`` where their product exceeds
-    ``limit``: ``what`` names the lattice, ``advice`` says what to change."""
+    ``limit``: ``what`` names the lattice, ``unit`` its points, ``advice`` what to change."""
     counts = axis_counts(lower, upper, step)
     size = float(np.prod(counts))
     if not size <= limit:
         raise ValueError(
-            f"{what} would have {size:.6g} points ({counts.tolist()} per axis), "
+            f"{what} would have {size:.6g} {unit} ({counts.tolist()} per axis), "
             f"more than {limit:.12g}; {advice}"
         )
     return counts
@@ -70,7 +70,7 @@ class HingeGrid(Lattice):
         spacing = as_vector3(spacing, "spacing", positive=True)
         if np.any(upper <= lower):
             raise ValueError(f"upper {upper.tolist()} must exceed lower {lower.tolist()} on every axis")
-        counts = bounded_counts(lower, upper, spacing, MAX_HINGES, "the hinge grid", "increase spacing")
+        counts = bounded_counts(lower, upper, spacing, MAX_HINGES, "the grid", "hinges", "increase spacing")
         super().__init__(lower, spacing, tuple(int(c) for c in counts))
 
     def midpoints(self) -> Lattice:

@@ -49,7 +49,7 @@ def noise_lattice(lower, upper, spacing) -> Lattice:
     lower, upper = as_vector3(lower, "lower"), as_vector3(upper, "upper")
     step = as_vector3(spacing, "noise_spacing", positive=True)
     counts = bounded_counts(
-        lower, upper, step, MAX_NOISE_CELLS, "the noise lattice", "increase noise_spacing"
+        lower, upper, step, MAX_NOISE_CELLS, "the noise lattice", "points", "increase noise_spacing"
     )
     return Lattice(lower, step, tuple(int(n) for n in counts))
 

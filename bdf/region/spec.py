@@ -344,7 +344,7 @@ class RegionSpec(BaseModel):
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
         step = np.broadcast_to(np.asarray(step, float), (3,))
         counts = bounded_counts(
-            lo, hi, step, max_voxels, "the voxel grid", "raise the step or shrink the box"
+            lo, hi, step, max_voxels, "the grid", "voxels", "raise the step or shrink the box"
         )
         # the last point may pass hi by rounding (far from the origin): it is hi
         return [np.minimum(lo[d] + step[d] * np.arange(int(counts[d])), hi[d]) for d in range(3)]

@@ -506,7 +506,11 @@ def test_limits_and_errors_are_problem_json(live_server):
                 406,
                 "available as",
             ),
-            (c.get(f"/v1/regions/{NAME}/grid", params={"step": "1"}), 422, "limit is 5000"),
+            (
+                c.get(f"/v1/regions/{NAME}/grid", params={"step": "1"}),
+                422,
+                "voxels ([301.0, 201.0, 61.0] per axis), more than 5000",
+            ),
             (c.get(f"/v1/regions/{NAME}/grid", params={"step": "30"}), 422, "too many for JSON"),
             (
                 c.get(f"/v1/regions/{NAME}/grid", params={"step": "30", "bbox": "0,0,0,1,1,1000"}),

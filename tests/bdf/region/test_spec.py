@@ -39,7 +39,7 @@ def test_spec_json_is_the_service_body():
     [
         ({"name": "Paris!"}, "pattern"),
         ({"bounds_m": {"min": [0, 0, 0], "max": [10, -1, 10]}}, "must exceed"),
-        ({"spacing_m": [100, 100, 100]}, "hinge grid would have"),  # 801 x 801 x 61 in the region
+        ({"spacing_m": [100, 100, 100]}, "hinges"),  # 801 x 801 x 61 in the region
         ({"gamma": [1, -1, 1]}, "greater than 0"),
         ({"alpha": "aut"}, "alpha"),
         ({"tile_size_m": [100, 100, 100]}, "tiles"),
