@@ -24,6 +24,9 @@ MAX_DIRECTIONS = 16
 #: planner ignore it (a near-empty class can look certain, e.g. the slow class fitted as
 #: constant where it has no data).
 MIN_SHARE = 0.05
+#: A class at least this many degrees off the heading flown is crossing or opposing traffic
+#: (the conflict exposure of a route: the planner's cost and :func:`bdf.region.route.assess`).
+CROSSING_DEG = 67.5
 
 
 @dataclass(frozen=True)

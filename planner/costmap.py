@@ -40,7 +40,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import erfc
 
-from bdf.sectors import MIN_SHARE, Sectors
+from bdf.sectors import CROSSING_DEG, MIN_SHARE, Sectors
 
 #: Where no tile has data, the std is at least this many tube bounds.
 UNKNOWN_STD_RATIO = 10.0
@@ -51,9 +51,6 @@ CURVATURE_SAFETY = 1.25
 S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
 #: Column of a class's share in the class table (after the 6 fields above).
 SHARE = 6
-#: A class at least this many degrees off the heading flown is crossing or opposing traffic
-#: (:func:`path_metrics`' conflict exposure).
-CROSSING_DEG = 67.5
 
 
 @dataclass(frozen=True)
