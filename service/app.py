@@ -29,6 +29,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
 from bdf import sectors
+from bdf.region.route import MAX_ROUTE_POINTS, SAMPLE_M
 from bdf.region.spec import RegionSpec, key_str
 from service import formats, problems, slices, wire
 from service.auth import PUBLIC, require
@@ -529,6 +530,44 @@ async def query(
             return formats.encode_points(out, info.spec, pred, answer.headers(pred))
 
         return _light_or_heavy(svc, info, min_version, len(q.X), work)
+
+    return await svc.run(step)
+
+
+@router.post(
+    "/regions/{name}/routes/assess",
+    response_model=formats.AssessResult,
+    **scoped(
+        "read",
+        responses={200: {"content": {JSON: {}}}},
+        **_body_doc(formats.RouteBody, binary=()),
+    ),
+)
+async def assess_route(
+    name: RegionName, request: Request, svc: ServiceDep, answer: AnswerDep, min_version: MinVersion = 0
+):
+    """A route of any planner against the map: per segment and in total, the max and mean
+    std (of the mode of the heading flown on a directional map), the fraction inside the
+    tube ``max_std_mps``, the integrated risk, the conflict exposure and the flow mismatch,
+    and whether the vehicle's envelope holds (:mod:`bdf.region.route`). JSON, or GeoJSON: a
+    LineString Feature ([lon, lat, alt_m]) with ``times_s``, ``heading_deg``, ``max_std_mps``
+    and ``vehicle`` in its properties."""
+    answer.body = await request.body()
+    media = formats.media_type(request.headers.get("content-type"))
+
+    def step():
+        info, not_modified = answer.region_or_304(name)
+        if not_modified:
+            return not_modified
+        route = formats.read_route(info.spec, answer.body, media, svc.limits(MAX_ROUTE_POINTS))
+        samples = int(np.sum(np.linalg.norm(np.diff(route.P, axis=0), axis=1)) / SAMPLE_M) + len(route.P)
+
+        def work():
+            got = svc.maps.assess(name, route, info, min_version)
+            content = {**got.result, "region_version": got.version}
+            return JSONResponse(content, headers=answer.headers(got))
+
+        return _light_or_heavy(svc, info, min_version, samples, work)
 
     return await svc.run(step)
 

@@ -25,6 +25,7 @@ from fastapi import Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
+from bdf.region.route import Vehicle, checked, vehicle
 from bdf.region.spec import RegionSpec
 from service import slices
 from service.problems import Problem
@@ -87,6 +88,118 @@ class QueryBody(BaseModel):
         description="degrees from north, clockwise (one, or one per point): mean and std become "
         "the mode of traffic flying that heading (a region of one direction has one mode)",
     )
+
+
+class VehicleBody(BaseModel):
+    """A vehicle's envelope (:class:`bdf.region.route.Vehicle`)."""
+
+    model_config = ConfigDict(extra="forbid")
+    cruise_mps: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    min_turn_radius_m: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    max_climb_deg: Annotated[float, Field(gt=0, lt=90)]
+    max_descent_deg: Annotated[float, Field(gt=0, lt=90)]
+    floor_m: FiniteFloat
+    ceiling_m: FiniteFloat
+
+
+class RouteBody(BaseModel):
+    """A route to assess (JSON form; GeoJSON: a LineString Feature whose properties hold the
+    other fields)."""
+
+    model_config = ConfigDict(extra="forbid")
+    frame: Frame = "enu"
+    points: list[Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]] = Field(
+        description="the polyline: [x, y, z] ENU metres, or [lat, lon, alt_m]"
+    )
+    times_s: list[FiniteFloat] | None = Field(
+        None, description="seconds from departure at each point (default: at the vehicle's cruise airspeed)"
+    )
+    heading_deg: list[FiniteFloat] | None = Field(
+        None, description="heading flown on each segment, degrees from north (default: its own direction)"
+    )
+    max_std_mps: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
+        description="the tube bound on the predictive std, m/s"
+    )
+    vehicle: Literal["evtol", "fixed-wing"] | VehicleBody = "evtol"
+
+
+class AssessResult(BaseModel):
+    segments: dict[str, list[float]] = Field(
+        description="per segment: length_m, duration_s, max_std_mps, mean_std_mps, in_tube_fraction, "
+        "integrated_risk_m, conflict_exposure, flow_mismatch_mps"
+    )
+    total: dict[str, float] = Field(description="the same over the whole route")
+    envelope: dict[str, float | bool] = Field(
+        description="least turn radius, steepest climb and descent, lowest and highest altitude, each "
+        "limit's verdict and flyable"
+    )
+    region_version: int
+
+
+@dataclass
+class RouteQuery:
+    P: np.ndarray  # (n, 3) region ENU
+    times_s: np.ndarray  # (n,) seconds from departure
+    heading_deg: np.ndarray  # (n - 1,) heading flown per segment
+    max_std_mps: float
+    vehicle: Vehicle
+
+
+def read_route(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> RouteQuery:
+    """Decode a route (JSON :class:`RouteBody`, or a GeoJSON LineString Feature or a
+    FeatureCollection of one, [lon, lat, alt_m], its other fields in ``properties``) into
+    region ENU points inside the region."""
+    if media not in (JSON, GEOJSON):
+        raise Problem(415, f"send {JSON} or {GEOJSON}, not {media or 'no Content-Type'}")
+    try:
+        raw = json.loads(json_body(body, limits))
+    except json.JSONDecodeError as exc:
+        raise Problem(422, f"the route is not JSON: {exc}") from None
+    if media == GEOJSON:
+        raw = _geojson_route(raw)
+    route = RouteBody.model_validate(raw)
+    _check_size(len(route.points), 0, limits)
+    P = _to_region(spec, route.frame, _array(route.points), None)[0]
+    if len(P) < 2:
+        raise Problem(422, f"a route needs at least 2 points, got {len(P)}")
+    outside = ~spec.inside(P)
+    if outside.any():
+        rows = np.flatnonzero(outside)
+        raise Problem(
+            422,
+            f"{rows.size} route point(s) outside region {spec.name!r} ({spec.bounds_m.min} .. "
+            f"{spec.bounds_m.max} ENU metres): rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}",
+        )
+    try:
+        craft = vehicle(route.vehicle if isinstance(route.vehicle, str) else route.vehicle.model_dump())
+        P, times, heading = checked(P, craft, route.times_s, route.heading_deg)
+    except ValueError as exc:
+        raise Problem(422, str(exc)) from None
+    return RouteQuery(P, times, heading, route.max_std_mps, craft)
+
+
+def _geojson_route(doc) -> dict:
+    """A GeoJSON route as :class:`RouteBody`'s fields (frame wgs84)."""
+    if isinstance(doc, dict) and doc.get("type") == "FeatureCollection":
+        lines = [
+            f for f in doc.get("features") or [] if (f.get("geometry") or {}).get("type") == "LineString"
+        ]
+        if len(lines) != 1:
+            raise Problem(422, f"a FeatureCollection to assess holds one LineString, not {len(lines)}")
+        doc = lines[0]
+    geometry = doc.get("geometry") if isinstance(doc, dict) and doc.get("type") == "Feature" else None
+    if not isinstance(geometry, dict) or geometry.get("type") != "LineString":
+        raise Problem(
+            422, "send a GeoJSON Feature with a LineString geometry ([lon, lat, alt_m] coordinates)"
+        )
+    coordinates = geometry.get("coordinates")
+    if not isinstance(coordinates, list) or not all(isinstance(c, list) and len(c) == 3 for c in coordinates):
+        raise Problem(422, "a route's coordinates are [lon, lat, alt_m] triples")
+    properties = doc.get("properties") or {}
+    fields = {
+        k: properties[k] for k in ("times_s", "heading_deg", "max_std_mps", "vehicle") if k in properties
+    }
+    return {"frame": "wgs84", "points": [[lat, lon, alt] for lon, lat, alt in coordinates], **fields}
 
 
 class ModesResult(BaseModel):

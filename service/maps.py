@@ -37,6 +37,7 @@ import numpy as np
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.region.evidence import Increment, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.route import assess as assess_route
 from bdf.region.spec import RegionSpec, TileKey
 from bdf.validation import noise_std_rows, rows_all
 from service import lanes
@@ -76,6 +77,17 @@ class MapState:
     def map(self) -> RegionMap:
         """What queries read: the posterior with the spec that checks their points."""
         return RegionMap(self.spec, self.posterior)
+
+
+@dataclass(frozen=True)
+class MapAssessment:
+    """A route's metrics on the map of one region version, and how far that is behind."""
+
+    result: dict
+    version: int
+    region_id: str
+    behind: int
+    behind_s: float
 
 
 class PosteriorCache:
@@ -348,6 +360,21 @@ class RegionMaps:
         return MapPrediction(
             mean, std, known, state.version, state.region_id, per_class, *self._lag(info, state)
         )
+
+    def assess(self, region: str, query, info: RegionInfo, min_version: int = 0) -> MapAssessment:
+        """:func:`bdf.region.route.assess` of a decoded route (:class:`service.formats.RouteQuery`)
+        on the region's map."""
+        state = self._state(region, info, min_version)
+        lanes.check()
+        result = assess_route(
+            state.map,
+            query.P,
+            max_std_mps=query.max_std_mps,
+            craft=query.vehicle,
+            times_s=query.times_s,
+            heading_deg=query.heading_deg,
+        )
+        return MapAssessment(result, state.version, state.region_id, *self._lag(info, state))
 
     def predict_grid(
         self, region: str, axes, info: RegionInfo | None = None, min_version: int = 0, *, modes: bool = False

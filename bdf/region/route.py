@@ -140,6 +140,23 @@ def times_at(P: np.ndarray, cruise_mps: float) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]) / cruise_mps
 
 
+def checked(P, craft: Vehicle, times_s=None, heading_deg=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A route's points (:func:`as_route`), its times (by default at the vehicle's cruise
+    airspeed; increasing, one per point) and the heading flown on each segment (degrees from
+    north, clockwise; by default its own direction): ``ValueError`` says what is wrong."""
+    P = as_route(P)
+    times = times_at(P, craft.cruise_mps) if times_s is None else np.asarray(times_s, float).ravel()
+    if times.shape != (len(P),) or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+        raise ValueError(f"times_s must be {len(P)} finite, increasing seconds, one per point")
+    delta = np.diff(P, axis=0)
+    if heading_deg is None:
+        return P, times, np.degrees(np.arctan2(delta[:, 0], delta[:, 1])) % 360.0
+    heading = np.asarray(heading_deg, float).ravel()
+    if heading.shape != (len(P) - 1,) or not np.all(np.isfinite(heading)):
+        raise ValueError(f"heading_deg must be {len(P) - 1} finite degrees, one per segment")
+    return P, times, heading
+
+
 def assess(
     region_map: RegionMap,
     P,
@@ -163,29 +180,17 @@ def assess(
     0 on a map of one class) and the flow mismatch (the length-weighted mean of
     ``|route velocity - mean of the mode flown|``, m/s); and the envelope's verdict.
     """
-    P = as_route(P)
     spec = region_map.spec
+    P, times_s, heading = checked(P, craft, times_s, heading_deg)
     if not np.all(spec.inside(P)):
         outside = np.flatnonzero(~spec.inside(P))
         raise ValueError(f"route points {outside[:5].tolist()} are outside region {spec.name!r}")
     if not (np.isfinite(max_std_mps) and max_std_mps > 0):
         raise ValueError(f"max_std_mps must be positive, got {max_std_mps!r}")
     n_seg = len(P) - 1
-    if times_s is None:
-        times_s = times_at(P, craft.cruise_mps)
-    times_s = np.asarray(times_s, float).ravel()
-    if times_s.shape != (len(P),) or not np.all(np.isfinite(times_s)) or np.any(np.diff(times_s) <= 0):
-        raise ValueError(f"times_s must be {len(P)} finite, increasing seconds, one per point")
     delta = np.diff(P, axis=0)
     length = np.linalg.norm(delta, axis=1)
     velocity = delta / np.diff(times_s)[:, None]
-    own = np.degrees(np.arctan2(delta[:, 0], delta[:, 1])) % 360.0
-    if heading_deg is None:
-        heading = own
-    else:
-        heading = np.asarray(heading_deg, float).ravel()
-        if heading.shape != (n_seg,) or not np.all(np.isfinite(heading)):
-            raise ValueError(f"heading_deg must be {n_seg} finite degrees, one per segment")
     pieces = np.maximum(np.ceil(length / sample_m).astype(int), 1)
     seg = np.repeat(np.arange(n_seg), pieces)
     within = (np.arange(len(seg)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[seg]
