@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 
 NO_ROUTE = 3
+#: exit status of ``bdf assess`` when the vehicle cannot fly the route
+NOT_FLYABLE = 4
 
 
 def _floats(text: str, n: int | tuple[int, ...], name: str) -> list[float]:
@@ -232,6 +234,25 @@ def _plan(args) -> int:
         print(f"bdf: no risk-aware route within {args.time} s ({plan.status})", file=sys.stderr)
         return NO_ROUTE
     return 0
+
+
+def _assess(args) -> int:
+    """``bdf assess``: a GeoJSON route's metrics on the map and the vehicle's verdict."""
+    doc = json.loads(Path(args.route).read_text())
+    with _client(args) as bdf:
+        got = bdf.assess_route(args.name, doc, max_std_mps=args.max_std_mps, vehicle=args.vehicle)
+    width = max(len(k) for k in got["total"])
+    for key, value in got["total"].items():
+        print(f"{key:<{width}}  {value:12.4g}")
+    checks = {k: v for k, v in got["envelope"].items() if isinstance(v, bool) and k != "flyable"}
+    failed = [k.removesuffix("_ok") for k, ok in checks.items() if not ok]
+    limits = ", ".join(
+        f"{k} {'none' if v is None else f'{v:.4g}'}"
+        for k, v in got["envelope"].items()
+        if not isinstance(v, bool)
+    )
+    print(f"envelope: {'flyable' if not failed else 'not flyable: ' + ', '.join(failed)} ({limits})")
+    return 0 if not failed else NOT_FLYABLE
 
 
 def _data_fetch(args) -> int:
@@ -586,6 +607,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="GeoJSON file with both routes and their metrics")
     p.add_argument("--png", help="PNG with the top view over the tube and the altitude profile")
     p.set_defaults(run=_plan)
+
+    p = client("assess", "a route's metrics on the map and whether a vehicle can fly it")
+    p.add_argument("name", help="region name")
+    p.add_argument(
+        "route", help="GeoJSON file: a LineString Feature or a collection of one ([lon, lat, alt_m])"
+    )
+    p.add_argument("--max-std-mps", type=float, help="tube bound (default: the file's max_std_mps property)")
+    p.add_argument("--vehicle", help="evtol or fixed-wing (default: the file's, else evtol)")
+    p.set_defaults(run=_assess)
     return parser
 
 

@@ -476,6 +476,50 @@ class _Endpoints:
         """The tube as a GeoJSON FeatureCollection of points (lon, lat, alt)."""
         return self._run(self._tubes(name, max_std_mps, step, bbox, component, GEOJSON))
 
+    def assess_route(
+        self,
+        name: str,
+        route,
+        *,
+        max_std_mps: float | None = None,
+        vehicle: str | dict | None = None,
+        frame: Frame = "enu",
+        times_s=None,
+        heading_deg=None,
+    ) -> dict:
+        """A route's metrics on the map, per segment and in total, and whether ``vehicle``
+        ("evtol", "fixed-wing" or its fields) can fly it. ``route``: points (n, 3) in
+        ``frame``, or a GeoJSON LineString Feature or FeatureCollection (such as
+        :meth:`planner.routes.RoutePlan.geojson`'s; its properties may hold the other
+        arguments, which the keywords override)."""
+        if isinstance(route, dict):
+            feature = route
+            if route.get("type") == "FeatureCollection":
+                lines = [f for f in route.get("features", []) if f["geometry"]["type"] == "LineString"]
+                if len(lines) != 1:
+                    raise ValueError(
+                        f"a route to assess is one LineString, the collection holds {len(lines)}"
+                    )
+                feature = lines[0]
+            given = {
+                "max_std_mps": max_std_mps,
+                "vehicle": vehicle,
+                "times_s": times_s,
+                "heading_deg": heading_deg,
+            }
+            properties = {
+                **feature.get("properties", {}),
+                **{k: v for k, v in given.items() if v is not None},
+            }
+            body, media = {**feature, "properties": properties}, GEOJSON
+        else:
+            body = {"frame": frame, "points": _points(route, "route").tolist(), "max_std_mps": max_std_mps}
+            for key, value in (("vehicle", vehicle), ("times_s", times_s), ("heading_deg", heading_deg)):
+                if value is not None:
+                    body[key] = np.asarray(value, float).tolist() if key != "vehicle" else value
+            media = JSON
+        return self._run(self._assess(name, body, media))
+
     def slice_png(
         self,
         name: str,
@@ -507,6 +551,14 @@ class _Endpoints:
         body = {} if json is None else _json_body(json)
         response = yield _Request(method, path, **body)
         return parse(response.json() if response.content else None)
+
+    def _assess(self, name: str, body: dict, media: str) -> Call:
+        path = f"/v1/regions/{name}/routes/assess"
+        content = json.dumps(body).encode()
+        response = yield _Request(
+            "POST", path, params=self._read_params(name), content=content, content_type=media
+        )
+        return response.json()
 
     def _upload(
         self, name, X, V, noise, weight, frame, chunk_size, key, progress, route="observations"

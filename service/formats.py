@@ -25,7 +25,7 @@ from fastapi import Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
-from bdf.region.route import Vehicle, checked, vehicle
+from bdf.region.route import VEHICLES, Vehicle, checked, vehicle
 from bdf.region.spec import RegionSpec
 from service import slices
 from service.problems import Problem
@@ -120,7 +120,7 @@ class RouteBody(BaseModel):
     max_std_mps: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
         description="the tube bound on the predictive std, m/s"
     )
-    vehicle: Literal["evtol", "fixed-wing"] | VehicleBody = "evtol"
+    vehicle: Literal[tuple(VEHICLES)] | VehicleBody = "evtol"
 
 
 class AssessResult(BaseModel):
@@ -129,9 +129,9 @@ class AssessResult(BaseModel):
         "integrated_risk_m, conflict_exposure, flow_mismatch_mps"
     )
     total: dict[str, float] = Field(description="the same over the whole route")
-    envelope: dict[str, float | bool] = Field(
-        description="least turn radius, steepest climb and descent, lowest and highest altitude, each "
-        "limit's verdict and flyable"
+    envelope: dict[str, float | bool | None] = Field(
+        description="least turn radius (null: it never turns), steepest climb and descent, lowest and "
+        "highest altitude, each limit's verdict and flyable"
     )
     region_version: int
 

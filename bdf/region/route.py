@@ -110,16 +110,16 @@ def turn_radii(P: np.ndarray, sample_m: float = SAMPLE_M, window_m: float = TURN
 
 
 def envelope(P, craft: Vehicle, sample_m: float = SAMPLE_M, tolerance: float = ENVELOPE_TOLERANCE) -> dict:
-    """Whether ``craft`` can fly the polyline ``P`` as it is: the least turn radius, the
-    steepest climb and descent (per ``sample_m`` of it), the lowest and highest altitude,
-    and for each limit whether it holds (within ``tolerance``)."""
+    """Whether ``craft`` can fly the polyline ``P`` as it is: the least turn radius (None
+    where it never turns), the steepest climb and descent (per ``sample_m`` of it), the
+    lowest and highest altitude, and for each limit whether it holds (within ``tolerance``)."""
     P = as_route(P)
     Q = resample(P, sample_m)
     step = np.diff(Q, axis=0)
     angle = np.degrees(np.arctan2(step[:, 2], np.hypot(step[:, 0], step[:, 1])))
     radius = float(np.min(turn_radii(P, sample_m), initial=np.inf))
     out = {
-        "min_turn_radius_m": radius,
+        "min_turn_radius_m": radius if np.isfinite(radius) else None,  # None: it never turns
         "max_climb_deg": float(max(angle.max(), 0.0)),
         "max_descent_deg": float(max(-angle.min(), 0.0)),
         "min_alt_m": float(Q[:, 2].min()),

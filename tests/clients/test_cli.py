@@ -145,3 +145,40 @@ def test_retract_undoes_an_upload_of_the_same_file(server, tmp_path):
         assert client.region("undo").observations == 300
     run = bdf("retract", "undo", str(files[1]), "--chunk-size", "100", *url)  # other chunks: other keys
     assert run.returncode == 2 and "no upload" in run.stderr
+
+
+def test_assess_prints_the_routes_metrics_and_fails_a_route_the_vehicle_cannot_fly(server, tmp_path):
+    """``bdf assess`` of a GeoJSON route equals the SDK's ``assess_route``; a straight level
+    route within the vehicle's altitudes is flyable (exit 0), a route with corners is not
+    (exit 4, the failed limit named)."""
+    url = ["--url", server.url]
+    name = "routes"
+    with BDFClient(server.url) as client:
+        client.create_region({**SPEC, "name": name})
+        client.upload(name, *data(5, n=400))
+        frame = client.region(name).spec["origin"]
+    from bdf.frames import ENUFrame
+
+    enu = ENUFrame(frame["lat"], frame["lon"], frame["alt_m"])
+    craft = {"cruise_mps": 20.0, "min_turn_radius_m": 50.0, "max_climb_deg": 10.0, "max_descent_deg": 10.0,
+             "floor_m": 0.0, "ceiling_m": 100.0}  # fmt: skip
+
+    def route_file(points, path):
+        lat, lon, alt = enu.to_geodetic(np.asarray(points, float)).T
+        line = {"type": "LineString", "coordinates": np.column_stack([lon, lat, alt]).tolist()}
+        doc = {"type": "Feature", "geometry": line, "properties": {"max_std_mps": 3.0, "vehicle": craft}}
+        path.write_text(json.dumps(doc))
+        return doc
+
+    level = route_file([[10.0, 100.0, 30.0], [290.0, 100.0, 30.0]], tmp_path / "level.geojson")
+    run = bdf("assess", name, str(tmp_path / "level.geojson"), *url)
+    assert run.returncode == 0, run.stderr
+    with BDFClient(server.url) as client:
+        want = client.assess_route(name, level)
+    printed = dict(line.split() for line in run.stdout.splitlines()[:-1])
+    for key, value in want["total"].items():
+        assert float(printed[key]) == pytest.approx(value, rel=1e-3), key
+    assert run.stdout.splitlines()[-1].startswith("envelope: flyable")
+    route_file([[10.0, 10.0, 30.0], [150.0, 10.0, 30.0], [150.0, 190.0, 30.0]], tmp_path / "corner.geojson")
+    run = bdf("assess", name, str(tmp_path / "corner.geojson"), *url)
+    assert run.returncode == 4 and "envelope: not flyable: turn" in run.stdout, run.stdout + run.stderr
