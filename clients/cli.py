@@ -196,13 +196,7 @@ def _plan(args) -> int:
     from planner.routes import plan_route
     from planner.search import Box
 
-    weights = CostWeights(
-        max_std_mps=args.max_std_mps,
-        risk=args.w_risk,
-        flow=args.w_flow,
-        cruise_mps=args.cruise_mps,
-        tube=args.tube,
-    )
+    weights = CostWeights(max_std_mps=args.max_std_mps, risk=args.w_risk, flow=args.w_flow, tube=args.tube)
     no_fly = tuple(Box(tuple(b[:3]), tuple(b[3:])) for b in (_floats(t, 6, "--no-fly") for t in args.no_fly))
     with _client(args) as bdf:
         plan = plan_route(
@@ -221,6 +215,7 @@ def _plan(args) -> int:
             time_s=args.time,
             seed=args.seed,
             max_iterations=args.iterations,
+            vehicle=_vehicle(args.vehicle),
         )
     print(plan.table())
     if args.out:
@@ -236,11 +231,17 @@ def _plan(args) -> int:
     return 0
 
 
+def _vehicle(text: str):
+    """``--vehicle``: a name (evtol, fixed-wing) or a JSON object of a vehicle's fields."""
+    return json.loads(text) if text.lstrip().startswith("{") else text
+
+
 def _assess(args) -> int:
     """``bdf assess``: a GeoJSON route's metrics on the map and the vehicle's verdict."""
     doc = json.loads(Path(args.route).read_text())
     with _client(args) as bdf:
-        got = bdf.assess_route(args.name, doc, max_std_mps=args.max_std_mps, vehicle=args.vehicle)
+        vehicle = None if args.vehicle is None else _vehicle(args.vehicle)
+        got = bdf.assess_route(args.name, doc, max_std_mps=args.max_std_mps, vehicle=vehicle)
     width = max(len(k) for k in got["total"])
     for key, value in got["total"].items():
         print(f"{key:<{width}}  {value:12.4g}")
@@ -591,7 +592,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--w-risk", type=float, default=1.0, help="weight of the integrated risk (default 1)")
     p.add_argument("--w-flow", type=float, default=0.5, help="weight of the flow mismatch (default 0.5)")
-    p.add_argument("--cruise-mps", type=float, default=30.0, help="cruise speed (default 30 m/s)")
+    p.add_argument(
+        "--vehicle",
+        default="evtol",
+        help="evtol, fixed-wing, or a JSON object of cruise_mps, min_turn_radius_m, max_climb_deg, "
+        "max_descent_deg, floor_m, ceiling_m (default evtol): the routes are made flyable by it",
+    )
     p.add_argument("--altitude-m", help="min,max altitude band (default: the region's)")
     p.add_argument("--no-fly", action="append", default=[], help="xmin,ymin,zmin,xmax,ymax,zmax (repeatable)")
     p.add_argument("--step", help="cost-map voxel size (default: a quarter of the hinge spacing)")
@@ -614,7 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
         "route", help="GeoJSON file: a LineString Feature or a collection of one ([lon, lat, alt_m])"
     )
     p.add_argument("--max-std-mps", type=float, help="tube bound (default: the file's max_std_mps property)")
-    p.add_argument("--vehicle", help="evtol or fixed-wing (default: the file's, else evtol)")
+    p.add_argument("--vehicle", help="evtol, fixed-wing or a JSON object (default: the file's, else evtol)")
     p.set_defaults(run=_assess)
     return parser
 

@@ -22,8 +22,11 @@ import numpy as np
 
 from bdf.region.evidence import increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.route import Vehicle, envelope, times_at
+from bdf.region.route import vehicle as as_vehicle
 from bdf.region.spec import RegionSpec
 from planner.costmap import CostMap, CostWeights, ModeGrids, path_metrics
+from planner.flyable import flyable
 from planner.search import Box, PlanningProblem, PlanResult, solve
 
 log = logging.getLogger(__name__)
@@ -122,13 +125,20 @@ class LocalMap:
 
 @dataclass
 class Route:
-    """One route: waypoints in region ENU and WGS84 (lat, lon, alt_m), its metrics."""
+    """One route: the path flown in region ENU and WGS84 (lat, lon, alt_m), the time at each
+    of its points (s from departure, at the cruise airspeed), its metrics, and with a vehicle
+    its envelope's verdict (:func:`bdf.region.route.envelope`) and the polyline the planner
+    found before it was made flyable (:func:`planner.flyable.flyable`)."""
 
     name: str
     enu: np.ndarray
     wgs84: np.ndarray
+    times_s: np.ndarray
     metrics: dict[str, float]
     solution: PlanResult | None  # None for the straight line
+    planned: np.ndarray
+    envelope: dict | None = None
+    planned_max_std_mps: float = 0.0  # the service's std along the planned polyline
 
 
 @dataclass
@@ -140,13 +150,22 @@ class RoutePlan:
     status: str
 
     def geojson(self) -> dict:
-        """Both routes as GeoJSON LineStrings ([lon, lat, alt_m]) with their metrics."""
+        """Both routes as GeoJSON LineStrings ([lon, lat, alt_m]) with their metrics, the
+        time at each point (``times_s``, seconds from departure, the convention of
+        ``coordTimes`` in seconds) and the envelope's verdict."""
         features = []
         for r in (self.route, self.baseline):
             if r is None:
                 continue
             coordinates = [[lon, lat, alt] for lat, lon, alt in r.wgs84.tolist()]
-            properties = {"name": r.name, "region": self.region.name, **r.metrics}
+            properties = {
+                "name": r.name,
+                "region": self.region.name,
+                **r.metrics,
+                "times_s": r.times_s.tolist(),
+            }
+            if r.envelope is not None:
+                properties["envelope"] = r.envelope
             if r.solution is not None:
                 properties.update(planner_status=r.solution.status, solve_s=r.solution.solve_s)
             features.append(
@@ -164,12 +183,21 @@ class RoutePlan:
             (k, self.route.metrics.get(k) if self.route else None, self.baseline.metrics[k])
             for k in self.baseline.metrics
         ]
+        if self.baseline.envelope is not None:
+            for key, value in self.baseline.envelope.items():
+                mine = self.route.envelope.get(key) if self.route else None
+                rows.append((f"envelope: {key}", mine, value))
         width = max(len(k) for k, *_ in rows)
         lines = [f"{'':<{width}}  {'risk-aware':>12}  {'shortest':>12}"]
         for key, a, b in rows:
-            cell = "-" if a is None else f"{a:12.4g}"
-            lines.append(f"{key:<{width}}  {cell:>12}  {b:12.4g}")
+            lines.append(f"{key:<{width}}  {_cell(a):>12}  {_cell(b):>12}")
         return "\n".join(lines)
+
+
+def _cell(value) -> str:
+    if value is None:
+        return "-"
+    return str(value) if isinstance(value, bool) else f"{value:12.4g}"
 
 
 def planning_box(spec: RegionSpec, start, goal, altitude_m, margin_m: float | None):
@@ -231,6 +259,7 @@ def plan_route(
     seed: int | None = None,
     max_iterations: int | None = None,
     check_m: float = 10.0,
+    vehicle: Vehicle | str | None = None,
 ) -> RoutePlan:
     """Plan the risk-aware route from ``start`` to ``goal`` (ENU metres, or lat, lon, alt_m
     with ``frame="wgs84"``) and the shortest path, and measure both.
@@ -238,23 +267,39 @@ def plan_route(
     With the hard tube, the service's std along the route is the judge: a route that
     rises above the bound between grid nodes is planned again on a grid of half the step
     (up to ``REFINES`` times); the last plan is returned, with a warning if it still does.
+
+    ``vehicle`` (a :class:`~bdf.region.route.Vehicle` or its name): both routes are made
+    flyable by it (:func:`planner.flyable.flyable`), timed at its cruise airspeed, which the
+    cost's flow and conflict terms use too, and checked against its envelope; without one
+    they are the planner's polylines, timed at ``weights.cruise_mps``.
     """
+    craft = None if vehicle is None else as_vehicle(vehicle)
+    if craft is not None:
+        weights = dataclasses.replace(weights, cruise_mps=craft.cruise_mps)
     spec = RegionSpec.model_validate(client.region(region).spec)
     start, goal = _to_enu(spec, start, frame), _to_enu(spec, goal, frame)
     box = planning_box(spec, start, goal, altitude_m, margin_m)
+    if craft is not None:  # it flies inside the planning box's altitudes too
+        floor, ceiling = max(craft.floor_m, box[0][2]), min(craft.ceiling_m, box[1][2])
+        if floor >= ceiling:
+            raise ValueError(
+                f"the vehicle flies between {craft.floor_m:g} and {craft.ceiling_m:g} m, the planning band "
+                f"is {box[0][2]:g} .. {box[1][2]:g} m (region ENU): they do not overlap"
+            )
+        craft = dataclasses.replace(craft, floor_m=floor, ceiling_m=ceiling)
     step = grid_step(spec, *box, step)
     # the planner settings of every attempt: PlanningProblem's keyword arguments
     run = dict(no_fly=tuple(no_fly), planner=planner, time_s=time_s, max_iterations=max_iterations, seed=seed)
     for refine in range(REFINES + 1):
-        plan = _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m)
+        plan = _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m, craft)
         bound, route = weights.max_std_mps, plan.route
-        if weights.tube != "hard" or route is None or route.metrics["service_max_std_mps"] <= bound:
+        if weights.tube != "hard" or route is None or route.planned_max_std_mps <= bound:
             return plan
         finer = step / 2
         too_big = np.prod(np.floor((box[1] - box[0]) / finer) + 1) > 4 * MAX_VOXELS
         log.warning(
             "the route leaves the tube between grid nodes (service std %.3g > %.3g m/s)%s",
-            route.metrics["service_max_std_mps"],
+            route.planned_max_std_mps,
             bound,
             "" if refine == REFINES or too_big else f": planning again with a step of {finer.tolist()} m",
         )
@@ -264,7 +309,7 @@ def plan_route(
     return plan
 
 
-def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m) -> RoutePlan:
+def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m, craft) -> RoutePlan:
     """One grid request, the two plans on it (worker processes), both routes measured."""
     lo, hi = box[0].copy(), box[1]
     # on the region's lattice of this step: the same voxels as any other grid of the step
@@ -291,27 +336,47 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, ch
             f"within {run['time_s']} s ({short.status})"
         )
     route = None
+    measure = (client, region, spec, costmap, check_m, craft)
     if solution.exact:
-        route = _route("risk-aware", client, region, spec, costmap, solution.waypoints, solution, check_m)
-    baseline = _route("shortest", client, region, spec, costmap, baseline_path, short, check_m)
+        route = _route("risk-aware", solution.waypoints, solution, *measure)
+    baseline = _route("shortest", baseline_path, short, *measure)
     return RoutePlan(spec, costmap, route, baseline, solution.status)
 
 
-def _route(name, client, region, spec, costmap, P, solution, check_m) -> Route:
+def _route(name, planned, solution, client, region, spec, costmap, check_m, craft) -> Route:
+    """The route flown (the planned polyline, made flyable by ``craft`` if given) with its
+    metrics on the cost map and the service's std along it."""
+    P = planned if craft is None else flyable(planned, craft)
     metrics = path_metrics(costmap, P)
-    # the map's own std along the path (not the grid's interpolation), of the mode flown
+    std = _service_std(client, region, spec, P, check_m)
+    bound = costmap.weights.max_std_mps
+    metrics.update(
+        service_max_std_mps=float(std.max()), service_in_tube_fraction=float(np.mean(std <= bound))
+    )
+    planned_std = std if craft is None else _service_std(client, region, spec, planned, check_m)
+    return Route(
+        name,
+        P,
+        spec.frame().to_geodetic(P),
+        times_at(P, costmap.weights.cruise_mps),
+        metrics,
+        solution,
+        planned,
+        None if craft is None else envelope(P, craft),
+        float(planned_std.max()),
+    )
+
+
+def _service_std(client, region, spec, P, check_m) -> np.ndarray:
+    """The map's own std (not the grid's interpolation) every ``check_m`` along ``P``, the
+    largest component, of the mode flown."""
     X = densify(P, check_m)
     heading = None
     if spec.directions > 1:
         step = np.diff(X, axis=0)
         heading = np.degrees(np.arctan2(step[:, 0], step[:, 1]))
         heading = np.append(heading, heading[-1:])
-    std = client.query(region, X, heading_deg=heading).std.max(axis=1)
-    bound = costmap.weights.max_std_mps
-    metrics.update(
-        service_max_std_mps=float(std.max()), service_in_tube_fraction=float(np.mean(std <= bound))
-    )
-    return Route(name, P, spec.frame().to_geodetic(P), metrics, solution)
+    return client.query(region, X, heading_deg=heading).std.max(axis=1)
 
 
 def densify(P: np.ndarray, spacing_m: float) -> np.ndarray:

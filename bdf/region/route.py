@@ -10,7 +10,7 @@ against the route's. :func:`envelope` says whether a vehicle can fly the polylin
 is: its turns, its climbs and descents, its altitudes.
 
 The turn radius is read every ``sample_m`` along the route as the radius of the circle
-through the points ``turn_window_m`` before and after each sample (three points on an arc
+through the points ``TURN_WINDOW_M`` before and after each sample (three points on an arc
 of radius R give R exactly; a corner gives a radius of the order of the window).
 """
 
@@ -112,12 +112,16 @@ def turn_radii(P: np.ndarray, sample_m: float = SAMPLE_M, window_m: float = TURN
 def envelope(P, craft: Vehicle, sample_m: float = SAMPLE_M, tolerance: float = ENVELOPE_TOLERANCE) -> dict:
     """Whether ``craft`` can fly the polyline ``P`` as it is: the least turn radius (None
     where it never turns), the steepest climb and descent (per ``sample_m`` of it), the
-    lowest and highest altitude, and for each limit whether it holds (within ``tolerance``)."""
+    lowest and highest altitude, and for each limit whether it holds (within ``tolerance``).
+    A small vehicle's turns are read over shorter chords (:data:`TURN_WINDOW_M`, at most a
+    quarter of its turn radius, sampled three times as often)."""
     P = as_route(P)
+    window = min(TURN_WINDOW_M, craft.min_turn_radius_m / 4)  # within the arc of a 30-degree turn
+    sample_m = min(sample_m, window / 3)
     Q = resample(P, sample_m)
     step = np.diff(Q, axis=0)
     angle = np.degrees(np.arctan2(step[:, 2], np.hypot(step[:, 0], step[:, 1])))
-    radius = float(np.min(turn_radii(P, sample_m), initial=np.inf))
+    radius = float(np.min(turn_radii(P, sample_m, window), initial=np.inf))
     out = {
         "min_turn_radius_m": radius if np.isfinite(radius) else None,  # None: it never turns
         "max_climb_deg": float(max(angle.max(), 0.0)),

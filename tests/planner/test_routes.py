@@ -1,5 +1,6 @@
 """End to end on a live service: a map whose only low-variance corridor forces a detour."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -7,6 +8,7 @@ import sys
 import numpy as np
 import pytest
 
+from bdf.region.route import Vehicle, envelope
 from bdf.region.spec import RegionSpec
 from clients.sdk import BDFClient
 from planner.costmap import CostWeights
@@ -83,6 +85,8 @@ def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(servi
         str(BOUND),
         "--time",
         "2.5",
+        "--vehicle",
+        json.dumps(dataclasses.asdict(DRONE)),
     ]
     run = bdf_cli(
         *common,
@@ -100,7 +104,7 @@ def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(servi
     assert run.returncode == 0, run.stderr
     assert "risk-aware" in run.stdout and "integrated_risk_m" in run.stdout
     features = json.loads(out.read_text())["features"]
-    assert features[0]["properties"]["service_max_std_mps"] <= BOUND
+    assert features[0]["properties"]["service_in_tube_fraction"] > 0.95  # flown: fillets cut its corners
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     bad = bdf_cli(*common, "--start", "150,60,30", "--goal", "280,100,30")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "outside the tube" in bad.stderr
@@ -118,7 +122,7 @@ def test_a_route_above_the_bound_at_the_service_is_planned_again_on_finer_grids(
     def above_the_bound(*args):
         steps.append(args[6].copy())
         plan = real(*args)
-        plan.route.metrics["service_max_std_mps"] = 2 * BOUND  # as if it rose between nodes
+        plan.route.planned_max_std_mps = 2 * BOUND  # as if it rose between nodes
         return plan
 
     monkeypatch.setattr(routes, "_plan_on_grid", above_the_bound)
@@ -163,3 +167,39 @@ def test_a_directional_map_routes_with_the_traffic_not_against_it():
     assert plans[4].route.metrics["service_max_std_mps"] <= 6.0
     with pytest.raises(ValueError, match="holds region 'lanes'"):
         LocalMap.fit(spec, X[:100], V[:100]).grid("other", 10.0)
+
+
+#: a small drone: the corridor's legs are 35 m wide
+DRONE = Vehicle(
+    cruise_mps=5.0,
+    min_turn_radius_m=30.0,
+    max_climb_deg=20.0,
+    max_descent_deg=20.0,
+    floor_m=1.0,
+    ceiling_m=59.0,
+)
+
+
+def test_planned_routes_are_flown_within_the_vehicles_envelope_and_timed(service):
+    """Both routes, sampled along their length, hold the drone's envelope (its turns read
+    over chords of a quarter of its radius); with a radius 50 % larger the risk-aware one,
+    which turns around the corridor, fails. Each point's time is its distance flown at
+    the cruise airspeed, in the GeoJSON too; the flown route keeps to the tube."""
+    with BDFClient(service.url) as bdf:
+        plan = plan_route(
+            bdf, "corridor", START, GOAL, weights=CostWeights(max_std_mps=BOUND), time_s=2.0, vehicle=DRONE
+        )
+    for route in (plan.route, plan.baseline):
+        verdict = envelope(route.enu, DRONE)
+        assert verdict["flyable"] and route.envelope == verdict, verdict
+        np.testing.assert_allclose(route.enu[[0, -1]], [START, GOAL], atol=1e-6)
+        flown = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route.enu, axis=0), axis=1))])
+        np.testing.assert_allclose(route.times_s, flown / DRONE.cruise_mps, rtol=1e-12)
+    # its turns are fillets of the least radius, read over a quarter of it: within 50 %
+    radius = plan.route.envelope["min_turn_radius_m"]
+    assert DRONE.min_turn_radius_m * 0.98 <= radius < 1.5 * DRONE.min_turn_radius_m
+    assert not envelope(plan.route.enu, dataclasses.replace(DRONE, min_turn_radius_m=45.0))["turn_ok"]
+    assert plan.route.metrics["service_in_tube_fraction"] > 0.95
+    properties = plan.geojson()["features"][0]["properties"]
+    assert properties["times_s"] == plan.route.times_s.tolist() and properties["envelope"]["flyable"]
+    assert "envelope: flyable" in plan.table()
