@@ -29,6 +29,8 @@ from clients.sdk import BDFClient
 
 #: The flight band of the demo route, region ENU up, metres.
 ROUTE_BAND_M = (1000.0, 2500.0)
+#: the vehicle the demo plans for (:data:`bdf.region.route.VEHICLES`)
+DEMO_VEHICLE = "evtol"
 #: The tube bound is this quantile of the largest std over the band's voxels with data.
 TUBE_QUANTILE = 0.2
 #: The busiest flow is the horizontal cell of this size (metres) the most flights cross.
@@ -198,9 +200,10 @@ def _plan(bdf: BDFClient, spec, flow, time_s: float):
         spec.name,
         a,
         b,
-        weights=CostWeights(max_std_mps=bound, cruise_mps=60.0),
+        weights=CostWeights(max_std_mps=bound),
         altitude_m=ROUTE_BAND_M,
         step=step,
         time_s=time_s,
         seed=1,
+        vehicle=DEMO_VEHICLE,
     )

@@ -11,7 +11,8 @@ from planner.routes import RoutePlan
 
 def plot_route(plan: RoutePlan, path) -> Path:
     """Write a PNG: left, the largest predictive std at the route's mean altitude with the
-    tube's edge, the mean flow and both routes; right, altitude along each route."""
+    tube's edge, the mean flow and both routes (flown; dotted, as planned before they were
+    made flyable); right, altitude along each route."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -45,7 +46,11 @@ def plot_route(plan: RoutePlan, path) -> Path:
         label = f"{r.name}: {r.metrics['length_m'] / 1e3:.2f} km, risk {r.metrics['integrated_risk_m']:.0f}"
         top.plot(r.enu[:, 0] / 1e3, r.enu[:, 1] / 1e3, ls, color=color, lw=2, label=label)
         dist = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(r.enu, axis=0), axis=1))]) / 1e3
-        side.plot(dist, r.enu[:, 2], ls, color=color, lw=2, marker=".", label=r.name)
+        side.plot(dist, r.enu[:, 2], ls, color=color, lw=2, label=f"{r.name}, flown")
+        if r.envelope is not None:  # the planner's polyline before it was made flyable
+            top.plot(r.planned[:, 0] / 1e3, r.planned[:, 1] / 1e3, ":", color=color, lw=1, alpha=0.8)
+            flat = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(r.planned, axis=0), axis=1))]) / 1e3
+            side.plot(flat, r.planned[:, 2], ":", color=color, lw=1, alpha=0.8, label=f"{r.name}, planned")
     top.plot(*main.enu[0, :2] / 1e3, "o", color="white", mec="black", ms=8)
     top.plot(*main.enu[-1, :2] / 1e3, "*", color="white", mec="black", ms=12)
     top.plot([], [], color="cyan", label=f"tube edge: std = {bound:g} m/s")
