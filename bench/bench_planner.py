@@ -13,7 +13,14 @@ sectors against the map of one class (today's), both planned (BIT*, hard tube) o
 same random pairs and both routes scored on the directional map: median change of the
 conflict exposure (the share of crossing or opposing traffic along the route) and of length.
 
-    python bench/bench_planner.py [--pairs 20] [--pair-time 3] [--directions 8] [--no-append]
+With ``--vehicle NAME``, only this: the demo's map (its lattice, 8 sectors) in process, and
+``--pairs`` random pairs planned for the vehicle (BIT*, hard tube, ``--pair-time`` s): each
+risk-aware route as planned (unconstrained) and as flown (made flyable), and the shortest
+path made flyable, scored on the cost map (cost, length, conflict exposure, max std) and
+against the vehicle's envelope; the lattice optimum of the unconstrained cost; the time of
+a whole ``plan_route`` (grid, both plans, flyable paths, the service's check).
+
+    python bench/bench_planner.py [--pairs 20] [--pair-time 3] [--directions 8 | --vehicle evtol]
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_core import rows_table
 
 from bdf import ingest
+from bdf.region.route import VEHICLES, envelope
 from bdf.region.spec import RegionSpec
 from clients import samples
 from clients.demo import ROUTE_BAND_M, TUBE_QUANTILE, across_flow, busiest_flow, tube_voxels
@@ -60,13 +68,16 @@ def main() -> None:
     parser.add_argument(
         "--conflict", type=float, default=CostWeights.conflict, help="weight of the conflict term"
     )
+    parser.add_argument("--vehicle", choices=sorted(VEHICLES), help="only flyable routes for this vehicle")
     parser.add_argument("--no-append", action="store_true", help="print only, do not append to RESULTS.md")
     args = parser.parse_args()
 
     obs, lower, upper = samples.load_paris()
     spec = samples.paris_region(lower, upper)
-    if args.directions:
-        text = directional_pairs(obs, spec, args)
+    if args.directions or args.vehicle:
+        text = (
+            directional_pairs(obs, spec, args) if args.directions else flyable_pairs(obs, lower, upper, args)
+        )
         print(text)
         if not args.no_append:
             with open(Path(__file__).with_name("RESULTS.md"), "a") as fh:
@@ -206,6 +217,86 @@ def directional_pairs(obs, spec, args) -> str:
             f"(max {100 * np.max(length):+.1f} %) |",
         ]
     )
+
+
+NAMES = ("unconstrained", "flyable", "shortest flyable")
+SCORES = ("cost_m", "length_m", "conflict_exposure", "max_std_mps", "in_tube_fraction")
+
+
+def flyable_pairs(obs, lower, upper, args) -> str:
+    """Flyable routes for ``args.vehicle`` over random pairs on the demo's map (in process)."""
+    spec = samples.paris_demo_region(lower, upper, directions=8)
+    t0 = time.perf_counter()
+    source = LocalMap.fit(spec, obs.X, obs.V, sample_weight=ingest.track_weights(obs, spec.spacing_m))
+    fit_s = time.perf_counter() - t0
+    grid, bound, P = tube_voxels(source, spec)
+    step = [float(a[1] - a[0]) for a in grid.axes]
+    craft = VEHICLES[args.vehicle]
+    weights = CostWeights(max_std_mps=bound)
+    rng, rows, tried = np.random.default_rng(0), [], 0
+    while len(rows) < args.pairs and tried < 5 * args.pairs:
+        tried += 1
+        a, b = P[rng.choice(len(P), 2, replace=False)]
+        if np.linalg.norm(a - b) < 20_000:
+            continue
+        t0 = time.perf_counter()
+        plan = plan_route(
+            source, spec.name, a, b, weights=weights, altitude_m=ROUTE_BAND_M, step=step,
+            time_s=args.pair_time, seed=1 + len(rows), vehicle=craft,
+        )  # fmt: skip
+        plan_s = time.perf_counter() - t0
+        if plan.route is None:
+            continue
+        rows.append(_flyable_row(plan, craft, a, b, plan_s))
+
+    def median(name, key, scale=1.0):
+        return f"{np.median([r[(name, key)] for r in rows]) / scale:.3g}"
+
+    table = ["| | unconstrained (as planned) | flyable (as flown) | shortest flyable |", "|---|---|---|---|"]
+    within = [f"{np.mean([r[(n, 'flyable')] for r in rows]):.0%}" for n in NAMES]
+    table.append(f"| within the envelope | {' | '.join(within)} |")
+    for key, label in zip(SCORES, ("cost [km]", "length [km]", "conflict exposure", "max std [m/s]",
+                                   "fraction in the tube"), strict=True):  # fmt: skip
+        scale = 1e3 if key in ("cost_m", "length_m") else 1.0
+        table.append(f"| median {label} | {' | '.join(median(n, key, scale) for n in NAMES)} |")
+    for key, label in (("cost_m", "cost"), ("length_m", "length")):
+        ratio = [r[("flyable", key)] / r[("unconstrained", key)] for r in rows]
+        cell = f"{np.median(ratio):.3f} ({np.max(ratio):.3f})"
+        table.append(f"| flyable / unconstrained {label}: median (max) | | {cell} | |")
+    lattice = [r["unconstrained cost / lattice"] for r in rows]
+    times = [r["plan s"] for r in rows]
+    command = " ".join([Path(sys.executable).name, *sys.argv])
+    return "\n".join(
+        [
+            f"## Flyable routes, {datetime.date.today()}",
+            "",
+            f"`{command}` on {platform.machine()}, {os.cpu_count()} cores. The demo's map in process "
+            f"(8 sectors, fit {fit_s:.0f} s); {len(rows)} random pairs in the tube >= 20 km apart ({tried} "
+            f"drawn); BIT* {args.pair_time:g} s per route, hard tube at {bound:.1f} m/s, vehicle "
+            f"{args.vehicle}: {craft}. All paths scored on the plan's cost map.",
+            "",
+            *table,
+            "",
+            f"Unconstrained cost / lattice optimum: median {np.median(lattice):.3f}, max "
+            f"{np.max(lattice):.3f}. `plan_route` per pair (grid, both plans in parallel, flyable paths, "
+            f"the map's check): median {np.median(times):.1f} s, max {np.max(times):.1f} s.",
+        ]
+    )
+
+
+def _flyable_row(plan, craft, a, b, plan_s) -> dict:
+    """One pair's paths scored on the plan's cost map and against the envelope."""
+    cm = plan.costmap
+    band = (float(cm.lower[2]), float(cm.upper[2]))
+    reference, _ = lattice_optimum(PlanningProblem(cm, tuple(a), tuple(b), band, seed=1))
+    paths = dict(zip(NAMES, (plan.route.planned, plan.route.enu, plan.baseline.enu), strict=True))
+    row = {"plan s": plan_s}
+    for name, path in paths.items():
+        m = path_metrics(cm, path)
+        row |= {(name, k): m[k] for k in SCORES}
+        row[(name, "flyable")] = envelope(path, craft)["flyable"]
+    row["unconstrained cost / lattice"] = row[("unconstrained", "cost_m")] / reference
+    return row
 
 
 def _round(value, digits=2):

@@ -48,6 +48,15 @@ class Vehicle:
     ceiling_m: float
 
     def __post_init__(self):
+        for name in (
+            "cruise_mps",
+            "min_turn_radius_m",
+            "max_climb_deg",
+            "max_descent_deg",
+            "floor_m",
+            "ceiling_m",
+        ):
+            object.__setattr__(self, name, float(getattr(self, name)))  # plain floats: JSON, equality
         for name in ("cruise_mps", "min_turn_radius_m"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
@@ -131,10 +140,12 @@ def envelope(P, craft: Vehicle, sample_m: float = SAMPLE_M, tolerance: float = E
     }
     slack = 1.0 + tolerance
     checks = {
-        "turn_ok": radius * slack >= craft.min_turn_radius_m,
-        "climb_ok": out["max_climb_deg"] <= craft.max_climb_deg * slack,
-        "descent_ok": out["max_descent_deg"] <= craft.max_descent_deg * slack,
-        "altitude_ok": out["min_alt_m"] >= craft.floor_m - 1.0 and out["max_alt_m"] <= craft.ceiling_m + 1.0,
+        "turn_ok": bool(radius * slack >= craft.min_turn_radius_m),
+        "climb_ok": bool(out["max_climb_deg"] <= craft.max_climb_deg * slack),
+        "descent_ok": bool(out["max_descent_deg"] <= craft.max_descent_deg * slack),
+        "altitude_ok": bool(
+            out["min_alt_m"] >= craft.floor_m - 1.0 and out["max_alt_m"] <= craft.ceiling_m + 1.0
+        ),
     }
     return {**out, **checks, "flyable": all(checks.values())}
 
