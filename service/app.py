@@ -1,4 +1,4 @@
-"""The HTTP API (v1): regions, observations, fits, queries, grids, tubes, tiles.
+"""The HTTP API (v1): regions, observations, fits, queries, grids, tubes, slices, tiles, routes.
 
 Routes stay thin: decoding and encoding live in :mod:`service.formats`, the maps in
 :mod:`service.maps` and :mod:`bdf.region`, storage in :mod:`service.store`. Every route
@@ -40,10 +40,9 @@ from service.problems import Problem
 from service.settings import Settings
 from service.store import MapStore, RegionInfo, open_store
 from service.telemetry import Metrics, RequestMiddleware
-from service.wire import ARROW, GEOJSON, JSON, NPZ, PARQUET
+from service.wire import ARROW, GEOJSON, JSON, NPZ, PARQUET, PNG
 
 log = logging.getLogger("bdf.service")
-PNG = "image/png"
 VIEWER_HTML = (pathlib.Path(__file__).parent / "viewer.html").read_text()
 NAME = r"^[a-z0-9][a-z0-9_-]{0,62}$"
 #: the viewer runs its own inline script and style and draws PNGs fetched from this origin
@@ -672,7 +671,7 @@ async def tubes(
 @router.get(
     "/regions/{name}/slice.png",
     response_class=Response,
-    **scoped("read", responses={200: {"content": {formats.PNG: {}}}}),
+    **scoped("read", responses={200: {"content": {PNG: {}}}}),
 )
 async def slice_png(
     name: RegionName,
@@ -718,7 +717,7 @@ async def slice_png(
         return formats.encode_slice(name, axes, pred, view, answer.headers(pred))
 
     with_modes = layer in ("modes", "share")
-    light = _on_grid(svc, answer, name, axes_of, min_version, with_modes, formats.PNG, encode)
+    light = _on_grid(svc, answer, name, axes_of, min_version, with_modes, PNG, encode)
     return await svc.run(light)
 
 

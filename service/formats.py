@@ -37,6 +37,7 @@ from service.wire import (
     NPZ,
     PARQUET,
     PARQUET_ALIASES,
+    PNG,
     QUERY_COLUMNS,
     UPLOAD_COLUMNS,
     VELOCITY_COLUMNS,
@@ -573,7 +574,7 @@ def _json_parts(content):
 #: peak memory per number an answer holds, bytes, with room over what
 #: ``bench/bench_isolation.py --parts memory`` measures: the arrays, the classes'
 #: intermediates of a chunk, the encoded body (JSON: a chunk of it at a time)
-BYTES_PER_NUMBER = {JSON: 60, GEOJSON: 60, NPZ: 40, ARROW: 40, "image/png": 40}
+BYTES_PER_NUMBER = {JSON: 60, GEOJSON: 60, NPZ: 40, ARROW: 40, PNG: 40}
 
 
 def answer_bytes(rows: int, classes: int, modes: bool, media: str) -> float:
@@ -589,7 +590,6 @@ def vector_columns(prefix: str, values: np.ndarray, names=("e", "n", "u")) -> di
 
 
 # -- encoders: a map's answer in the media type negotiated -------------------------------------
-PNG = "image/png"
 
 
 def mesh(axes) -> np.ndarray:

@@ -9,6 +9,7 @@ ARROW = "application/vnd.apache.arrow.stream"
 PARQUET = "application/vnd.apache.parquet"
 NPZ = "application/x-npz"
 GEOJSON = "application/geo+json"
+PNG = "image/png"
 PARQUET_ALIASES = (PARQUET, "application/x-parquet")
 
 ENU_COLUMNS = ("x", "y", "z")
