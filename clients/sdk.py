@@ -539,7 +539,7 @@ class _Endpoints:
         if step is not None:
             params["step"] = repr(float(step))
         return self._run(
-            self._bytes(f"/v1/regions/{name}/slice.png", "image/png", self._read_params(name, params))
+            self._bytes(f"/v1/regions/{name}/slice.png", wire.PNG, self._read_params(name, params))
         )
 
     # -- the calls ----------------------------------------------------------------------------
