@@ -17,8 +17,8 @@ With ``--vehicle NAME``, only this: the demo's map (its lattice, 8 sectors) in p
 ``--pairs`` random pairs planned for the vehicle (BIT*, hard tube, ``--pair-time`` s): each
 risk-aware route as planned (unconstrained) and as flown (made flyable), and the shortest
 path made flyable, scored on the cost map (cost, length, conflict exposure, max std) and
-against the vehicle's envelope; the lattice optimum of the unconstrained cost; the time of
-a whole ``plan_route`` (grid, both plans, flyable paths, the service's check).
+against the vehicle's envelope; the time of a whole ``plan_route`` (grid, both plans,
+flyable paths, the service's check).
 
     python bench/bench_planner.py [--pairs 20] [--pair-time 3] [--directions 8 | --vehicle evtol]
 """
@@ -247,7 +247,7 @@ def flyable_pairs(obs, lower, upper, args) -> str:
         plan_s = time.perf_counter() - t0
         if plan.route is None:
             continue
-        rows.append(_flyable_row(plan, craft, a, b, plan_s))
+        rows.append(_flyable_row(plan, craft, plan_s))
 
     def median(name, key, scale=1.0):
         return f"{np.median([r[(name, key)] for r in rows]) / scale:.3g}"
@@ -263,7 +263,6 @@ def flyable_pairs(obs, lower, upper, args) -> str:
         ratio = [r[("flyable", key)] / r[("unconstrained", key)] for r in rows]
         cell = f"{np.median(ratio):.3f} ({np.max(ratio):.3f})"
         table.append(f"| flyable / unconstrained {label}: median (max) | | {cell} | |")
-    lattice = [r["unconstrained cost / lattice"] for r in rows]
     times = [r["plan s"] for r in rows]
     command = " ".join([Path(sys.executable).name, *sys.argv])
     return "\n".join(
@@ -277,25 +276,23 @@ def flyable_pairs(obs, lower, upper, args) -> str:
             "",
             *table,
             "",
-            f"Unconstrained cost / lattice optimum: median {np.median(lattice):.3f}, max "
-            f"{np.max(lattice):.3f}. `plan_route` per pair (grid, both plans in parallel, flyable paths, "
-            f"the map's check): median {np.median(times):.1f} s, max {np.max(times):.1f} s.",
+            f"`plan_route` per pair (grid, both plans in parallel, flyable paths, the map's check): median "
+            f"{np.median(times):.1f} s, max {np.max(times):.1f} s. The lattice optimum of this directional "
+            "cost does not fit in memory at this grid (26-connected edges x 9 classes); it stays the "
+            "reference of the unconstrained cost on the one-class map (the planners' table of this bench).",
         ]
     )
 
 
-def _flyable_row(plan, craft, a, b, plan_s) -> dict:
+def _flyable_row(plan, craft, plan_s) -> dict:
     """One pair's paths scored on the plan's cost map and against the envelope."""
     cm = plan.costmap
-    band = (float(cm.lower[2]), float(cm.upper[2]))
-    reference, _ = lattice_optimum(PlanningProblem(cm, tuple(a), tuple(b), band, seed=1))
     paths = dict(zip(NAMES, (plan.route.planned, plan.route.enu, plan.baseline.enu), strict=True))
     row = {"plan s": plan_s}
     for name, path in paths.items():
         m = path_metrics(cm, path)
         row |= {(name, k): m[k] for k in SCORES}
         row[(name, "flyable")] = envelope(path, craft)["flyable"]
-    row["unconstrained cost / lattice"] = row[("unconstrained", "cost_m")] / reference
     return row
 
 
