@@ -163,14 +163,7 @@ def read_route(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> Rou
     P = _to_region(spec, route.frame, _array(route.points), None)[0]
     if len(P) < 2:
         raise Problem(422, f"a route needs at least 2 points, got {len(P)}")
-    outside = ~spec.inside(P)
-    if outside.any():
-        rows = np.flatnonzero(outside)
-        raise Problem(
-            422,
-            f"{rows.size} route point(s) outside region {spec.name!r} ({spec.bounds_m.min} .. "
-            f"{spec.bounds_m.max} ENU metres): rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}",
-        )
+    _inside(spec, P, "route point(s)")
     try:
         craft = vehicle(route.vehicle if isinstance(route.vehicle, str) else route.vehicle.model_dump())
         P, times, heading = checked(P, craft, route.times_s, route.heading_deg)
@@ -463,14 +456,7 @@ def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes:
     else:
         raise Problem(415, f"send {JSON} or {ARROW}, not {media or 'no Content-Type'}")
     X = _to_region(spec, frame, P, None)[0]
-    outside = ~spec.inside(X)  # never true for a row that is not finite
-    if outside.any():
-        rows = np.flatnonzero(outside)
-        raise Problem(
-            422,
-            f"{rows.size} point(s) not finite or outside region {spec.name!r} ({spec.bounds_m.min} .. "
-            f"{spec.bounds_m.max} ENU metres): rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}",
-        )
+    _inside(spec, X, "point(s)")
     if heading is not None:
         heading = np.asarray(heading, float)
         if heading.ndim == 0:
@@ -478,6 +464,19 @@ def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes:
         if heading.shape != (len(X),) or not np.isfinite(heading).all():
             raise Problem(422, f"heading_deg must be one finite number or {len(X)} (one per point)")
     return PointQuery(X, heading, modes)
+
+
+def _inside(spec: RegionSpec, X: np.ndarray, what: str) -> None:
+    """422 naming the rows of ``X`` not finite or outside the region (``spec.inside`` is never
+    true for a row that is not finite)."""
+    outside = ~spec.inside(X)
+    if outside.any():
+        rows = np.flatnonzero(outside)
+        raise Problem(
+            422,
+            f"{rows.size} {what} not finite or outside region {spec.name!r} ({spec.bounds_m.min} .. "
+            f"{spec.bounds_m.max} ENU metres): rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}",
+        )
 
 
 def media_type(content_type: str | None) -> str:
