@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import numpy as np
+import orjson
 import pyarrow as pa
 import pyarrow.ipc
 import pyarrow.parquet as pq
@@ -563,11 +564,20 @@ def _json_parts(content):
     elif isinstance(content, np.ndarray) and content.ndim:
         yield b"["
         for lo in range(0, len(content), JSON_CHUNK_ROWS):
-            text = dumps(content[lo : lo + JSON_CHUNK_ROWS].tolist())[1:-1]
-            yield (("," if lo else "") + text).encode()
+            yield (b"," if lo else b"") + _json_array(content[lo : lo + JSON_CHUNK_ROWS])[1:-1]
         yield b"]"
     else:
         yield dumps(content.tolist() if isinstance(content, np.generic | np.ndarray) else content).encode()
+
+
+def _json_array(values: np.ndarray) -> bytes:
+    """A numeric array as a JSON array: orjson writes numpy's numbers without making Python
+    objects of them (an order of magnitude faster than ``json.dumps(values.tolist())``, the
+    same shortest round-trip floats); not finite is an error, as ``allow_nan=False``."""
+    values = np.ascontiguousarray(values)
+    if values.dtype.kind == "f" and not np.isfinite(values).all():
+        raise ValueError("Out of range float values are not JSON compliant")
+    return orjson.dumps(values, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 #: peak memory per number an answer holds, bytes, with room over what
