@@ -23,7 +23,7 @@ import numpy as np
 from bdf.region.evidence import increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.route import Vehicle, envelope, times_at
-from bdf.region.route import vehicle as as_vehicle
+from bdf.region.route import vehicle as as_vehicle  # plan_route's argument is named vehicle
 from bdf.region.spec import RegionSpec
 from planner.costmap import CostMap, CostWeights, ModeGrids, path_metrics
 from planner.flyable import flyable

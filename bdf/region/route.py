@@ -197,8 +197,8 @@ def assess(
     """
     spec = region_map.spec
     P, times_s, heading = checked(P, craft, times_s, heading_deg)
-    if not np.all(spec.inside(P)):
-        outside = np.flatnonzero(~spec.inside(P))
+    outside = np.flatnonzero(~spec.inside(P))
+    if len(outside):
         raise ValueError(f"route points {outside[:5].tolist()} are outside region {spec.name!r}")
     if not (np.isfinite(max_std_mps) and max_std_mps > 0):
         raise ValueError(f"max_std_mps must be positive, got {max_std_mps!r}")

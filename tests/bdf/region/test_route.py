@@ -54,7 +54,7 @@ def test_the_turn_radius_of_an_arc_is_its_radius_and_a_corner_has_none():
 
 def test_a_route_within_the_envelope_passes_and_a_tighter_envelope_fails_it():
     """Sampled every 10 m: the arc's 600 m against 500 m, the 5-degree climb against 6;
-    each limit made 10 % tighter than the route than the route flies (or the floor raised)
+    each limit made tighter than what the route flies (or the floor raised)
     fails that check alone."""
     P = arc_route(600.0, 5.0)
     got = envelope(P, CRAFT)

@@ -63,7 +63,7 @@ def test_the_kernels_release_the_gil_and_give_the_same_answers_side_by_side_in_t
     threads give the serial answers bit for bit (no shared scratch)."""
     for name in KERNELS:
         assert getattr(supernodal, name).targetoptions["nogil"], name
-        assert symbolic.symbolic.targetoptions["nogil"]
+    assert symbolic.symbolic.targetoptions["nogil"]
     patterns = [random_lower_pattern(120, 0.04, seed) for seed in range(4)]
 
     def work(args):
