@@ -215,13 +215,15 @@ class BayesianDynamicField:
         if getattr(self, "_posterior", None) is None:
             model = (self._grid, self._kernel)
             rest = (self._noise_lattice, float(self.noise_prior))
-            start = getattr(self, "_start", None)
+            start, settle = getattr(self, "_start", None), getattr(self, "_settle", True)
             if self._sectors.classes == 1:
                 (evidence,) = self.evidence_.classes
-                self._posterior = Posterior(*model, evidence, self._alpha, self._beta, *rest, start=start)
+                self._posterior = Posterior(
+                    *model, evidence, self._alpha, self._beta, *rest, start=start, settle=settle
+                )
             else:
                 self._posterior = Mixture(
-                    *model, self.evidence_, self._alpha, self._beta, *rest, self._sectors, start=start
+                    *model, self.evidence_, self._alpha, self._beta, *rest, self._sectors, start, settle
                 )
         return self._posterior
 
@@ -230,7 +232,7 @@ class BayesianDynamicField:
         optimum (the same optimum, found in fewer factorisations than from nowhere)."""
         post = getattr(self, "_posterior", None)
         if post is not None and post.fitted:
-            self._start = post.alpha / post.beta
+            self._start, self._settle = post.next_start, True
 
     @property
     def alpha_(self) -> np.ndarray:
@@ -313,12 +315,16 @@ class BayesianDynamicField:
         evidence = SectorEvidence.from_arrays(arrays, grid, stencil, lattice, field._sectors)
         return field.set_evidence(evidence, time)
 
-    def set_evidence(self, evidence: SectorEvidence, time=None, start=None) -> BayesianDynamicField:
+    def set_evidence(
+        self, evidence: SectorEvidence, time=None, start=None, settle=True
+    ) -> BayesianDynamicField:
         """Take ``evidence`` (made on this field's grid, e.g. stored per tile) as everything
         learned. ``start``: ratios alpha / beta where the "auto" search starts ((3,), or a
         row per class of a directional field: an optimum found on earlier evidence); the
-        optimum is the same from any start. Returns self."""
-        self._start = start
+        optimum is the same from any start. ``settle=False``: a search from ``start`` may
+        stop within a nat of the optimum (:func:`bdf.hyperparameters.fit_evidence`; the
+        posterior's ``settled`` says whether it did). Returns self."""
+        self._start, self._settle = start, settle
         self._grid, self._kernel, self._alpha, self._beta, self._noise_lattice = self._setup()
         if len(evidence.classes) != self._sectors.classes:
             raise ValueError(

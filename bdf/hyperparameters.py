@@ -181,7 +181,18 @@ def _derivatives(
     return -0.5 * float(np.sum(rise)), -0.5 * float(np.sum(drise)), float(np.log(max(fixed, 1e-300)))
 
 
-def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False) -> tuple[float, int, bool]:
+@dataclass
+class Found:
+    """Where a search (:func:`_search`) ended."""
+
+    x: float  # the last point evaluated
+    evaluations: int
+    converged: bool  # a minimum of the cost or a bound, not a maximum nor the evaluations spent
+    step: float  # the step it would take next from ``x`` (below LOG_TOLERANCE: settled)
+    gain: float  # the nats Newton's step from ``x`` would gain (the local quadratic)
+
+
+def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False) -> Found:
     """Find the optimum of ``x = ln lam`` from ``x``, within ``bounds``.
 
     ``evaluate(x)`` returns the cost's slope (NaN where the factorisation fails) and
@@ -190,9 +201,7 @@ def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False
     where the curvature changes, it is the better guess), inside the bracket the slopes
     have shown (bisecting it where a step would leave it), until a step is below
     :data:`LOG_TOLERANCE` (``loose``: or until Newton's step would gain less than
-    :data:`EVIDENCE_TOLERANCE`). Returns the last point evaluated, the number of
-    evaluations, and whether it converged there: a minimum of the cost (positive
-    curvature) or a bound, not a maximum nor :data:`MAX_EVALUATIONS` spent.
+    :data:`EVIDENCE_TOLERANCE`).
     """
     lo, hi = -np.inf, np.inf
     for evaluations in range(1, MAX_EVALUATIONS + 1):
@@ -214,19 +223,32 @@ def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False
             proposal = (lo + hi) / 2 if np.isfinite(lo + hi) else x - np.sign(slope) * MAX_STEP
         proposal = float(np.clip(proposal, *bounds))
         newton = curvature > 0 and proposal == x - slope / curvature
-        if abs(proposal - x) < LOG_TOLERANCE or (
-            loose and newton and slope**2 / (2 * curvature) < EVIDENCE_TOLERANCE
-        ):
-            return x, evaluations, curvature > 0 or x in bounds
+        gain = slope**2 / (2 * curvature) if newton else (0.0 if proposal == x else np.inf)
+        if abs(proposal - x) < LOG_TOLERANCE or (loose and gain < EVIDENCE_TOLERANCE):
+            return Found(x, evaluations, curvature > 0 or x in bounds, proposal - x, gain)
         x = proposal
-    return x, MAX_EVALUATIONS, False
+    return Found(x, MAX_EVALUATIONS, False, 0.0, np.inf)
+
+
+@dataclass
+class EvidenceFit:
+    """What :func:`fit_evidence` found."""
+
+    alpha: np.ndarray  # (3,)
+    beta: np.ndarray  # (3,)
+    solutions: list  # the factorisation serving component 0, 1, 2
+    factorisations: int  # how many it took
+    #: the hyperparameters are the evidence maximum (to LOG_TOLERANCE), not only within
+    #: EVIDENCE_TOLERANCE of it (a search that need not settle, :func:`fit_evidence`)
+    settled: bool
+    gap: float  # nats the evidence lacks from its maximum (the local quadratic; 0 settled)
+    next_start: np.ndarray | None  # (3,) ratios alpha / beta a next search starts at
 
 
 def fit_evidence(
-    stencil, band, proj, v_sq, count, alpha, beta, start=None, anchor=None
-) -> tuple[np.ndarray, np.ndarray, list, int]:
-    """alpha (3,), beta (3,), the factorisation(s) serving component 0, 1, 2, and how
-    many factorisations it took.
+    stencil, band, proj, v_sq, count, alpha, beta, start=None, anchor=None, settle=True
+) -> EvidenceFit:
+    """alpha and beta at the evidence maximum, and the factorisations at them.
 
     ``band``: ``G`` on ``stencil``. ``alpha``/``beta``: "auto" or 3-vectors. Fixed values
     need no search. "auto" for alpha shares ``lam`` over the components; a fixed alpha
@@ -235,7 +257,10 @@ def fit_evidence(
     known (the previous optimum of a map refreshed: the search starts there; the optimum
     found is the same to :data:`LOG_TOLERANCE`). ``anchor``: where a search without it
     starts (a ratio fixed by the evidence alone: a mode's, its map's; default the mean of
-    ``G``'s diagonal).
+    ``G``'s diagonal). ``settle=False`` (with ``start``): the search from ``start`` may
+    stop where the evidence lacks less than :data:`EVIDENCE_TOLERANCE` from its maximum
+    (the map is fresh at once and calibrated to a nat; a search with ``settle`` from
+    ``next_start`` then finds the maximum itself, typically in one factorisation fewer).
     """
     auto_a, auto_b = isinstance(alpha, str), isinstance(beta, str)
     if (auto_a or auto_b) and count <= 0:
@@ -247,7 +272,7 @@ def fit_evidence(
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
         sols = _at_ratios(stencil, band, proj, v_sq, alpha_v / beta_v)
-        return alpha_v.copy(), beta_v.copy(), sols, len({id(s) for s in sols})
+        return EvidenceFit(alpha_v.copy(), beta_v.copy(), sols, len({id(s) for s in sols}), True, 0.0, None)
 
     scale = max(float(np.mean(band[0])), 1e-300)
     bounds = (np.log(FLOOR_PER_CUTOFF * stencil.cutoff), LOG_TOP)
@@ -256,6 +281,7 @@ def fit_evidence(
     probes = _probes(len(proj))
     starts = None if start is None else np.broadcast_to(np.asarray(start, float), (3,))
     alpha_v, beta_v, sols, factorisations = np.empty(3), np.empty(3), [None] * 3, 0
+    settled, gap, next_start = True, 0.0, np.empty(3)
     for comps in groups:
         span = bounds
         if tied:  # beta = alpha / lam stays below its cap, so alpha stays the fixed one
@@ -265,7 +291,7 @@ def fit_evidence(
 
         def search(x0, loose=False, comps=comps, span=span):
             """One search from ``x0``: its last solution, the best it saw by the evidence
-            (value, solution), its evaluations, whether it converged, and where it ended."""
+            (value, solution), and where it ended (:class:`Found`)."""
             latest, best = [None], [np.inf, None]
 
             def evaluate(x):
@@ -282,38 +308,40 @@ def fit_evidence(
                 slope, curvature, fixed_point = _derivatives(sol, a, b, count, comps, tied, profiled, probes)
                 return slope, curvature, fixed_point - np.log(scale)
 
-            x, evaluations, converged = _search(evaluate, x0, span, loose)
+            found = _search(evaluate, x0, span, loose)
             # the slope's estimate can mislead the search (truncation noise at the smallest
             # ratios) to far less evidence than it saw: not converged then
-            if converged and latest[0] is not best[1]:
+            if found.converged and latest[0] is not best[1]:
                 a, b = _hyper_for(latest[0], alpha, beta, count)
                 value = -float(np.sum(log_evidence(latest[0], a, b, count)[comps]))
-                converged = value < best[0] + MISLED_NATS
-            return latest[0], best, evaluations, converged, x
+                found.converged = value < best[0] + MISLED_NATS
+            return latest[0], best, found
 
         # From the previous optimum (warm), else from ``anchor`` (cold): the optimum they
         # converge to is the same. Near the floor the slopes are truncation noise: a warm
         # start there is not taken, a search that ends there is made again from the anchor,
         # and where no search converges away from it, the anchor's loose search (its best
-        # evidence, stopping where a step gains less than a nat) is the answer.
+        # evidence, stopping where a step gains less than a nat) is the answer. A warm search
+        # that need not settle stops within a nat of the optimum.
         low = bounds[0] + NEAR_FLOOR
         cold = float(np.clip(0.0 if anchor is None else np.log(anchor / scale), *span))
-        tries = [cold]
+        tries = [(cold, False)]
         if starts is not None:
             warm = float(np.clip(np.log(np.mean(starts[comps]) / scale), *span))
-            tries = [warm, cold] if warm >= low and warm != cold else tries
+            if warm >= low and warm != cold:
+                tries = [(warm, not settle), (cold, False)]
         factored, sol = False, None
-        for x0 in tries:
-            found, best, evaluations, converged, x = search(x0)
-            factorisations += evaluations
+        for x0, loose in tries:
+            last, best, found = search(x0, loose)
+            factorisations += found.evaluations
             factored = factored or best[1] is not None
-            if converged and x >= low:
-                sol = found
+            if found.converged and found.x >= low:
+                sol, ended = last, found
                 break
         if sol is None and factored:
-            _, best, evaluations, _, _ = search(cold, loose=True)
-            factorisations += evaluations
-            sol = best[1]
+            _, best, found = search(cold, loose=True)
+            factorisations += found.evaluations
+            sol, ended = best[1], None  # the answer: no search would settle elsewhere
         if sol is None:  # no ratio in the range could be factored
             raise sparse.NotPositiveDefinite(
                 f"the precision matrix is not positive definite at any alpha/beta in "
@@ -323,5 +351,9 @@ def fit_evidence(
         alpha_v[comps], beta_v[comps] = a[comps], b[comps]
         for c in comps:
             sols[c] = sol
+        next_start[comps] = sol.lam
+        if ended is not None and abs(ended.step) >= LOG_TOLERANCE:
+            settled, gap = False, gap + ended.gain
+            next_start[comps] = scale * np.exp(ended.x + ended.step)
         log.debug("evidence fit for components %s: lam=%.6g", comps, sol.lam)
-    return alpha_v, beta_v, sols, factorisations
+    return EvidenceFit(alpha_v, beta_v, sols, factorisations, settled, gap, next_start)

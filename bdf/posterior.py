@@ -77,6 +77,7 @@ class Posterior:
         prior_weights=None,
         anchor=None,
         density=True,
+        settle=True,
     ):
         self.grid, self.kernel = grid, kernel
         self.gamma, self.cutoff = np.array(kernel.gamma), kernel.cutoff
@@ -97,9 +98,14 @@ class Posterior:
             G_w0 = sparse.band_product(self.stencil, band, w0)
             v_sq = v_sq - 2.0 * np.einsum("mc,mc->c", w0, proj) + np.einsum("mc,mc->c", w0, G_w0)
             proj = proj - G_w0
-        self.alpha, self.beta, sols, self.factorisations = hyperparameters.fit_evidence(
-            self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start, anchor
+        fit = hyperparameters.fit_evidence(
+            self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start, anchor, settle
         )
+        self.alpha, self.beta, sols = fit.alpha, fit.beta, fit.solutions
+        self.factorisations, self.settled, self.evidence_gap = fit.factorisations, fit.settled, fit.gap
+        #: where a next search of "auto" hyperparameters best starts (ratios alpha / beta):
+        #: the optimum, or where the search pointed when it stopped within a nat of it
+        self.next_start = self.alpha / self.beta if fit.next_start is None else fit.next_start
         self.log_evidence = np.array(
             [
                 hyperparameters.log_evidence(s, self.alpha, self.beta, evidence.count)[c]
@@ -322,6 +328,7 @@ class Mixture:
         noise_prior,
         sectors,
         start=None,
+        settle=True,
     ):
         C = sectors.classes
         self.sectors, self.grid, self.kernel = sectors, grid, kernel
@@ -331,7 +338,7 @@ class Mixture:
         total = evidence.total()
         starts = [None] * (1 + C) if start is None else list(np.broadcast_to(start, (1 + C, 3)))
         self.total = Posterior(
-            grid, kernel, total, alphas[0], betas[0], *rest, start=starts[0], density=False
+            grid, kernel, total, alphas[0], betas[0], *rest, start=starts[0], density=False, settle=settle
         )
         anchor = float(np.mean(self.total.alpha / self.total.beta))  # a mode's cold start
 
@@ -348,6 +355,7 @@ class Mixture:
                 prior_weights=_layer_prior(e, grid, self.gamma),
                 anchor=anchor,
                 density=False,
+                settle=settle,
             )
             post.variance_table()
             return post
@@ -390,6 +398,19 @@ class Mixture:
     @property
     def log_evidence(self) -> np.ndarray:
         return np.stack([self.total.log_evidence, *(m.log_evidence for m in self.modes)])
+
+    @property
+    def settled(self) -> bool:
+        return self.total.settled and all(m.settled for m in self.modes)
+
+    @property
+    def evidence_gap(self) -> float:
+        """Nats the map with one class and the modes lack from their evidence maxima, summed."""
+        return self.total.evidence_gap + sum(m.evidence_gap for m in self.modes)
+
+    @property
+    def next_start(self) -> np.ndarray:
+        return np.stack([self.total.next_start, *(m.next_start for m in self.modes)])
 
     @property
     def factorisations(self) -> int:

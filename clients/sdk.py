@@ -55,7 +55,9 @@ class Region:
     tiles: int
     created_at: float
     updated_at: float
-    hyperparameters: dict  # alpha, beta (the latest found; "auto" until then), fitted_at, evidence_version
+    #: alpha, beta (the latest found; "auto" until then), fitted_at, evidence_version,
+    #: settled, evidence_gap
+    hyperparameters: dict
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,7 @@ class Prediction:
     region_version: int
     versions_behind: int = 0  # region versions written that the answer's map did not hold yet
     seconds_behind: float = 0.0  # since the first of them was written
+    evidence_gap: float = 0.0  # nats its "auto" hyperparameters lacked from the maximum (0: settled)
 
 
 @dataclass(frozen=True)
@@ -215,10 +218,15 @@ def _version(response: httpx.Response) -> int:
     return int(response.headers[wire.VERSION_HEADER])
 
 
-def _lag(response: httpx.Response) -> tuple[int, float]:
-    """How far the answer's map was behind the region (versions, seconds)."""
+def _lag(response: httpx.Response) -> tuple[int, float, float]:
+    """How far the answer's map was behind the region (versions, seconds) and its
+    hyperparameters from the evidence maximum (nats)."""
     headers = response.headers
-    return int(headers[wire.VERSIONS_BEHIND_HEADER]), float(headers[wire.SECONDS_BEHIND_HEADER])
+    return (
+        int(headers[wire.VERSIONS_BEHIND_HEADER]),
+        float(headers[wire.SECONDS_BEHIND_HEADER]),
+        float(headers[wire.EVIDENCE_GAP_HEADER]),
+    )
 
 
 def _json_body(body) -> dict:

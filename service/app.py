@@ -74,16 +74,18 @@ def scoped(scope: str, responses: dict | None = None, **extra) -> dict:
 
 
 class Hyperparameters(BaseModel):
-    """alpha and beta: the spec's fixed values, or ("auto") the evidence maximum of the
-    region's data at ``evidence_version``, found at ``fitted_at`` (the map of every version
-    is at its own data's maximum: each refresh finds it and records it here; "auto" until
-    the first). A directional region has a row per component triple: the map with one
-    class, then each class (:class:`bdf.posterior.Mixture`)."""
+    """alpha and beta: the spec's fixed values, or ("auto") those found on the region's
+    data at ``evidence_version``, at ``fitted_at``: the evidence maximum (``settled``), or
+    within ``evidence_gap`` nats (under one) of it while the background refresh settles
+    them ("auto" until the first). A directional region has a row per component triple:
+    the map with one class, then each class (:class:`bdf.posterior.Mixture`)."""
 
     alpha: Literal["auto"] | float | list[float] | list[list[float]]
     beta: Literal["auto"] | float | list[float] | list[list[float]]
     fitted_at: float | None
     evidence_version: int | None
+    settled: bool | None
+    evidence_gap: float | None
     log_evidence: list[float] | list[list[float]] | None
 
 
@@ -134,6 +136,8 @@ def _view(info: RegionInfo) -> dict:
             "beta": beta,
             "fitted_at": fitted.get("fitted_at"),
             "evidence_version": fitted.get("evidence_version"),
+            "settled": fitted.get("settled", True) if fitted else None,
+            "evidence_gap": fitted.get("evidence_gap", 0.0) if fitted else None,
             "log_evidence": fitted.get("log_evidence"),
         },
     }
@@ -172,12 +176,13 @@ class MapAnswer:
     everything the answer depends on (the map's region instance and version, the request's
     path, query, Accept, Content-Type and body), and the version it came from and how far
     that is behind the region's newest (versions, and seconds since the first of them was
-    written), which /metrics counts too."""
+    written), which /metrics counts too, and the nats its "auto" hyperparameters lack from
+    the evidence maximum (0 once settled; the ETag tells a settled map from the one before)."""
 
     def __init__(self, request: Request, svc: Service):
         self.request, self.svc, self.body = request, svc, b""
 
-    def etag(self, region_id: str, version: int) -> str:
+    def etag(self, region_id: str, version: int, settled: bool) -> str:
         h = hashlib.sha256()
         request = self.request
         for part in (
@@ -188,13 +193,13 @@ class MapAnswer:
         ):
             h.update(part.encode() + b"\0")
         h.update(self.body)
-        return f'W/"{region_id}.{version}.{h.hexdigest()[:20]}"'
+        return f'W/"{region_id}.{version}{"" if settled else "~"}.{h.hexdigest()[:20]}"'
 
     def region_or_304(self, name: str) -> tuple[RegionInfo, Response | None]:
         """The region's info, and a 304 if the client's ETag names its current state and
         this request."""
         info = self.svc.maps.store.region(name)
-        etag = self.etag(info.region_id, info.version)
+        etag = self.etag(info.region_id, info.version, self.svc.maps.settled(info))
         header = self.request.headers.get("if-none-match")
         tags = [t.strip().removeprefix("W/") for t in header.split(",")] if header else []
         if "*" in tags or etag.removeprefix("W/") in tags:
@@ -204,10 +209,11 @@ class MapAnswer:
     def headers(self, pred) -> dict:
         self.svc.metrics.answered(pred.behind, pred.behind_s)
         return {
-            "ETag": self.etag(pred.region_id, pred.version),
+            "ETag": self.etag(pred.region_id, pred.version, pred.evidence_gap == 0),
             wire.VERSION_HEADER: str(pred.version),
             wire.VERSIONS_BEHIND_HEADER: str(pred.behind),
             wire.SECONDS_BEHIND_HEADER: f"{pred.behind_s:.3f}",
+            wire.EVIDENCE_GAP_HEADER: f"{pred.evidence_gap:.4g}",
         }
 
 
@@ -843,6 +849,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
                 wire.VERSION_HEADER,
                 wire.VERSIONS_BEHIND_HEADER,
                 wire.SECONDS_BEHIND_HEADER,
+                wire.EVIDENCE_GAP_HEADER,
                 wire.REQUEST_ID_HEADER,
                 "Location",
                 "Retry-After",

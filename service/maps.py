@@ -88,6 +88,7 @@ class MapAssessment:
     region_id: str
     behind: int
     behind_s: float
+    evidence_gap: float
 
 
 class PosteriorCache:
@@ -110,10 +111,18 @@ class PosteriorCache:
             self.hits += 1
             return state
 
-    def put(self, key: tuple, state: MapState) -> None:
+    def peek(self, key: tuple) -> MapState | None:
+        """:meth:`get` that counts no hit or miss (a look, not a use)."""
         with self._lock:
-            if key in self._items:
-                return
+            return self._items.get(key)
+
+    def put(self, key: tuple, state: MapState) -> None:
+        """Hold ``state`` (replacing the one held of its version: a settled map replaces
+        the one before)."""
+        with self._lock:
+            old = self._items.pop(key, None)
+            if old is not None:
+                self._bytes -= old.nbytes
             self._items[key] = state
             self._bytes += state.nbytes
             while self._bytes > self.max_bytes and len(self._items) > 1:
@@ -142,6 +151,7 @@ class MapPrediction:
     modes: Modes | None = None  # per traffic class, when asked
     behind: int = 0  # versions written that the answer's map does not hold yet
     behind_s: float = 0.0  # since when (s): the age of the first of them
+    evidence_gap: float = 0.0  # nats its "auto" hyperparameters lack from the maximum (0: settled)
 
 
 @dataclass
@@ -154,6 +164,8 @@ class RefreshStats:
     factorisations: int = 0  # of their hyperparameter searches (and fixed values)
     last_s: float = 0.0
     failed: int = 0  # refreshes that raised (the previous map kept answering)
+    settled: int = 0  # of the maps computed, those computed again to settle their "auto" hyperparameters
+    last_gap: float = 0.0  # nats the last map's hyperparameters lack from its evidence maximum
 
 
 class RegionMaps:
@@ -213,17 +225,20 @@ class RegionMaps:
         if self._spawner is not None:
             self._spawner.stop()
 
-    def _posterior(self, spec: RegionSpec, evidence, start=None, stored=True) -> Posterior | Mixture:
-        """``compute_posterior(spec, evidence, start, stored=stored)``, in the child process if isolated."""
+    def _posterior(
+        self, spec: RegionSpec, evidence, start=None, stored=True, settle=True
+    ) -> Posterior | Mixture:
+        """``compute_posterior(spec, evidence, start, stored=..., settle=...)``, in the child
+        process if isolated."""
         if not self._isolate:
-            return compute_posterior(spec, evidence, start, stored=stored)
+            return compute_posterior(spec, evidence, start, stored=stored, settle=settle)
         for attempt in range(2):
             with self._lock:
                 if self._pool is None:
                     self._pool = self._spawner.start()
                 pool = self._pool
             try:
-                future = pool.submit(_compute_posterior, spec, evidence, start, stored)
+                future = pool.submit(_compute_posterior, spec, evidence, start, stored, settle)
                 return future.result(timeout=lanes.wait_timeout())
             except concurrent.futures.TimeoutError:
                 raise lanes.DeadlineExceeded(
@@ -321,7 +336,7 @@ class RegionMaps:
             raise Unprocessable(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
         if not info.tiles:
             raise Unprocessable(f"region {region!r} has no data to fit its hyperparameters on")
-        self._wait(region, info, info.version)
+        self._wait(region, info, info.version, settled=True)
         now = self.store.region(region)
         if now.region_id != info.region_id:
             raise RegionChanged(f"region {region!r} was deleted or re-created while its map was computed")
@@ -397,9 +412,9 @@ class RegionMaps:
         )
 
     def refresh(self, region: str) -> MapState:
-        """The map state of the region's current version, computed now if need be (in the
-        caller's thread: builds and tests; the service's readers wait for refreshes)."""
-        return self._compute(region, self.store.region(region).version)
+        """The settled map state of the region's current version, computed now if need be
+        (in the caller's thread: builds and tests; the service's readers wait for refreshes)."""
+        return self._compute(region, self.store.region(region).version, settle=True)
 
     def wait_for(self, info: RegionInfo, min_version: int = 0) -> MapState:
         """Wait (until the deadline) for the map a query of ``info`` with ``min_version``
@@ -413,14 +428,21 @@ class RegionMaps:
             return True
         with self._lock:
             newest = self._newest.get(info.region_id)
-        return newest is not None and newest.version >= min_version and newest.spec == info.spec
+        return _serves(newest, info.spec, min_version, False)
 
-    def _lag(self, info: RegionInfo, state: MapState) -> tuple[int, float]:
-        """How far ``state`` is behind the region as read (``info``): versions, and the
-        seconds since the first of them was written."""
+    def settled(self, info: RegionInfo) -> bool:
+        """The map of ``info``'s version is computed here and its hyperparameters settled."""
+        state = self.cache.peek((info.region_id, info.version))
+        return state is not None and state.posterior.settled
+
+    def _lag(self, info: RegionInfo, state: MapState) -> tuple[int, float, float]:
+        """How far ``state`` is behind the region as read (``info``): versions, the seconds
+        since the first of them was written, and the nats its hyperparameters lack from
+        its data's evidence maximum (0 once settled)."""
+        gap = state.posterior.evidence_gap
         behind = info.version - state.version if info.region_id == state.region_id else 0
         if behind <= 0:
-            return 0, 0.0
+            return 0, 0.0, gap
         key = (info.region_id, state.version + 1)
         since = self._committed.get(key)  # a version's time never changes: read it once
         if since is None:
@@ -432,7 +454,7 @@ class RegionMaps:
                     self._committed[key] = since
                     while len(self._committed) > self.COMMITTED_TIMES:
                         self._committed.popitem(last=False)
-        return behind, max(time.time() - since, 0.0)
+        return behind, max(time.time() - since, 0.0), gap
 
     def _state(self, region: str, info: RegionInfo, min_version: int) -> MapState:
         """The map at ``info``'s version if ready; else the newest ready one (a refresh is
@@ -442,23 +464,23 @@ class RegionMaps:
             return state
         with self._lock:
             newest = self._newest.get(info.region_id)
-        if newest is not None and newest.version >= min_version and newest.spec == info.spec:
+        if _serves(newest, info.spec, min_version, False):
             self._schedule(region)
             return newest
         return self.wait_for(info, min_version)
 
-    def _wait(self, region: str, info: RegionInfo, at_least: int) -> MapState:
+    def _wait(self, region: str, info: RegionInfo, at_least: int, settled: bool = False) -> MapState:
         """A map of the region instance ``info`` at version ``at_least`` or newer (at most
-        the version read: no later one is known to exist), waiting for the refreshes to
-        compute it (one is scheduled), until the deadline. A refresh that fails raises its
-        error here."""
+        the version read: no later one is known to exist; ``settled``: its hyperparameters
+        settled), waiting for the refreshes to compute it (one is scheduled), until the
+        deadline. A refresh that fails raises its error here."""
         at_least = min(at_least, info.version)
         with self._done:
             mine = self._begun.get(region, 0) + 1  # the first refresh to read the store from now
             self._schedule_locked(region)
             while True:
                 newest = self._newest.get(info.region_id)
-                if newest is not None and newest.version >= at_least and newest.spec == info.spec:
+                if _serves(newest, info.spec, at_least, settled):
                     return newest
                 if self._closed:
                     raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
@@ -476,25 +498,29 @@ class RegionMaps:
                         "was computed; it will be ready for a retry"
                     )
 
-    def _compute(self, region: str, at_least: int) -> MapState:
+    def _compute(self, region: str, at_least: int, settle: bool = False) -> MapState:
         """A map of the region at version ``at_least`` or newer: one computed meanwhile (a
         caller waiting here shares the refresh under way), else the current version's,
-        computed now. One computation per region at a time."""
+        computed now. One computation per region at a time. "auto" hyperparameters start at
+        the newest map's; without ``settle`` they may stop within a nat of the evidence
+        maximum (a refresh in the background: the map is fresh sooner), with it they are at
+        the maximum (a map within a nat of it is computed again)."""
         with self._lock:
             lock = self._building.setdefault(region, threading.Lock())
         with lock:
             info = self.store.region(region)
             state = self.cache.get((info.region_id, info.version))
-            if state is not None:
+            if state is not None and (state.posterior.settled or not settle):
                 return state
             with self._lock:
                 newest = self._newest.get(info.region_id)
-            if newest is not None and newest.version >= at_least and newest.spec == info.spec:
+            if _serves(newest, info.spec, at_least, settle):
                 return newest
             started = time.perf_counter()
             snap, evidence = self._snapshot_evidence(region, info.region_id)
             spec = snap.region.spec
-            post = self._posterior(spec, region_total(spec, evidence), self._start(snap.region, newest))
+            start = self._start(snap.region, newest)
+            post = self._posterior(spec, region_total(spec, evidence), start, settle=settle)
             state = MapState(spec, snap.region.region_id, snap.region.version, post)
             self._publish(state)
             seconds = time.perf_counter() - started
@@ -503,14 +529,17 @@ class RegionMaps:
                 self.stats.seconds += seconds
                 self.stats.last_s = seconds
                 self.stats.factorisations += post.factorisations
+                self.stats.last_gap = post.evidence_gap
                 if newest is not None and newest.region_id == state.region_id:
                     self.stats.skipped += max(state.version - newest.version - 1, 0)
+                    self.stats.settled += newest.version == state.version
             log.info(
-                "region %s version %d: map ready in %.2f s (%d factorisations)",
+                "region %s version %d: map ready in %.2f s (%d factorisations, %s)",
                 region,
                 state.version,
                 seconds,
                 post.factorisations,
+                "settled" if post.settled else f"{post.evidence_gap:.2g} nats from the evidence maximum",
             )
             if spec.auto and post.fitted:
                 self._record(region, state)
@@ -543,7 +572,7 @@ class RegionMaps:
         if not info.spec.auto:
             return None
         if newest is not None and newest.spec == info.spec and newest.posterior.fitted:
-            return newest.posterior.alpha / newest.posterior.beta
+            return newest.posterior.next_start
         hyper = info.hyper or {}
         rows = info.spec.posteriors
         try:
@@ -569,7 +598,7 @@ class RegionMaps:
         self.cache.put((state.region_id, state.version), state)
         with self._lock:
             newest = self._newest.get(state.region_id)
-            if newest is None or newest.version < state.version:
+            if newest is None or (newest.version, newest.posterior.settled) < (state.version, True):
                 self._newest[state.region_id] = state
 
     def _schedule(self, region: str) -> None:
@@ -598,7 +627,12 @@ class RegionMaps:
             with self._lock:
                 self._begun[region] = self._begun.get(region, 0) + 1
             try:
-                computed = self._compute(region, self.store.region(region).version).region_id
+                state = self._compute(region, self.store.region(region).version)
+                with self._lock:
+                    quiet = not self._refreshing.get(region)
+                if quiet and not state.posterior.settled:  # no newer version waits: settle this one
+                    state = self._compute(region, state.version, settle=True)
+                computed = state.region_id
             except RegionNotFound as exc:
                 error = exc
             except Exception as exc:  # the previous version keeps answering
@@ -625,6 +659,17 @@ class RegionMaps:
                 return
 
 
+def _serves(state: MapState | None, spec: RegionSpec, at_least: int, settled: bool) -> bool:
+    """``state`` answers a query of a region of ``spec`` that needs version ``at_least``
+    (and ``settled`` hyperparameters)."""
+    return (
+        state is not None
+        and state.version >= at_least
+        and state.spec == spec
+        and (state.posterior.settled or not settled)
+    )
+
+
 def _checkpoint(progress: Callable[[float], None] | None) -> Callable[[float], None]:
     """``progress``, checking the deadline at each step (per tile) of the work."""
 
@@ -647,9 +692,9 @@ def _joined(parts: list[tuple], axis: int) -> tuple:
     return mean, std, known, modes
 
 
-def _compute_posterior(spec: RegionSpec, evidence, start, stored):
+def _compute_posterior(spec: RegionSpec, evidence, start, stored, settle):
     """:func:`bdf.region.map.compute_posterior` (a module function: what the posterior process runs)."""
-    return compute_posterior(spec, evidence, start, stored=stored)
+    return compute_posterior(spec, evidence, start, stored=stored, settle=settle)
 
 
 #: How often the posterior process checks that the process that started it lives (s).
@@ -727,6 +772,8 @@ def fitted(post: Posterior) -> dict | None:
         "beta": post.beta.tolist(),
         "log_evidence": post.log_evidence.tolist(),
         "fitted_at": time.time(),
+        "settled": bool(post.settled),
+        "evidence_gap": float(post.evidence_gap),
     }
 
 

@@ -145,6 +145,18 @@ class _StateCollector:
                 refreshes.factorisations,
             ),
             (CounterMetricFamily, "bdf_map_refresh_failures", "refreshes that failed", refreshes.failed),
+            (
+                CounterMetricFamily,
+                "bdf_map_settles",
+                "maps computed again to settle their 'auto' hyperparameters at the evidence maximum",
+                refreshes.settled,
+            ),
+            (
+                GaugeMetricFamily,
+                "bdf_map_evidence_gap_nats",
+                "nats the last map's 'auto' hyperparameters lack from its evidence maximum",
+                refreshes.last_gap,
+            ),
         ]
         for family, name, doc, value in rows:
             metric = family(name, doc)

@@ -26,5 +26,7 @@ QUERY_COLUMNS = frozenset((*ENU_COLUMNS, *WGS84_COLUMNS, "heading_deg"))
 VERSION_HEADER = "X-Region-Version"
 VERSIONS_BEHIND_HEADER = "X-Region-Versions-Behind"
 SECONDS_BEHIND_HEADER = "X-Region-Seconds-Behind"
+#: nats the map's "auto" hyperparameters lack from its data's evidence maximum (0: settled)
+EVIDENCE_GAP_HEADER = "X-Region-Evidence-Gap"
 REQUEST_ID_HEADER = "X-Request-ID"
 IDEMPOTENCY_HEADER = "Idempotency-Key"

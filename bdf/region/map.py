@@ -31,19 +31,20 @@ log = logging.getLogger(__name__)
 
 
 def compute_posterior(
-    spec: RegionSpec, evidence: SectorEvidence, start=None, *, stored: bool = True
+    spec: RegionSpec, evidence: SectorEvidence, start=None, *, stored: bool = True, settle: bool = True
 ) -> Posterior | Mixture:
     """The region's posterior of ``evidence`` (:func:`bdf.region.evidence.region_total`) at the spec's
     hyperparameters, variance density ready, factors dropped. "auto" is this
     evidence's maximum (``posterior.alpha``, ``posterior.beta``), its search started at
     ``start`` (ratios alpha / beta, (3,) or a row per class: the optimum of the
-    region's previous version) and the same from any start.
+    region's previous version) and the same from any start; ``settle=False``: within a nat
+    of it, where that is quicker (:func:`bdf.hyperparameters.fit_evidence`).
 
     Fixed values that do not factor on ``stored`` data (which must be served) are
     raised (alpha by powers of ten) to the least that factors, with a warning; on data
     not stored yet (a fit, before it is applied) they raise ``NotPositiveDefinite``."""
     try:
-        return spec.field().set_evidence(evidence, start=start).posterior_.compact()
+        return spec.field().set_evidence(evidence, start=start, settle=settle).posterior_.compact()
     except NotPositiveDefinite:
         if spec.alpha == "auto" or not stored:
             raise
@@ -52,7 +53,7 @@ def compute_posterior(
     for power in range(1, 13):
         try:
             field = spec.field(np.asarray(spec.alpha, float) * 10.0**power)
-            post = field.set_evidence(evidence, start=start).posterior_.compact()
+            post = field.set_evidence(evidence, start=start, settle=settle).posterior_.compact()
         except NotPositiveDefinite:
             continue
         log.warning("region %s: served at alpha x 1e%d: its fixed alpha does not factor", spec.name, power)

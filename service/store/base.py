@@ -19,13 +19,14 @@ a deleted and re-created name never reuses cache entries); ``versions`` says whe
 version was committed (how stale a map is, :meth:`MapStore.committed_at`).
 
 ``regions.hyper`` records the hyperparameters last found for a spec with "auto" ones:
-``{"alpha", "beta", "log_evidence", "fitted_at": t, "evidence_version": v}``, the evidence
-maximum of the region's data at version ``v``. It is a record, not an input: the map of
-every version is at that version's own maximum (:mod:`service.maps`); a fit writes it with
-its tiles and a refresh after it (:meth:`MapStore.record_hyperparameters`, never older
-over newer). Schema 1 stored tiles that overlapped (each observation in up to 8 tiles),
-which a region-wide field cannot use: such a store is refused with that reason. Schemas 2
-and 3 are upgraded in place when opened.
+``{"alpha", "beta", "log_evidence", "fitted_at": t, "evidence_version": v, "settled": s,
+"evidence_gap": nats}``, found on the region's data at version ``v``: their evidence maximum
+(``settled``), or within ``evidence_gap`` (under a nat) of it while a refresh in the
+background settles it (:mod:`service.maps`). It is a record, not an input: a fit writes it
+with its tiles and a refresh after it (:meth:`MapStore.record_hyperparameters`, never older
+over newer, nor unsettled over settled). Schema 1 stored tiles that overlapped (each
+observation in up to 8 tiles), which a region-wide field cannot use: such a store is
+refused with that reason. Schemas 2 and 3 are upgraded in place when opened.
 
 Integrity: every read of ``stats`` checks its checksum first, so bytes damaged on disk are
 reported (:class:`CorruptTile`, naming the tile) and never decoded into a map;
@@ -519,12 +520,14 @@ class MapStore(ABC):
     def record_hyperparameters(
         self, name: str, region_id: str, hyper: Mapping, evidence_version: int
     ) -> None:
-        """Record ``hyper``, found at the evidence maximum of the region instance
-        ``region_id`` at ``evidence_version`` (module doc), unless the record is of a newer
-        version already. The map does not change (no new version)."""
+        """Record ``hyper``, found on the data of the region instance ``region_id`` at
+        ``evidence_version`` (module doc), unless the record is of a newer version already,
+        or of this one and settled. The map does not change (no new version)."""
         with self._write() as q:
             (stored,) = self._locked(q, name, region_id, "hyper")
-            if stored is None or json.loads(stored).get("evidence_version", -1) < evidence_version:
+            old = {} if stored is None else json.loads(stored)
+            rank = (old.get("evidence_version", -1), old.get("settled", True))
+            if rank < (evidence_version, hyper.get("settled", True)):
                 q(
                     "UPDATE regions SET hyper = ? WHERE region_id = ?",
                     (json.dumps({**hyper, "evidence_version": int(evidence_version)}), region_id),

@@ -155,12 +155,12 @@ def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
     band = evidence.gram_band(stencil)
     floor = hyperparameters.FLOOR_PER_CUTOFF * 1e-12 * np.mean(band[0])
     with mock.patch.object(hyperparameters, "solve", wraps=hyperparameters.solve) as solve:
-        alpha, beta, _, _ = hyperparameters.fit_evidence(
+        fit = hyperparameters.fit_evidence(
             stencil, band, evidence.proj, evidence.v_sq, evidence.count, "auto", "auto", start=1e-20
         )
         seen = [call.args[4] for call in solve.call_args_list]
     assert min(seen) >= floor * (1 - 1e-12)
-    assert np.all(alpha / beta >= floor * (1 - 1e-12))
+    assert np.all(fit.alpha / fit.beta >= floor * (1 - 1e-12))
     # a slope that always points down: the search stops at the floor, never below
     xs = []
 
@@ -170,3 +170,43 @@ def test_the_search_stays_above_the_truncation_floor_of_the_gram_matrix():
 
     hyperparameters._search(falling, -5.0, (-8.0, 3.0))
     assert min(xs) == -8.0 and all(-8.0 <= x <= 3.0 for x in xs)
+
+
+@pytest.mark.parametrize("directions", [1, 8])
+def test_a_search_that_need_not_settle_stops_within_a_nat_and_settles_from_where_it_pointed(directions):
+    """After a small addition of data, the search from the previous optimum with
+    ``settle=False`` stops at its first point (the map with one class; a class with few
+    data may take a step more), whose evidence is within a nat of the
+    optimum's; its ``next_start`` is a hundred times closer to the optimum, and a settled
+    search from there finds the optimum of one fit of all the data (to the search's
+    tolerance) in fewer factorisations than from the previous optimum."""
+    from bdf.hyperparameters import EVIDENCE_TOLERANCE, LOG_TOLERANCE
+
+    rng = np.random.default_rng(11)
+    X = rng.uniform(LOWER, UPPER, (3000, 3))
+    V = flow(X) + 0.3 * rng.standard_normal(X.shape)
+    make = dict(alpha="auto", beta="auto", directions=directions)
+    before = BayesianDynamicField(LOWER, UPPER, 2.0, 0.25, **make).fit(X[:2900], V[:2900])
+    start = before.alpha_ / before.beta_
+    evidence = BayesianDynamicField(LOWER, UPPER, 2.0, 0.25, **make).fit(X, V).evidence_
+    fresh = BayesianDynamicField(LOWER, UPPER, 2.0, 0.25, **make)
+    quick = fresh.set_evidence(evidence, start=start, settle=False).posterior_
+    searches = 1 if directions == 1 else 1 + directions  # the map with one class, and each class
+    assert not quick.settled and 0 < quick.evidence_gap < EVIDENCE_TOLERANCE * searches
+    np.testing.assert_allclose(quick.alpha[0] / quick.beta[0], np.reshape(start, (-1, 3))[0], rtol=1e-12)
+
+    settled = fresh.set_evidence(evidence, start=quick.next_start).posterior_
+    warm = fresh.set_evidence(evidence, start=start).posterior_
+    single = BayesianDynamicField(LOWER, UPPER, 2.0, 0.25, **make).fit(X, V).posterior_
+    assert settled.settled and settled.evidence_gap == 0
+    for got in (settled, warm):
+        np.testing.assert_allclose(
+            np.log(got.alpha / got.beta), np.log(single.alpha / single.beta), atol=10 * LOG_TOLERANCE
+        )
+    assert settled.factorisations < warm.factorisations
+    assert quick.factorisations < warm.factorisations and (directions > 1 or quick.factorisations == 1)
+    lacked = float(np.sum(settled.log_evidence) - np.sum(quick.log_evidence))
+    assert abs(lacked) < EVIDENCE_TOLERANCE
+    optimum = np.log(settled.alpha / settled.beta)
+    far, near = np.abs(np.log(start) - optimum), np.abs(np.log(quick.next_start) - optimum)
+    assert np.all(near <= 0.01 * far)
