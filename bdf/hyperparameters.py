@@ -190,6 +190,9 @@ class Found:
     converged: bool  # a minimum of the cost or a bound, not a maximum nor the evaluations spent
     step: float  # the step it would take next from ``x`` (below LOG_TOLERANCE: settled)
     gain: float  # the nats Newton's step from ``x`` would gain (the local quadratic)
+    #: the evaluations a loose search from the same start makes (the same points, up to
+    #: where it stops: a prefix of this search's)
+    loose_evaluations: int
 
 
 def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False) -> Found:
@@ -203,7 +206,7 @@ def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False
     :data:`LOG_TOLERANCE` (``loose``: or until Newton's step would gain less than
     :data:`EVIDENCE_TOLERANCE`).
     """
-    lo, hi = -np.inf, np.inf
+    lo, hi, loose_evaluations = -np.inf, np.inf, None
     for evaluations in range(1, MAX_EVALUATIONS + 1):
         slope, curvature, fixed_point = evaluate(x)
         log.debug("x=%.9f slope %.4g curvature %.4g fixed point %.4f", x, slope, curvature, fixed_point)
@@ -224,10 +227,12 @@ def _search(evaluate, x: float, bounds: tuple[float, float], loose: bool = False
         proposal = float(np.clip(proposal, *bounds))
         newton = curvature > 0 and proposal == x - slope / curvature
         gain = slope**2 / (2 * curvature) if newton else (0.0 if proposal == x else np.inf)
+        if loose_evaluations is None and (abs(proposal - x) < LOG_TOLERANCE or gain < EVIDENCE_TOLERANCE):
+            loose_evaluations = evaluations
         if abs(proposal - x) < LOG_TOLERANCE or (loose and gain < EVIDENCE_TOLERANCE):
-            return Found(x, evaluations, curvature > 0 or x in bounds, proposal - x, gain)
+            return Found(x, evaluations, curvature > 0 or x in bounds, proposal - x, gain, loose_evaluations)
         x = proposal
-    return Found(x, MAX_EVALUATIONS, False, 0.0, np.inf)
+    return Found(x, MAX_EVALUATIONS, False, 0.0, np.inf, loose_evaluations or MAX_EVALUATIONS)
 
 
 @dataclass
@@ -291,17 +296,20 @@ def fit_evidence(
 
         def search(x0, loose=False, comps=comps, span=span):
             """One search from ``x0``: its last solution, the best it saw by the evidence
-            (value, solution), and where it ended (:class:`Found`)."""
-            latest, best = [None], [np.inf, None]
+            (value, solution), where it ended (:class:`Found`), and the value at each point
+            (x, value)."""
+            latest, best, trail = [None], [np.inf, None], []
 
             def evaluate(x):
                 try:
                     sol = solve(stencil, band, proj, v_sq, scale * np.exp(x))
                 except sparse.NotPositiveDefinite:
+                    trail.append((x, np.inf))
                     return np.nan, np.nan, np.nan  # rounding at the smallest ratios: move up
                 latest[0] = sol
                 a, b = _hyper_for(sol, alpha, beta, count)
                 value = -float(np.sum(log_evidence(sol, a, b, count)[comps]))
+                trail.append((x, value))
                 if value < best[0]:
                     best[:] = value, sol
                 profiled = auto_a & auto_b & (b < MAX_AUTO_BETA)
@@ -315,7 +323,7 @@ def fit_evidence(
                 a, b = _hyper_for(latest[0], alpha, beta, count)
                 value = -float(np.sum(log_evidence(latest[0], a, b, count)[comps]))
                 found.converged = value < best[0] + MISLED_NATS
-            return latest[0], best, found
+            return latest[0], best, found, trail
 
         # From the previous optimum (warm), else from ``anchor`` (cold): the optimum they
         # converge to is the same. Near the floor the slopes are truncation noise: a warm
@@ -332,16 +340,22 @@ def fit_evidence(
                 tries = [(warm, not settle), (cold, False)]
         factored, sol = False, None
         for x0, loose in tries:
-            last, best, found = search(x0, loose)
+            last, best, found, trail = search(x0, loose)
             factorisations += found.evaluations
             factored = factored or best[1] is not None
             if found.converged and found.x >= low:
                 sol, ended = last, found
                 break
         if sol is None and factored:
-            _, best, found = search(cold, loose=True)
-            factorisations += found.evaluations
-            sol, ended = best[1], None  # the answer: no search would settle elsewhere
+            # the anchor's loose search: the points of the cold search just made, up to where
+            # it stops (no need to factor them again); its best by the evidence
+            at, value = min(trail[: found.loose_evaluations], key=lambda point: point[1])
+            if np.isfinite(value):
+                sol = last if last is not None and last.lam == scale * np.exp(at) else None
+                if sol is None:
+                    sol = solve(stencil, band, proj, v_sq, scale * np.exp(at))
+                    factorisations += 1
+            ended = None  # the answer: no search would settle elsewhere
         if sol is None:  # no ratio in the range could be factored
             raise sparse.NotPositiveDefinite(
                 f"the precision matrix is not positive definite at any alpha/beta in "

@@ -210,3 +210,33 @@ def test_a_search_that_need_not_settle_stops_within_a_nat_and_settles_from_where
     optimum = np.log(settled.alpha / settled.beta)
     far, near = np.abs(np.log(start) - optimum), np.abs(np.log(quick.next_start) - optimum)
     assert np.all(near <= 0.01 * far)
+
+
+def test_a_search_that_ends_at_the_floor_factors_no_ratio_twice():
+    """Noise-free data put the optimum below the truncation floor: the searches from the
+    previous optimum and from the anchor end there, and the answer is the anchor's loose
+    search, read from the points already factored (no ratio is factored twice), at the
+    best evidence among them."""
+    from bdf import hyperparameters
+
+    rng = np.random.default_rng(2)
+    X = rng.uniform(LOWER, UPPER, (2000, 3))
+    field = BayesianDynamicField(LOWER, UPPER, 2.0, 0.25, cutoff=1e-6).fit(X, flow(X))
+    evidence, stencil = field.evidence_.total(), field.posterior_.stencil
+    band = evidence.gram_band(stencil)
+    with mock.patch.object(hyperparameters, "solve", wraps=hyperparameters.solve) as solve:
+        fit = hyperparameters.fit_evidence(
+            stencil, band, evidence.proj, evidence.v_sq, evidence.count, "auto", "auto", start=1.0
+        )
+        seen = [call.args[4] for call in solve.call_args_list]
+    floor = hyperparameters.FLOOR_PER_CUTOFF * 1e-6 * np.mean(band[0])
+    assert fit.settled and fit.alpha[0] / fit.beta[0] < floor * np.exp(hyperparameters.NEAR_FLOOR)
+    assert len(set(seen)) == len(seen) == fit.factorisations
+
+    def evidence_at(lam):
+        sol = hyperparameters.solve(stencil, band, evidence.proj, evidence.v_sq, lam)
+        alpha, beta = hyperparameters._hyper_for(sol, "auto", "auto", evidence.count)
+        return hyperparameters.log_evidence(sol, alpha, beta, evidence.count).sum()
+
+    values = {lam: evidence_at(lam) for lam in seen}
+    assert max(values, key=values.get) == pytest.approx(fit.alpha[0] / fit.beta[0], rel=1e-12)

@@ -113,3 +113,43 @@ def test_refreshes_run_one_at_a_time_per_region_and_skip_to_the_newest_version(s
     assert set(computed[:-1]) <= {200.0, 2100.0} and most[0] == 1
     assert maps.stats.skipped >= 18
     assert maps.predict("town", X[:3]).version == 21
+
+
+def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_version_waits(store):
+    """After a small upload the background refresh answers at once with hyperparameters
+    within a nat of the evidence maximum (the answer says how far, the record says not
+    settled); with no newer version waiting it computes the version again, settled on the
+    maximum (the single fit's), and that map replaces the first; the record says so."""
+    spec = RegionSpec.model_validate(SPEC)
+    store.create_region(spec)
+    maps = RegionMaps(store, cache_mb=64)
+    X, V, w = lanes(3000, seed=5)
+    maps.upload("town", "base", X[:2950], V[:2950], sample_weight=w[:2950])
+    maps.refresh("town")
+    calls, gate = [], threading.Event()
+    posterior = maps._posterior
+
+    def gated(spec, evidence, start, stored=True, settle=True):
+        calls.append(settle)
+        if settle:
+            gate.wait(30)
+        return posterior(spec, evidence, start, stored=stored, settle=settle)
+
+    maps._posterior = gated
+    maps.upload("town", "more", X[2950:], V[2950:], sample_weight=w[2950:])
+    quick = maps.predict("town", X[:5], min_version=2)
+    assert quick.version == 2 and 0 < quick.evidence_gap < 1.0
+    recorded = store.region("town").hyper
+    assert recorded["evidence_version"] == 2 and not recorded["settled"]
+    assert recorded["evidence_gap"] == pytest.approx(quick.evidence_gap)
+    gate.set()
+    info = maps.fit_hyperparameters("town")  # waits for the settled map
+    settled = maps.predict("town", X[:5])
+    maps.close()
+    assert calls == [False, True]
+    assert settled.version == 2 and settled.evidence_gap == 0
+    assert info.hyper["settled"] and info.hyper["evidence_version"] == 2 and info.hyper["evidence_gap"] == 0
+    single = spec.field().fit(X, V, sample_weight=w)
+    np.testing.assert_allclose(info.hyper["alpha"], single.alpha_, rtol=1e-6)
+    np.testing.assert_allclose(settled.mean, single.predict(X[:5]), rtol=0, atol=1e-6 * np.abs(V).max())
+    assert maps.stats.settled == 1
