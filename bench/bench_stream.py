@@ -1,7 +1,8 @@
 """Maps under a stream of uploads, on real ADS-B traffic around Paris (issue 35).
 
     .venv/bin/python bench/bench_stream.py [--directions 1,8] [--uploads 1,10,100]
-        [--seconds 30] [--parts calibration,refresh,staleness] [--uploaders 8] [--no-append]
+        [--seconds 30] [--parts calibration,refresh,staleness] [--uploaders 8] [--rates 0,2]
+        [--no-append]
 
 Data: the flight split of the core benchmark (`clients.samples.load_paris`: 20 % of whole
 flights held out, seed 0), track weights (`bdf.ingest.track_weights` on the core
@@ -24,7 +25,9 @@ benchmark's 4 km x 4 km x 1 km cells, as bench_core.py). Region: the demo's
    factorisations and the gap, against the cold map and against the same map computed at
    the optimum found, given (no search: what staying calibrated costs).
 3. Staleness: `bdf serve` (SQLite, defaults) holding each region; 8 uploaders post
-   1,000-row batches and 8 readers query 1,000 points, for ``--seconds``; every answer's
+   1,000-row batches (as fast as they can, rate 0: the stress, the region's whole data
+   again every few seconds; or ``--rates`` uploads per second in all: a busy fleet) and 8
+   readers query 1,000 points, for ``--seconds``; every answer's
    X-Region-Versions-Behind, X-Region-Seconds-Behind and X-Region-Evidence-Gap, and the
    refreshes (and settling passes) done during the load and their time (/metrics).
    Target: at most one refresh behind (seconds behind within about one refresh's time plus
@@ -58,6 +61,7 @@ from bdf.region.map import RegionMap
 from clients import samples
 from clients.local import LocalService
 from clients.samples import PARIS_SPACING_M
+from service.formats import arrow_bytes
 from service.maps import RegionMaps
 from service.store import open_store
 
@@ -227,7 +231,13 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
     }
 
 
-async def staleness(url, train, weight, seconds, uploaders=8, readers=8) -> dict:
+def _upload_body(X, V, weight) -> bytes:
+    """An Arrow upload of rows (with their track weights unless ``weight`` is None)."""
+    cols = {"x": X[:, 0], "y": X[:, 1], "z": X[:, 2], "ve": V[:, 0], "vn": V[:, 1], "vu": V[:, 2]}
+    return arrow_bytes(cols if weight is None else cols | {"sample_weight": weight})
+
+
+async def staleness(url, train, weight, seconds, uploaders=8, readers=8, rate=0.0) -> dict:
     rng = np.random.default_rng(11)
     queries = arrow_points(rng.uniform(*QUERY_BOX, (1000, 3)))
     behind, behind_s, versions, gaps = [], [], [], []
@@ -235,12 +245,16 @@ async def staleness(url, train, weight, seconds, uploaders=8, readers=8) -> dict
     async with httpx.AsyncClient(base_url=url, timeout=600) as c:
 
         async def upload(k):
-            j = 0
+            j, began = 0, time.monotonic()
             while time.monotonic() < stop:
+                if rate > 0:  # this uploader's share of the rate: its j-th upload at j * uploaders / rate
+                    await asyncio.sleep(max(began + j * uploaders / rate - time.monotonic(), 0.0))
                 rows = rng.integers(0, len(train.X), 1000)
                 r = await c.post(
                     "/v1/regions/paris/observations",
-                    content=arrow_points(train.X[rows], train.V[rows]),
+                    content=_upload_body(
+                        train.X[rows], train.V[rows], None if weight is None else weight[rows]
+                    ),
                     headers={"Content-Type": ARROW, "Idempotency-Key": f"stream-{k}-{j}"},
                 )
                 assert r.status_code == 200, r.text
@@ -284,16 +298,19 @@ def _map_metrics(text: str) -> dict:
     return {m[0]: float(m[1]) for m in re.findall(r"^(bdf_map_\w+?)(?:_total)? ([0-9.e+-]+)$", text, re.M)}
 
 
-def served(directions, train, weight, lower, upper, data, seconds, uploaders=8) -> dict:
+def served(directions, train, weight, lower, upper, data, seconds, uploaders=8, rate=0.0) -> dict:
     """:func:`staleness` on a service holding the region of ``directions`` built from the
-    training data (its first map computed before the load starts)."""
+    training data (its first map computed before the load starts), with the rows' track
+    weights, or (``weight`` None) without: the raw rows, whose evidence maximum lies at the
+    search's floor (consecutive samples of a track are far from independent), where every
+    refresh searches from the anchor."""
     spec = samples.paris_demo_region(lower, upper, directions=directions)
     with LocalService(data) as svc:
         with httpx.Client(base_url=svc.url, timeout=900) as c:
             c.post("/v1/regions", json=spec.model_dump(mode="json")).raise_for_status()
             c.post(
                 "/v1/regions/paris/observations",
-                content=arrow_points(train.X, train.V),
+                content=_upload_body(train.X, train.V, weight),
                 headers={"Content-Type": ARROW, "Idempotency-Key": "base"},
             ).raise_for_status()
             while True:  # the first map takes longer than a request's deadline: 503 until it is ready
@@ -309,8 +326,10 @@ def served(directions, train, weight, lower, upper, data, seconds, uploaders=8) 
             r.raise_for_status()
         return {
             "directions": directions,
+            "track weights": weight is not None,
             "uploaders": uploaders,
-            **asyncio.run(staleness(svc.url, train, weight, seconds, uploaders)),
+            "uploads per s": rate or "as fast as they can",
+            **asyncio.run(staleness(svc.url, train, weight, seconds, uploaders, rate=rate)),
         }
 
 
@@ -324,6 +343,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=30.0)
     parser.add_argument("--parts", default="calibration,refresh,staleness")
     parser.add_argument("--uploaders", type=int, default=8)
+    parser.add_argument("--rates", default="0,2", help="uploads per second in all; 0: as fast as they can")
     parser.add_argument("--no-append", action="store_true")
     args = parser.parse_args(argv)
     parts = args.parts.split(",")
@@ -353,13 +373,16 @@ def main(argv=None) -> int:
             report += rows_table(timing_rows).splitlines()
         if "staleness" in parts:
             stale = [
-                served(d, train, weight, lower, upper, Path(tmp) / f"serve{d}", args.seconds, args.uploaders)
+                served(d, train, w, lower, upper, Path(tmp) / f"s{d}{k}{r}", args.seconds, args.uploaders, r)
                 for d in directions
+                for r in [float(r) for r in args.rates.split(",")]
+                for k, w in enumerate([weight] if r else [weight, None])
             ]
             print(rows_table(stale), flush=True)
             report += [
                 "",
-                f"Staleness under {args.uploaders} uploaders (1,000 rows each) and 8 readers (1,000 "
+                f"Staleness under {args.uploaders} uploaders (1,000 rows each; all uploads per s: "
+                f"{args.rates}, 0 as fast as they can) and 8 readers (1,000 "
                 f"points) for {args.seconds:g} s, `bdf serve` on SQLite (defaults):",
                 "",
                 *rows_table(stale).splitlines(),
