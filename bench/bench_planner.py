@@ -326,7 +326,7 @@ def pair_rows(bdf, spec, P, weights, step, args) -> str:
         r, s = plan.route.metrics, plan.baseline.metrics
         length_up.append(r["length_m"] / s["length_m"] - 1)
         risk_down.append(1 - r["integrated_risk_m"] / s["integrated_risk_m"])
-        std_ratio.append(r["service_max_std_mps"] / weights.max_std_mps)
+        std_ratio.append(r["max_std_mps"] / weights.max_std_mps)
     return (
         f"Risk-aware (BIT*, {args.pair_time:g} s) vs shortest over {found} random pairs in the tube "
         f"(>= 20 km apart, {tried} drawn): median length +{100 * np.median(length_up):.1f} % "

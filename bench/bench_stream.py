@@ -222,8 +222,8 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
         "its gap [nats]": float(np.median(gaps)),
         "settling pass [s]": float(np.median(settle)),
         "its factorisations ": int(np.median(settle_f)),
-        "searches' points (ln lam), within a nat | settling": " ".join(f"{x:.7f}" for x in points.x)
-        + " | "
+        "searches' points (ln lam): within a nat; settling": " ".join(f"{x:.7f}" for x in points.x)
+        + "; "
         + " ".join(f"{x:.7f}" for x in settling.x),
         "refresh / cold": float(np.median(quick) / np.median(cold)),
         "refresh / at the optimum given": float(np.median(quick)) / given,
@@ -350,11 +350,12 @@ def main(argv=None) -> int:
     directions = [int(d) for d in args.directions.split(",")]
     counts = [int(u) for u in args.uploads.split(",")]
     train, weight, test, lower, upper = split()
+    given = sys.argv[1:] if argv is None else argv
     report = [
         f"\n## Calibrated under a stream of uploads ({datetime.date.today()}, {platform.machine()}, "
         f"bench/bench_stream.py)\n",
-        f"Command: `.venv/bin/python bench/bench_stream.py --directions {args.directions} "
-        f"--uploads {args.uploads} --seconds {args.seconds:g}`. Paris flight split: {len(train.X)} training, "
+        f"Command: `.venv/bin/python bench/bench_stream.py {' '.join(given)}`. "
+        f"Paris flight split: {len(train.X)} training, "
         f"{len(test.X)} held-out points; the demo's region.\n",
     ]
     with tempfile.TemporaryDirectory() as tmp:

@@ -3,9 +3,9 @@
 The map comes from any :class:`MapSource`: the SDK's client over HTTP, or a region in
 process (:class:`LocalMap`). One grid request fetches mean and std (and, for a directional
 region, every traffic class's modes) for the planning box; both routes are planned in
-fresh worker processes (OMPL holds the GIL and seeds once per process); the std along each
-route (of the mode flown, on a directional region) is then checked against the map's exact
-predictions, every ``check_m``.
+fresh worker processes (OMPL holds the GIL and seeds once per process); each route is then
+judged on the map itself, as any route is (:func:`bdf.region.route.assess`: the service's
+``routes/assess``): std of the mode flown every 10 m, tube, risk, conflict, flow, envelope.
 """
 
 from __future__ import annotations
@@ -22,10 +22,11 @@ import numpy as np
 
 from bdf.region.evidence import increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
-from bdf.region.route import Vehicle, envelope, times_at
+from bdf.region.route import VEHICLES, Vehicle, times_at
+from bdf.region.route import assess as assess_on_map
 from bdf.region.route import vehicle as as_vehicle  # plan_route's argument is named vehicle
 from bdf.region.spec import RegionSpec
-from planner.costmap import CostMap, CostWeights, ModeGrids, path_metrics
+from planner.costmap import CostMap, CostWeights, ModeGrids
 from planner.flyable import flyable
 from planner.search import Box, PlanningProblem, PlanResult, solve
 
@@ -46,8 +47,8 @@ class MapSource(Protocol):
         """An object with ``axes``, ``mean``, ``std``, ``known`` and, with ``modes``,
         ``share``, ``mode_mean``, ``mode_std`` (as :meth:`clients.sdk.BDFClient.grid`)."""
 
-    def query(self, name: str, X, *, heading_deg=None) -> Any:
-        """An object with ``std`` (n, 3) at ``X``, of the mode of ``heading_deg`` if given."""
+    def assess_route(self, name: str, route, *, max_std_mps: float, vehicle: dict, times_s) -> dict:
+        """A route's metrics on the map (as :meth:`clients.sdk.BDFClient.assess_route`)."""
 
 
 @dataclass(frozen=True)
@@ -77,12 +78,6 @@ class LocalGrid:
     @property
     def z(self) -> np.ndarray:
         return self.axes[2]
-
-
-@dataclass(frozen=True)
-class LocalPrediction:
-    mean: np.ndarray
-    std: np.ndarray
 
 
 class LocalMap:
@@ -117,10 +112,10 @@ class LocalMap:
             return LocalGrid(axes, mean, std, known)
         return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std, m.share_std)
 
-    def query(self, name: str, X, *, heading_deg=None) -> LocalPrediction:
+    def assess_route(self, name: str, route, *, max_std_mps: float, vehicle: dict, times_s) -> dict:
         self._check(name)
-        mean, std, _ = self.map.predict(np.asarray(X, float), heading_deg)
-        return LocalPrediction(mean, std)
+        craft = Vehicle(**vehicle)
+        return assess_on_map(self.map, route, max_std_mps=max_std_mps, craft=craft, times_s=times_s)
 
 
 @dataclass
@@ -258,7 +253,6 @@ def plan_route(
     time_s: float = 5.0,
     seed: int | None = None,
     max_iterations: int | None = None,
-    check_m: float = 10.0,
     vehicle: Vehicle | str | None = None,
 ) -> RoutePlan:
     """Plan the risk-aware route from ``start`` to ``goal`` (ENU metres, or lat, lon, alt_m
@@ -291,7 +285,7 @@ def plan_route(
     # the planner settings of every attempt: PlanningProblem's keyword arguments
     run = dict(no_fly=tuple(no_fly), planner=planner, time_s=time_s, max_iterations=max_iterations, seed=seed)
     for refine in range(REFINES + 1):
-        plan = _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m, craft)
+        plan = _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, craft)
         bound, route = weights.max_std_mps, plan.route
         if weights.tube != "hard" or route is None or route.planned_max_std_mps <= bound:
             return plan
@@ -309,7 +303,7 @@ def plan_route(
     return plan
 
 
-def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, check_m, craft) -> RoutePlan:
+def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, craft) -> RoutePlan:
     """One grid request, the two plans on it (worker processes), both routes measured."""
     lo, hi = box[0].copy(), box[1]
     # on the region's lattice of this step: the same voxels as any other grid of the step
@@ -336,47 +330,40 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, ch
             f"within {run['time_s']} s ({short.status})"
         )
     route = None
-    measure = (client, region, spec, costmap, check_m, craft)
+    measure = (client, region, spec, costmap, craft)
     if solution.exact:
         route = _route("risk-aware", solution.waypoints, solution, *measure)
     baseline = _route("shortest", baseline_path, short, *measure)
     return RoutePlan(spec, costmap, route, baseline, solution.status)
 
 
-def _route(name, planned, solution, client, region, spec, costmap, check_m, craft) -> Route:
-    """The route flown (the planned polyline, made flyable by ``craft`` if given) with its
-    metrics on the cost map and the service's std along it."""
+def _route(name, planned, solution, client, region, spec, costmap, craft) -> Route:
+    """The route flown (the planned polyline, made flyable by ``craft`` if given), judged on
+    the map as any route is (``assess_route``; the envelope's verdict kept with a vehicle),
+    and its cost on the plan's cost map (the planner's objective)."""
     P = planned if craft is None else flyable(planned, craft)
-    metrics = path_metrics(costmap, P)
-    std = _service_std(client, region, spec, P, check_m)
-    bound = costmap.weights.max_std_mps
-    metrics.update(
-        service_max_std_mps=float(std.max()), service_in_tube_fraction=float(np.mean(std <= bound))
-    )
-    planned_std = std if craft is None else _service_std(client, region, spec, planned, check_m)
+    cruise = costmap.weights.cruise_mps
+    judge = dict(max_std_mps=costmap.weights.max_std_mps, vehicle=dataclasses.asdict(craft or _TIMED))
+    judged = client.assess_route(region, P, times_s=times_at(P, cruise), **judge)
+    metrics = {"cost_m": float(costmap.segment_costs(P[:-1], P[1:]).sum()), **judged["total"]}
+    if craft is not None:
+        before = client.assess_route(region, planned, times_s=times_at(planned, cruise), **judge)
     return Route(
         name,
         P,
         spec.frame().to_geodetic(P),
-        times_at(P, costmap.weights.cruise_mps),
+        times_at(P, cruise),
         metrics,
         solution,
         planned,
-        None if craft is None else envelope(P, craft),
-        float(planned_std.max()),
+        None if craft is None else judged["envelope"],
+        metrics["max_std_mps"] if craft is None else before["total"]["max_std_mps"],
     )
 
 
-def _service_std(client, region, spec, P, check_m) -> np.ndarray:
-    """The map's own std (not the grid's interpolation) every ``check_m`` along ``P``, the
-    largest component, of the mode flown."""
-    X = densify(P, check_m)
-    heading = None
-    if spec.directions > 1:
-        step = np.diff(X, axis=0)
-        heading = np.degrees(np.arctan2(step[:, 0], step[:, 1]))
-        heading = np.append(heading, heading[-1:])
-    return client.query(region, X, heading_deg=heading).std.max(axis=1)
+#: The vehicle a route planned without one is judged with: its times are given, its envelope
+#: is not reported.
+_TIMED = VEHICLES["evtol"]
 
 
 def densify(P: np.ndarray, spacing_m: float) -> np.ndarray:

@@ -128,7 +128,8 @@ class RouteBody(BaseModel):
 class AssessResult(BaseModel):
     segments: dict[str, list[float]] = Field(
         description="per segment: length_m, duration_s, max_std_mps, mean_std_mps, in_tube_fraction, "
-        "integrated_risk_m, conflict_exposure, flow_mismatch_mps"
+        "integrated_risk_m, conflict_exposure, flow_mismatch_mps, flow_heading_offset_deg, "
+        "traffic_speed_mps"
     )
     total: dict[str, float] = Field(description="the same over the whole route")
     envelope: dict[str, float | bool | None] = Field(

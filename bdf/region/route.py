@@ -193,7 +193,10 @@ def assess(
     ``∫ std / max_std_mps ds`` (metres), the conflict exposure (the length-weighted mean
     share of traffic in sectors at least :data:`~bdf.sectors.CROSSING_DEG` off the heading;
     0 on a map of one class) and the flow mismatch (the length-weighted mean of
-    ``|route velocity - mean of the mode flown|``, m/s); and the envelope's verdict.
+    ``|route velocity - mean of the mode flown|``, m/s), split into its direction (the mean
+    angle between the route's heading and the mode's, degrees) and the mode's horizontal
+    speed (a route flying with traffic much faster than itself has a large mismatch at no
+    angle); and the envelope's verdict.
     """
     spec = region_map.spec
     P, times_s, heading = checked(P, craft, times_s, heading_deg)
@@ -221,7 +224,11 @@ def assess(
         flown = np.where(speed < sectors.slow_mps, sectors.directions, sector)
     rows = np.arange(len(X))
     std = modes.std[rows, flown].max(axis=1)
-    mismatch = np.linalg.norm(velocity[seg] - modes.mean[rows, flown], axis=1)
+    traffic = modes.mean[rows, flown]
+    mismatch = np.linalg.norm(velocity[seg] - traffic, axis=1)
+    traffic_heading = np.degrees(np.arctan2(traffic[:, 0], traffic[:, 1]))
+    offset = np.abs((traffic_heading - heading[seg] + 180.0) % 360.0 - 180.0)
+    traffic_speed = np.hypot(traffic[:, 0], traffic[:, 1])
     if sectors.classes == 1:
         crossing = np.zeros(len(X))
     else:
@@ -246,6 +253,8 @@ def assess(
         "integrated_risk_m": per_segment(std / max_std_mps),
         "conflict_exposure": per_segment(crossing) / length,
         "flow_mismatch_mps": per_segment(mismatch) / length,
+        "flow_heading_offset_deg": per_segment(offset) / length,
+        "traffic_speed_mps": per_segment(traffic_speed) / length,
     }
     total_length = float(length.sum())
     totals = {
@@ -257,6 +266,8 @@ def assess(
         "integrated_risk_m": float((std / max_std_mps * ds).sum()),
         "conflict_exposure": float((crossing * ds).sum() / total_length),
         "flow_mismatch_mps": float((mismatch * ds).sum() / total_length),
+        "flow_heading_offset_deg": float((offset * ds).sum() / total_length),
+        "traffic_speed_mps": float((traffic_speed * ds).sum() / total_length),
     }
     return {
         "segments": {k: v.tolist() for k, v in segments.items()},

@@ -57,7 +57,7 @@ def test_hard_tube_route_stays_below_the_bound_where_the_straight_line_does_not(
     assert along.max() <= BOUND
     assert straight.max() > 5 * BOUND  # across the gap: the prior, on the scale of the flow
     np.testing.assert_allclose(route[[0, -1]], [START, GOAL], atol=1e-3)
-    assert plan.route.metrics["service_max_std_mps"] == pytest.approx(along.max(), rel=0.05)
+    assert plan.route.metrics["max_std_mps"] == pytest.approx(along.max(), rel=0.05)
     assert plan.route.metrics["integrated_risk_m"] < plan.baseline.metrics["integrated_risk_m"] / 3
     assert plan.route.metrics["length_m"] > plan.baseline.metrics["length_m"] == pytest.approx(260)
     geo = plan.geojson()
@@ -104,7 +104,7 @@ def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(servi
     assert run.returncode == 0, run.stderr
     assert "risk-aware" in run.stdout and "integrated_risk_m" in run.stdout
     features = json.loads(out.read_text())["features"]
-    assert features[0]["properties"]["service_in_tube_fraction"] > 0.95  # flown: fillets cut its corners
+    assert features[0]["properties"]["in_tube_fraction"] > 0.95  # flown: fillets cut its corners
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     bad = bdf_cli(*common, "--start", "150,60,30", "--goal", "280,100,30")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "outside the tube" in bad.stderr
@@ -164,7 +164,7 @@ def test_a_directional_map_routes_with_the_traffic_not_against_it():
     assert directional["cost_m"] < today["cost_m"]  # both scored on the directional map
     assert directional["length_m"] < 1.15 * today["length_m"]
     # its std is the eastbound mode's, inside the tube, checked against the map's own
-    assert plans[4].route.metrics["service_max_std_mps"] <= 6.0
+    assert plans[4].route.metrics["max_std_mps"] <= 6.0
     with pytest.raises(ValueError, match="holds region 'lanes'"):
         LocalMap.fit(spec, X[:100], V[:100]).grid("other", 10.0)
 
@@ -199,7 +199,7 @@ def test_planned_routes_are_flown_within_the_vehicles_envelope_and_timed(service
     radius = plan.route.envelope["min_turn_radius_m"]
     assert DRONE.min_turn_radius_m * 0.98 <= radius < 1.5 * DRONE.min_turn_radius_m
     assert not envelope(plan.route.enu, dataclasses.replace(DRONE, min_turn_radius_m=45.0))["turn_ok"]
-    assert plan.route.metrics["service_in_tube_fraction"] > 0.95
+    assert plan.route.metrics["in_tube_fraction"] > 0.95
     properties = plan.geojson()["features"][0]["properties"]
     assert properties["times_s"] == plan.route.times_s.tolist() and properties["envelope"]["flyable"]
     assert "envelope: flyable" in plan.table()

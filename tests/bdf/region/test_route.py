@@ -123,6 +123,10 @@ def test_assess_equals_a_direct_integration_of_the_maps_predictions(region_map):
         assert seg["flow_mismatch_mps"][i] == pytest.approx(
             np.linalg.norm(v - mean, axis=1).mean(), rel=1e-12
         )
+        turn = np.degrees(np.arctan2(mean[:, 0], mean[:, 1])) - heading
+        offset = np.abs((turn + 180.0) % 360.0 - 180.0)
+        assert seg["flow_heading_offset_deg"][i] == pytest.approx(offset.mean(), rel=1e-12)
+        assert seg["traffic_speed_mps"][i] == pytest.approx(np.hypot(*mean[:, :2].T).mean(), rel=1e-12)
         if spec.directions > 1:
             modes = region_map.predict_modes(X)
             off = np.abs((spec.sectors.centres_deg - heading + 180.0) % 360.0 - 180.0)
@@ -135,7 +139,14 @@ def test_assess_equals_a_direct_integration_of_the_maps_predictions(region_map):
     total = got["total"]
     assert total["length_m"] == pytest.approx(lengths.sum(), rel=1e-14)
     assert total["duration_s"] == pytest.approx(lengths.sum() / CRAFT.cruise_mps, rel=1e-14)
-    for key in ("mean_std_mps", "in_tube_fraction", "conflict_exposure", "flow_mismatch_mps"):
+    for key in (
+        "mean_std_mps",
+        "in_tube_fraction",
+        "conflict_exposure",
+        "flow_mismatch_mps",
+        "flow_heading_offset_deg",
+        "traffic_speed_mps",
+    ):
         assert total[key] == pytest.approx(np.dot(seg[key], lengths) / lengths.sum(), rel=1e-12), key
     assert total["integrated_risk_m"] == pytest.approx(sum(seg["integrated_risk_m"]), rel=1e-12)
     assert total["max_std_mps"] == max(seg["max_std_mps"])
