@@ -50,7 +50,7 @@ from clients.sdk import BDFClient
 from planner.costmap import CostMap, CostWeights, path_metrics
 from planner.dijkstra import lattice_optimum
 from planner.routes import LocalMap, plan_route
-from planner.search import PLANNERS, PlanningProblem, solve_in_worker
+from planner.search import PLANNERS, PlanningProblem, solve_in_workers
 
 CHECKPOINTS = (1.0, 5.0, 10.0)
 NOTE = (
@@ -136,16 +136,18 @@ def planner_rows(costmap: CostMap, a, b) -> list[dict]:
         }
     ]
     for name in PLANNERS:
-        sol = solve_in_worker(
-            PlanningProblem(
-                costmap,
-                tuple(a),
-                tuple(b),
-                planner=name,
-                time_s=max(CHECKPOINTS),
-                checkpoints_s=CHECKPOINTS,
-                seed=1,
-            )
+        (sol,) = solve_in_workers(
+            [
+                PlanningProblem(
+                    costmap,
+                    tuple(a),
+                    tuple(b),
+                    planner=name,
+                    time_s=max(CHECKPOINTS),
+                    checkpoints_s=CHECKPOINTS,
+                    seed=1,
+                )
+            ]
         )
         row = {"planner": name, "first solution s": _round(sol.first_solution_s)}
         for c in CHECKPOINTS:

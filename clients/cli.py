@@ -212,7 +212,7 @@ def _plan(args) -> int:
             no_fly=no_fly,
             step=None if args.step is None else _floats(args.step, (1, 3), "--step"),
             planner=args.planner,
-            time_s=args.time,
+            **({} if args.time is None else {"time_s": args.time}),
             seed=args.seed,
             max_iterations=args.iterations,
             vehicle=_vehicle(args.vehicle),
@@ -607,7 +607,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=PLANNERS,
         help="default bitstar",
     )
-    p.add_argument("--time", type=float, default=5.0, help="planning budget in seconds (default 5)")
+    p.add_argument("--time", type=float, help="each planner's budget in seconds (default 3)")
     p.add_argument("--seed", type=int, help="OMPL seed (reproducible with --iterations)")
     p.add_argument("--iterations", type=int, help="stop after this many iterations instead of --time")
     p.add_argument("--out", help="GeoJSON file with both routes and their metrics")

@@ -41,7 +41,9 @@ SIDE_OFFSET_M = 15_000.0
 DIRECTIONS = 8
 
 
-def run(out: Path, plan_time_s: float = 5.0, url: str | None = None, token: str | None = None) -> dict:
+def run(
+    out: Path, plan_time_s: float | None = None, url: str | None = None, token: str | None = None
+) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     obs, lower, upper = samples.load_paris()
@@ -179,11 +181,13 @@ def across_flow(P: np.ndarray, centre, direction, offset_m: float = SIDE_OFFSET_
     return ends[0], ends[1]
 
 
-def _plan(bdf: BDFClient, spec, flow, time_s: float):
-    """A route across the busiest flow, between tube points on either side of it."""
+def _plan(bdf: BDFClient, spec, flow, time_s: float | None):
+    """A route across the busiest flow, between tube points on either side of it (each
+    planner's budget ``time_s``, by default ``plan_route``'s)."""
     from planner.costmap import CostWeights
-    from planner.routes import plan_route
+    from planner.routes import PLAN_TIME_S, plan_route
 
+    time_s = PLAN_TIME_S if time_s is None else time_s
     grid, bound, P = tube_voxels(bdf, spec)
     step = [float(a[1] - a[0]) for a in grid.axes]
     centre, direction, flights = flow

@@ -13,8 +13,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -28,10 +26,13 @@ from bdf.region.route import vehicle as as_vehicle  # plan_route's argument is n
 from bdf.region.spec import RegionSpec
 from planner.costmap import CostMap, CostWeights, ModeGrids
 from planner.flyable import flyable
-from planner.search import Box, PlanningProblem, PlanResult, solve
+from planner.search import Box, PlanningProblem, PlanResult, solve_in_workers
 
 log = logging.getLogger(__name__)
 MAX_VOXELS = 400_000
+#: Each planner's budget by default (s): a whole plan (grid, both plans side by side, flyable
+#: paths, both judged on the map) then takes about 4-5 s on 2 cores (bench_planner.py).
+PLAN_TIME_S = 3.0
 #: A hard-tube route the service finds above the bound is planned again on a grid of half
 #: the step, at most this many times (and while the grid stays within 4 x MAX_VOXELS).
 REFINES = 2
@@ -250,7 +251,7 @@ def plan_route(
     step=None,
     margin_m: float | None = None,
     planner: str = "bitstar",
-    time_s: float = 5.0,
+    time_s: float = PLAN_TIME_S,
     seed: int | None = None,
     max_iterations: int | None = None,
     vehicle: Vehicle | str | None = None,
@@ -317,12 +318,8 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, cr
     risk = PlanningProblem(costmap, tuple(start), tuple(goal), band, **run)
     shortest = dataclasses.replace(risk, objective="length")
     straight = shortest.segments_valid(start[None], goal[None])[0]
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(2, mp_context=context, max_tasks_per_child=1) as pool:
-        risk_run = pool.submit(solve, risk)
-        short_run = None if straight else pool.submit(solve, shortest)
-        solution = risk_run.result()
-        short = short_run.result() if short_run else None
+    solution, *rest = solve_in_workers([risk] if straight else [risk, shortest])
+    short = rest[0] if rest else None
     baseline_path = np.array([start, goal]) if straight else short.waypoints
     if len(baseline_path) < 2:
         raise ValueError(

@@ -11,7 +11,7 @@ import pytest
 from planner.costmap import CostMap, CostWeights
 from planner.dijkstra import lattice_optimum
 from planner.routes import densify
-from planner.search import PLANNERS, Box, PlanningProblem, solve_in_worker
+from planner.search import PLANNERS, Box, PlanningProblem, solve_in_workers
 
 pytestmark = pytest.mark.slow  # OMPL planners run for seconds
 
@@ -37,7 +37,7 @@ def test_every_planner_detours_inside_the_tube(blocked, planner):
         blocked, START, GOAL, planner=planner, time_s=120.0, max_iterations=iterations, fmt_samples=60, seed=1
     )
     assert not problem.segments_valid(np.array([START]), np.array([GOAL]))[0]
-    sol = solve_in_worker(problem)
+    sol = solve_in_workers([problem])[0]
     assert sol.exact, sol.status
     P = sol.waypoints
     np.testing.assert_allclose(P[0], START)
@@ -51,14 +51,14 @@ def test_every_planner_detours_inside_the_tube(blocked, planner):
 
 
 def test_seeded_iteration_bounded_runs_repeat_and_simplifying_never_raises_the_cost(blocked):
-    runs = [
-        solve_in_worker(
+    runs = solve_in_workers(
+        [
             PlanningProblem(
                 blocked, START, GOAL, planner="rrtstar", seed=seed, max_iterations=400, simplify=simplify
             )
-        )
-        for seed, simplify in ((7, True), (7, True), (8, True), (7, False))
-    ]
+            for seed, simplify in ((7, True), (7, True), (8, True), (7, False))
+        ]
+    )
     np.testing.assert_array_equal(runs[0].waypoints, runs[1].waypoints)
     assert not np.array_equal(runs[0].waypoints, runs[2].waypoints)
     assert runs[0].cost <= runs[3].cost  # the same run, simplified and not
@@ -67,7 +67,7 @@ def test_seeded_iteration_bounded_runs_repeat_and_simplifying_never_raises_the_c
 def test_no_fly_box_is_avoided_by_the_shortest_path(blocked):
     wall = Box((900.0, 0.0, 0.0), (1100.0, 1500.0, 300.0))
     problem = PlanningProblem(blocked, START, GOAL, no_fly=(wall,), objective="length", time_s=1.5)
-    sol = solve_in_worker(problem)
+    sol = solve_in_workers([problem])[0]
     assert sol.exact and not wall.hits(sol.waypoints[:-1], sol.waypoints[1:]).any()
     assert sol.waypoints[:, 1].max() > 1500  # over the wall's end: the only way round
 
@@ -83,7 +83,7 @@ def test_planning_in_a_worker_leaves_the_callers_threads_running(blocked):
     thread = threading.Thread(target=tick)
     thread.start()
     t0 = time.perf_counter()
-    solve_in_worker(PlanningProblem(blocked, START, GOAL, time_s=1.5))
+    solve_in_workers([PlanningProblem(blocked, START, GOAL, time_s=1.5)])[0]
     elapsed = time.perf_counter() - t0
     done.set()
     thread.join()
@@ -94,7 +94,7 @@ def test_lattice_optimum_bounds_the_planner_from_near_and_matches_a_straight_cor
     problem = PlanningProblem(blocked, START, GOAL, time_s=2.0, seed=3)
     lattice_cost, P = lattice_optimum(problem)
     assert problem.segments_valid(P[1:-2], P[2:-1]).all()
-    sol = solve_in_worker(problem)
+    sol = solve_in_workers([problem])[0]
     # the sampling planner is near the lattice optimum (which is only 26-connected)
     assert 0.8 * lattice_cost < sol.cost < 1.3 * lattice_cost
     # along an axis-aligned, obstacle-free line, the lattice path is the straight line
