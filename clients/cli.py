@@ -226,7 +226,8 @@ def _plan(args) -> int:
 
         print(f"wrote {plot_route(plan, args.png)}")
     if plan.route is None:
-        print(f"bdf: no risk-aware route within {args.time} s ({plan.status})", file=sys.stderr)
+        budget = f"{args.iterations} iterations" if args.iterations else "the planning budget"
+        print(f"bdf: no risk-aware route within {budget} ({plan.status})", file=sys.stderr)
         return NO_ROUTE
     return 0
 

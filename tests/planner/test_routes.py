@@ -83,8 +83,10 @@ def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(servi
         "corridor",
         "--max-std-mps",
         str(BOUND),
-        "--time",
-        "2.5",
+        "--seed",
+        "1",
+        "--iterations",
+        "3000",
         "--vehicle",
         json.dumps(dataclasses.asdict(DRONE)),
     ]
