@@ -14,11 +14,12 @@ same random pairs and both routes scored on the directional map: median change o
 conflict exposure (the share of crossing or opposing traffic along the route) and of length.
 
 With ``--vehicle NAME``, only this: the demo's map (its lattice, 8 sectors) in process, and
-``--pairs`` random pairs planned for the vehicle (BIT*, hard tube, ``--pair-time`` s): each
-risk-aware route as planned (unconstrained) and as flown (made flyable), and the shortest
-path made flyable, scored on the cost map (cost, length, conflict exposure, max std) and
-against the vehicle's envelope; the time of a whole ``plan_route`` (grid, both plans,
-flyable paths, the service's check).
+``--pairs`` random pairs planned for the vehicle (BIT*, hard tube, ``plan_route`` with a
+budget of ``--pair-time`` s in all): each risk-aware route as planned (unconstrained) and as
+flown (made flyable), the shortest path made flyable, and the route planned in OMPL's
+``VanaOwenStateSpace`` instead (BIT*, ``--pair-time`` s of search), scored on the cost map
+(cost, length, conflict exposure, max std) and against the vehicle's envelope; the time of
+a whole ``plan_route`` (grid, both plans, flyable paths, both judged on the map).
 
     python bench/bench_planner.py [--pairs 20] [--pair-time 3] [--directions 8 | --vehicle evtol]
 """
@@ -221,7 +222,7 @@ def directional_pairs(obs, spec, args) -> str:
     )
 
 
-NAMES = ("unconstrained", "flyable", "shortest flyable")
+NAMES = ("unconstrained", "flyable", "shortest flyable", "planned in VanaOwen")
 SCORES = ("cost_m", "length_m", "conflict_exposure", "max_std_mps", "in_tube_fraction")
 
 
@@ -249,13 +250,22 @@ def flyable_pairs(obs, lower, upper, args) -> str:
         plan_s = time.perf_counter() - t0
         if plan.route is None:
             continue
-        rows.append(_flyable_row(plan, craft, plan_s))
+        constrained, constrained_s = vana_owen_plan(plan.costmap, a, b, craft, args.pair_time)
+        rows.append(_flyable_row(plan, craft, plan_s, constrained, constrained_s))
 
     def median(name, key, scale=1.0):
-        return f"{np.median([r[(name, key)] for r in rows]) / scale:.3g}"
+        values = [r[(name, key)] for r in rows if (name, key) in r]
+        return f"{np.median(values) / scale:.3g}" if values else "-"
 
-    table = ["| | unconstrained (as planned) | flyable (as flown) | shortest flyable |", "|---|---|---|---|"]
-    within = [f"{np.mean([r[(n, 'flyable')] for r in rows]):.0%}" for n in NAMES]
+    found = sum(("planned in VanaOwen", "cost_m") in r for r in rows)
+    table = [
+        "| | unconstrained (as planned) | flyable (as flown) | shortest flyable | planned in VanaOwen |",
+        "|---|---|---|---|---|",
+        f"| routes found | {len(rows)} | {len(rows)} | {len(rows)} | {found} |",
+    ]
+    within = [
+        f"{np.mean([r[(n, 'flyable')] for r in rows if (n, 'flyable') in r] or [np.nan]):.0%}" for n in NAMES
+    ]
     table.append(f"| within the envelope | {' | '.join(within)} |")
     for key, label in zip(SCORES, ("cost [km]", "length [km]", "conflict exposure", "max std [m/s]",
                                    "fraction in the tube"), strict=True):  # fmt: skip
@@ -264,7 +274,13 @@ def flyable_pairs(obs, lower, upper, args) -> str:
     for key, label in (("cost_m", "cost"), ("length_m", "length")):
         ratio = [r[("flyable", key)] / r[("unconstrained", key)] for r in rows]
         cell = f"{np.median(ratio):.3f} ({np.max(ratio):.3f})"
-        table.append(f"| flyable / unconstrained {label}: median (max) | | {cell} | |")
+        table.append(f"| flyable / unconstrained {label}: median (max) | | {cell} | | |")
+    with_both = [r for r in rows if ("planned in VanaOwen", "cost_m") in r]
+    if with_both:
+        ratio = [r[("planned in VanaOwen", "cost_m")] / r[("flyable", "cost_m")] for r in with_both]
+        cell = f"{np.median(ratio):.3f} ({np.max(ratio):.3f})"
+        table.append(f"| VanaOwen / flyable cost, where both: median (max) | | | | {cell} |")
+    planned_s = [r["VanaOwen s"] for r in rows]
     times = [r["plan s"] for r in rows]
     command = " ".join([Path(sys.executable).name, *sys.argv])
     return "\n".join(
@@ -273,24 +289,105 @@ def flyable_pairs(obs, lower, upper, args) -> str:
             "",
             f"`{command}` on {platform.machine()}, {os.cpu_count()} cores. The demo's map in process "
             f"(8 sectors, fit {fit_s:.0f} s); {len(rows)} random pairs in the tube >= 20 km apart ({tried} "
-            f"drawn); BIT* {args.pair_time:g} s per route, hard tube at {bound:.1f} m/s, vehicle "
+            f"drawn); plan_route's budget {args.pair_time:g} s per route, hard tube at {bound:.1f} m/s, "
+            "vehicle "
             f"{args.vehicle}: {craft}. All paths scored on the plan's cost map.",
             "",
             *table,
             "",
             f"`plan_route` per pair (grid, both plans in parallel, flyable paths, the map's check): median "
-            f"{np.median(times):.1f} s, max {np.max(times):.1f} s. The lattice optimum of this directional "
-            "cost does not fit in memory at this grid (26-connected edges x 9 classes); it stays the "
-            "reference of the unconstrained cost on the one-class map (the planners' table of this bench).",
+            f"{np.median(times):.1f} s, max {np.max(times):.1f} s. Planning in `VanaOwenStateSpace` (BIT* "
+            f"{args.pair_time:g} s, a plain objective integrating the cost map along each curved motion, in "
+            f"this process after plan_route): median {np.median(planned_s):.1f} s. The lattice optimum of "
+            "this directional cost does not fit in memory at this grid (26-connected edges x 9 classes); it "
+            "stays the reference of the unconstrained cost on the one-class map (the planners' table of "
+            "this bench).",
         ]
     )
 
 
-def _flyable_row(plan, craft, plan_s) -> dict:
+def vana_owen_plan(costmap: CostMap, a, b, craft, time_s: float) -> tuple[np.ndarray | None, float]:
+    """The risk-aware route planned in OMPL's ``VanaOwenStateSpace`` (curvature- and
+    pitch-constrained Dubins-airplane paths, docs/ompl.md section 10): BIT* with a plain
+    ``OptimizationObjective`` (the PathLength subclass's informed sampler refuses this space)
+    whose motion cost integrates the cost map along the curved motion (``interpolate``), the
+    hard tube checked at the same points, start and goal headed along their chord. Returns
+    the path interpolated every 50 m (None if none found) and the wall time."""
+    from ompl import base as ob
+    from ompl import geometric as og
+    from ompl import util as ou
+
+    ou.setLogLevel(ou.LOG_ERROR)
+    t0 = time.perf_counter()
+    pitch = np.radians(min(craft.max_climb_deg, craft.max_descent_deg))
+    space = ob.VanaOwenStateSpace(craft.min_turn_radius_m, float(pitch))
+    bounds = ob.RealVectorBounds(3)
+    lower, upper = costmap.lower, costmap.upper
+    bounds.low = [float(v) for v in lower]
+    bounds.high = [float(v) for v in upper]
+    space.setBounds(bounds)
+    ss = og.SimpleSetup(space)
+    si = ss.getSpaceInformation()
+    bound = costmap.weights.max_std_mps
+    scratch = space.allocState()
+
+    def along(s1, s2) -> np.ndarray:
+        n = max(int(space.distance(s1, s2) / costmap.sample_m), 1) + 1
+        out = np.empty((n, 3))
+        for i, t in enumerate(np.linspace(0.0, 1.0, n)):
+            space.interpolate(s1, s2, float(t), scratch)
+            out[i] = scratch[0], scratch[1], scratch[2]
+        return out
+
+    class Checker(ob.StateValidityChecker):
+        def isValid(self, s):
+            inside = all(lower[d] <= s[d] <= upper[d] for d in range(3))
+            return inside and bool(costmap.max_std_high(np.array([[s[0], s[1], s[2]]]))[0] <= bound)
+
+    class Motions(ob.MotionValidator):
+        def checkMotion(self, s1, s2):
+            P = along(s1, s2)
+            if np.any(P < lower) or np.any(P > upper):
+                return False
+            return bool(costmap.segments_in_tube(P[:-1], P[1:]).all())
+
+    class Objective(ob.OptimizationObjective):
+        def stateCost(self, s):
+            return ob.Cost(0.0)
+
+        def motionCost(self, s1, s2):
+            P = along(s1, s2)
+            return ob.Cost(float(costmap.segment_costs(P[:-1], P[1:]).sum()))
+
+    checker, motions = Checker(si), Motions(si)
+    ss.setStateValidityChecker(checker)
+    si.setMotionValidator(motions)
+    ss.setOptimizationObjective(Objective(si))
+    heading = float(np.arctan2(b[1] - a[1], b[0] - a[0]))  # yaw: from the x axis
+    start, goal = space.allocState(), space.allocState()
+    for state, p in ((start, a), (goal, b)):
+        state[0], state[1], state[2] = (float(v) for v in p)
+        state.setYaw(heading)
+    ss.setStartAndGoalStates(start, goal, 1.0)
+    ss.setPlanner(og.BITstar(si))
+    ss.solve(time_s)
+    if not ss.haveExactSolutionPath():
+        return None, time.perf_counter() - t0
+    path = og.PathGeometric(ss.getSolutionPath())
+    path.interpolate(max(int(path.length() / 50.0), 2))
+    P = np.array([[s[0], s[1], s[2]] for s in path.getStates()])
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(P, axis=0), axis=1) > 1e-6])
+    return P[keep], time.perf_counter() - t0
+
+
+def _flyable_row(plan, craft, plan_s, constrained, constrained_s) -> dict:
     """One pair's paths scored on the plan's cost map and against the envelope."""
     cm = plan.costmap
-    paths = dict(zip(NAMES, (plan.route.planned, plan.route.enu, plan.baseline.enu), strict=True))
-    row = {"plan s": plan_s}
+    found = (plan.route.planned, plan.route.enu, plan.baseline.enu, constrained)
+    paths = dict(zip(NAMES, found, strict=True))
+    if constrained is None:
+        del paths["planned in VanaOwen"]
+    row = {"plan s": plan_s, "VanaOwen s": constrained_s}
     for name, path in paths.items():
         m = path_metrics(cm, path)
         row |= {(name, k): m[k] for k in SCORES}

@@ -608,7 +608,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=PLANNERS,
         help="default bitstar",
     )
-    p.add_argument("--time", type=float, help="each planner's budget in seconds (default 3)")
+    p.add_argument("--time", type=float, help="the plan's budget in seconds (default 5)")
     p.add_argument("--seed", type=int, help="OMPL seed (reproducible with --iterations)")
     p.add_argument("--iterations", type=int, help="stop after this many iterations instead of --time")
     p.add_argument("--out", help="GeoJSON file with both routes and their metrics")

@@ -197,7 +197,7 @@ def _plan(bdf: BDFClient, spec, flow, time_s: float | None):
         f"\nbusiest flow in the band {ROUTE_BAND_M} m: {flights} flights cross the {FLOW_CELL_M / 1e3:g} km "
         f"cell at {np.round(centre / 1e3, 1).tolist()} km (ENU), heading {heading:.0f} deg"
         f"\nplanning {np.linalg.norm(b - a) / 1e3:.1f} km across it from {a.round().tolist()} to "
-        f"{b.round().tolist()} (ENU m) inside the tube std < {bound:.1f} m/s, BIT* {time_s:g} s"
+        f"{b.round().tolist()} (ENU m) inside the tube std < {bound:.1f} m/s, planning in {time_s:g} s"
     )
     return plan_route(
         bdf,

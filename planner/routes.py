@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
+import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -30,9 +31,11 @@ from planner.search import Box, PlanningProblem, PlanResult, solve_in_workers
 
 log = logging.getLogger(__name__)
 MAX_VOXELS = 400_000
-#: Each planner's budget by default (s): a whole plan (grid, both plans side by side, flyable
-#: paths, both judged on the map) then takes about 4-5 s on 2 cores (bench_planner.py).
-PLAN_TIME_S = 3.0
+#: A plan's budget by default (s): the grid, both plans side by side, the flyable paths and
+#: both judged on the map (bench_planner.py measures it).
+PLAN_TIME_S = 5.0
+#: What a plan keeps of its budget for judging both routes on the map after the planners (s).
+JUDGE_S = 0.3
 #: A hard-tube route the service finds above the bound is planned again on a grid of half
 #: the step, at most this many times (and while the grid stays within 4 x MAX_VOXELS).
 REFINES = 2
@@ -263,6 +266,10 @@ def plan_route(
     rises above the bound between grid nodes is planned again on a grid of half the step
     (up to ``REFINES`` times); the last plan is returned, with a warning if it still does.
 
+    ``time_s``: each attempt's budget, from the grid request to both routes judged: the
+    planners stop in time for it (their processes' start counts); with ``max_iterations``
+    they run that many iterations instead.
+
     ``vehicle`` (a :class:`~bdf.region.route.Vehicle` or its name): both routes are made
     flyable by it (:func:`planner.flyable.flyable`), timed at its cruise airspeed, which the
     cost's flow and conflict terms use too, and checked against its envelope; without one
@@ -305,7 +312,9 @@ def plan_route(
 
 
 def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, craft) -> RoutePlan:
-    """One grid request, the two plans on it (worker processes), both routes measured."""
+    """One grid request, the two plans on it (worker processes), both routes measured, within
+    ``run["time_s"]``."""
+    deadline = time.time() + run["time_s"] - JUDGE_S
     lo, hi = box[0].copy(), box[1]
     # on the region's lattice of this step: the same voxels as any other grid of the step
     lo[:2] = spec.lower[:2] + np.floor((lo[:2] - spec.lower[:2]) / step[:2] + 1e-9) * step[:2]
@@ -315,7 +324,7 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, cr
     costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known, modes=modes)
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))
-    risk = PlanningProblem(costmap, tuple(start), tuple(goal), band, **run)
+    risk = PlanningProblem(costmap, tuple(start), tuple(goal), band, deadline=deadline, **run)
     shortest = dataclasses.replace(risk, objective="length")
     straight = shortest.segments_valid(start[None], goal[None])[0]
     solution, *rest = solve_in_workers([risk] if straight else [risk, shortest])

@@ -21,6 +21,8 @@ from planner.costmap import CostMap
 
 #: Planners by name; each takes the objective from the problem definition.
 PLANNERS = ("bitstar", "rrtstar", "informed_rrtstar", "sorrtstar", "fmt")
+#: What a run keeps of its deadline for simplifying its path and sending it back (s).
+RETURN_S = 0.3
 #: Refused with the reason measured on ompl 2.0.1 (docs/ompl.md).
 UNSUPPORTED = {
     "prmstar": "PRM* deadlocks with a Python objective in ompl 2.0.1",
@@ -66,9 +68,11 @@ class PlanningProblem:
     """A planning problem in the cost map's ENU frame.
 
     ``altitude_m``: the band (min, max) to fly in (default: the grid's). ``time_s``: the
-    budget; ``max_iterations`` instead bounds the run by iterations, which with ``seed``
-    makes it reproducible. ``objective="length"`` plans the shortest path (the baseline):
-    no risk, no flow and no tube, only the no-fly boxes and the altitude band.
+    budget; ``deadline`` (``time.time()``): when the result must be back, the search
+    stopping :data:`RETURN_S` before it if that is sooner; ``max_iterations`` instead bounds
+    the run by iterations, which with ``seed`` makes it reproducible. ``objective="length"``
+    plans the shortest path (the baseline): no risk, no flow and no tube, only the no-fly
+    boxes and the altitude band.
     """
 
     costmap: CostMap
@@ -78,6 +82,7 @@ class PlanningProblem:
     no_fly: tuple[Box, ...] = ()
     planner: str = "bitstar"
     time_s: float = 5.0
+    deadline: float | None = None
     max_iterations: int | None = None
     seed: int | None = None
     objective: str = "risk"
@@ -263,8 +268,11 @@ def solve(problem: PlanningProblem) -> PlanResult:
         return np.array([xyz(s) for s in path.getStates()])
 
     t0 = time.perf_counter()
+    budget = problem.time_s
+    if problem.deadline is not None:  # at least a few slices, to have a path at all
+        budget = min(budget, max(problem.deadline - RETURN_S - time.time(), 0.2))
     first, cost_at = None, {}
-    checkpoints = sorted(c for c in problem.checkpoints_s if c <= problem.time_s)
+    checkpoints = sorted(c for c in problem.checkpoints_s if c <= budget)
     if problem.max_iterations is not None:
         count = [0]
 
@@ -274,13 +282,11 @@ def solve(problem: PlanningProblem) -> PlanResult:
 
         status = ss.solve(ob.PlannerTerminationCondition(stop))
     elif problem.planner == "fmt":  # one-shot: it does not continue a previous run
-        status = ss.solve(problem.time_s)
+        status = ss.solve(budget)
     else:  # slices, to see when the first solution came and the cost at the checkpoints
-        while (elapsed := time.perf_counter() - t0) < problem.time_s:
-            horizon = next((c for c in checkpoints if c > elapsed), problem.time_s)
-            status = ss.solve(
-                min(0.05 if first is None else 0.25, horizon - elapsed, problem.time_s - elapsed)
-            )
+        while (elapsed := time.perf_counter() - t0) < budget:
+            horizon = next((c for c in checkpoints if c > elapsed), budget)
+            status = ss.solve(min(0.05 if first is None else 0.25, horizon - elapsed, budget - elapsed))
             now = time.perf_counter() - t0
             if first is None and ss.haveExactSolutionPath():
                 first = now
