@@ -299,9 +299,9 @@ def flyable_pairs(obs, lower, upper, args) -> str:
             f"median {np.median(times):.1f} s, max {np.max(times):.1f} s. Planning in `VanaOwenStateSpace` "
             f"(BIT* {args.pair_time:g} s, a plain objective integrating the cost map along each curved "
             f"motion, in this process after plan_route): median {np.median(planned_s):.1f} s. The lattice "
-            "optimum of this directional cost does not fit in memory at this grid (26-connected edges x 9 classes); it "
-            "stays the reference of the unconstrained cost on the one-class map (the planners' table of "
-            "this bench).",
+            "optimum of this directional cost does not fit in memory at this grid (26-connected edges x 9 "
+            "classes); it stays the reference of the unconstrained cost on the one-class map (the planners' "
+            "table of this bench).",
         ]
     )
 
