@@ -176,11 +176,14 @@ def test_fit_replaces_the_map(store, spec):
 
 
 def assert_map_is_the_field(maps, spec, X, V, version):
-    """The served map at ``version`` equals one field over the region's lattice fitted on
-    (X, V) at once ("auto": its evidence maximum), everywhere (empty places included)."""
+    """The served map at ``version``, settled, equals one field over the region's lattice
+    fitted on (X, V) at once ("auto": its evidence maximum), everywhere (empty places
+    included)."""
     field = spec.field().fit(X, V)
     Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (400, 3))
+    assert maps.refresh("town").version == version
     got = maps.predict("town", Q, min_version=version)
+    assert got.evidence_gap == 0
     mean, std = field.predict(Q, return_std=True)
     climate = np.sqrt((V**2).mean(0))
     np.testing.assert_allclose(got.mean, mean, rtol=0, atol=1e-6 * climate.min())
@@ -276,6 +279,8 @@ def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(st
     assert psutil.Process(child).nice() == psutil.Process().nice()
     there.upload(name, "more", *data(4, n=100))  # a refresh, there
     Q = np.random.default_rng(5).uniform([0, 0, 0], [300, 200, 60], (200, 3))
+    here.refresh(name)  # both settled
+    there.refresh(name)
     a, b = here.predict(name, Q), there.predict(name, Q, min_version=2)
     assert a.version == b.version == 2 and len(there._pool._processes) == 1
     np.testing.assert_allclose(b.mean, a.mean, rtol=1e-12, atol=1e-12 * np.abs(a.mean).max())
