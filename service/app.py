@@ -484,9 +484,9 @@ async def post_retraction(name: RegionName, request: Request, upload_id: Idempot
 
 @router.post("/regions/{name}/hyperparameters", response_model=RegionView, **scoped("write"))
 async def post_hyperparameters(name: RegionName, svc: ServiceDep):
-    """The region's map at its current version (each refresh after a write does the same in
-    the background): its "auto" alpha and beta at the evidence maximum of all its data,
-    recorded in the region view, which this answers. It waits for the refresh, until the
+    """The region's settled map at its current version (the background refresh settles it
+    too, when no newer version waits): its "auto" alpha and beta at the evidence maximum of
+    all its data, recorded in the region view, which this answers. It waits for the refresh, until the
     request's deadline (503 past it; the refresh goes on, and a retry finds its map)."""
     return await svc.run(lambda: _view(svc.maps.fit_hyperparameters(name)), heavy=True)
 

@@ -63,6 +63,10 @@ def state(c) -> dict:
     """What a hostile request must not change: the stored totals, a query's answer and the
     hyperparameters that version's map found (recorded once its map is computed)."""
     version = c.get(f"/v1/regions/{NAME}", headers=READ).json()["version"]
+    # this version's settled map (its first may stop a nat short of the evidence maximum);
+    # 422 where there is nothing to fit (no data yet)
+    settled = c.post(f"/v1/regions/{NAME}/hyperparameters", headers=WRITE)
+    assert settled.status_code in (200, 422), settled.text
     at = {"min_version": version}  # this version's map, not one before
     answer = c.post(
         f"/v1/regions/{NAME}/query", params=at, json={"points": PROBE.tolist()}, headers=READ
