@@ -271,6 +271,9 @@ def flyable_pairs(obs, lower, upper, args) -> str:
                                    "fraction in the tube"), strict=True):  # fmt: skip
         scale = 1e3 if key in ("cost_m", "length_m") else 1.0
         table.append(f"| median {label} | {' | '.join(median(n, key, scale) for n in NAMES)} |")
+    least = [min((r[(n, "in_tube_fraction")] for r in rows if (n, "in_tube_fraction") in r), default=np.nan)
+             for n in NAMES]  # fmt: skip
+    table.append(f"| least fraction in the tube | {' | '.join(f'{v:.3g}' for v in least)} |")
     for key, label in (("cost_m", "cost"), ("length_m", "length")):
         ratio = [r[("flyable", key)] / r[("unconstrained", key)] for r in rows]
         cell = f"{np.median(ratio):.3f} ({np.max(ratio):.3f})"
