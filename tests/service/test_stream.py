@@ -108,9 +108,10 @@ def test_refreshes_run_one_at_a_time_per_region_and_skip_to_the_newest_version(s
     newest.join(60)
     maps.close()
     assert computed[-1] == 21  # the reader got the newest version
-    # computations of version 2 (started before the burst) and of the newest (and its
-    # settling pass), none of the versions between, one at a time
-    assert set(computed[:-1]) <= {200.0, 2100.0} and most[0] == 1
+    # one computation of an early version (the refresh under way when the burst began) and
+    # of the newest (and its settling pass), none of the versions between, one at a time
+    counts = computed[:-1]
+    assert counts[-1] == 2100.0 and len(set(counts)) <= 2 and len(counts) <= 3 and most[0] == 1
     assert maps.stats.skipped >= 18
     assert maps.predict("town", X[:3]).version == 21
 
