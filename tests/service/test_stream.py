@@ -140,6 +140,10 @@ def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_versio
     maps.upload("town", "more", X[2950:], V[2950:], sample_weight=w[2950:])
     quick = maps.predict("town", X[:5], min_version=2)
     assert quick.version == 2 and 0 < quick.evidence_gap < 1.0
+    for _ in range(3000):  # the settling pass has begun: the first map's record is written
+        if True in calls:
+            break
+        threading.Event().wait(0.01)
     recorded = store.region("town").hyper
     assert recorded["evidence_version"] == 2 and not recorded["settled"]
     assert recorded["evidence_gap"] == pytest.approx(quick.evidence_gap)
