@@ -247,7 +247,7 @@ class EvidenceFit:
     #: EVIDENCE_TOLERANCE of it (a search that need not settle, :func:`fit_evidence`)
     settled: bool
     gap: float  # nats the evidence lacks from its maximum (the local quadratic; 0 settled)
-    next_start: np.ndarray | None  # (3,) ratios alpha / beta a next search starts at
+    next_start: np.ndarray  # (3,) ratios alpha / beta a next search starts at
 
 
 def fit_evidence(
@@ -277,7 +277,8 @@ def fit_evidence(
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
         sols = _at_ratios(stencil, band, proj, v_sq, alpha_v / beta_v)
-        return EvidenceFit(alpha_v.copy(), beta_v.copy(), sols, len({id(s) for s in sols}), True, 0.0, None)
+        ratios = alpha_v / beta_v
+        return EvidenceFit(alpha_v.copy(), beta_v.copy(), sols, len({id(s) for s in sols}), True, 0.0, ratios)
 
     scale = max(float(np.mean(band[0])), 1e-300)
     bounds = (np.log(FLOOR_PER_CUTOFF * stencil.cutoff), LOG_TOP)

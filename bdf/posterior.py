@@ -105,7 +105,7 @@ class Posterior:
         self.factorisations, self.settled, self.evidence_gap = fit.factorisations, fit.settled, fit.gap
         #: where a next search of "auto" hyperparameters best starts (ratios alpha / beta):
         #: the optimum, or where the search pointed when it stopped within a nat of it
-        self.next_start = self.alpha / self.beta if fit.next_start is None else fit.next_start
+        self.next_start = fit.next_start
         self.log_evidence = np.array(
             [
                 hyperparameters.log_evidence(s, self.alpha, self.beta, evidence.count)[c]

@@ -69,10 +69,12 @@ CLIENTS = 16
 UPLOADERS = 10
 
 
-def arrow_points(X, V=None) -> bytes:
+def arrow_points(X, V=None, sample_weight=None) -> bytes:
     cols = {"x": X[:, 0], "y": X[:, 1], "z": X[:, 2]}
     if V is not None:
         cols.update(ve=V[:, 0], vn=V[:, 1], vu=V[:, 2])
+    if sample_weight is not None:
+        cols.update(sample_weight=sample_weight)
     return arrow_bytes(cols)
 
 

@@ -61,7 +61,6 @@ from bdf.region.map import RegionMap
 from clients import samples
 from clients.local import LocalService
 from clients.samples import PARIS_SPACING_M
-from service.formats import arrow_bytes
 from service.maps import RegionMaps
 from service.store import open_store
 
@@ -231,12 +230,6 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
     }
 
 
-def _upload_body(X, V, weight) -> bytes:
-    """An Arrow upload of rows (with their track weights unless ``weight`` is None)."""
-    cols = {"x": X[:, 0], "y": X[:, 1], "z": X[:, 2], "ve": V[:, 0], "vn": V[:, 1], "vu": V[:, 2]}
-    return arrow_bytes(cols if weight is None else cols | {"sample_weight": weight})
-
-
 async def staleness(url, train, weight, seconds, uploaders=8, readers=8, rate=0.0) -> dict:
     rng = np.random.default_rng(11)
     queries = arrow_points(rng.uniform(*QUERY_BOX, (1000, 3)))
@@ -252,7 +245,7 @@ async def staleness(url, train, weight, seconds, uploaders=8, readers=8, rate=0.
                 rows = rng.integers(0, len(train.X), 1000)
                 r = await c.post(
                     "/v1/regions/paris/observations",
-                    content=_upload_body(
+                    content=arrow_points(
                         train.X[rows], train.V[rows], None if weight is None else weight[rows]
                     ),
                     headers={"Content-Type": ARROW, "Idempotency-Key": f"stream-{k}-{j}"},
@@ -310,7 +303,7 @@ def served(directions, train, weight, lower, upper, data, seconds, uploaders=8, 
             c.post("/v1/regions", json=spec.model_dump(mode="json")).raise_for_status()
             c.post(
                 "/v1/regions/paris/observations",
-                content=_upload_body(train.X, train.V, weight),
+                content=arrow_points(train.X, train.V, weight),
                 headers={"Content-Type": ARROW, "Idempotency-Key": "base"},
             ).raise_for_status()
             while True:  # the first map takes longer than a request's deadline: 503 until it is ready

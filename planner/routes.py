@@ -11,7 +11,6 @@ judged on the map itself, as any route is (:func:`bdf.region.route.assess`: the 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import logging
 import time
 from dataclasses import dataclass
@@ -349,8 +348,9 @@ def _route(name, planned, solution, client, region, spec, costmap, craft) -> Rou
     and its cost on the plan's cost map (the planner's objective)."""
     P = planned if craft is None else flyable(planned, craft)
     cruise = costmap.weights.cruise_mps
+    times_s = times_at(P, cruise)
     judge = dict(max_std_mps=costmap.weights.max_std_mps, vehicle=dataclasses.asdict(craft or _TIMED))
-    judged = client.assess_route(region, P, times_s=times_at(P, cruise), **judge)
+    judged = client.assess_route(region, P, times_s=times_s, **judge)
     metrics = {"cost_m": float(costmap.segment_costs(P[:-1], P[1:]).sum()), **judged["total"]}
     if craft is not None:
         before = client.assess_route(region, planned, times_s=times_at(planned, cruise), **judge)
@@ -358,7 +358,7 @@ def _route(name, planned, solution, client, region, spec, costmap, craft) -> Rou
         name,
         P,
         spec.frame().to_geodetic(P),
-        times_at(P, cruise),
+        times_s,
         metrics,
         solution,
         planned,
@@ -370,12 +370,3 @@ def _route(name, planned, solution, client, region, spec, costmap, craft) -> Rou
 #: The vehicle a route planned without one is judged with: its times are given, its envelope
 #: is not reported.
 _TIMED = VEHICLES["evtol"]
-
-
-def densify(P: np.ndarray, spacing_m: float) -> np.ndarray:
-    """Points along the polyline every ``spacing_m`` at most, vertices included."""
-    parts = []
-    for a, b in itertools.pairwise(P):
-        n = max(int(np.ceil(np.linalg.norm(b - a) / spacing_m)), 1)
-        parts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
-    return np.vstack([*parts, P[-1:]])

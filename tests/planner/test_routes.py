@@ -12,7 +12,8 @@ from bdf.region.route import Vehicle, envelope
 from bdf.region.spec import RegionSpec
 from clients.sdk import BDFClient
 from planner.costmap import CostWeights
-from planner.routes import densify, plan_route
+from planner.routes import plan_route
+from tests.planner.test_search import densify
 from tests.service.test_store import SPEC as STORE_SPEC
 
 pytestmark = pytest.mark.slow  # routes planned against a server

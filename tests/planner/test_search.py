@@ -2,6 +2,7 @@
 with the hard tube, seeded runs repeat, simplification never raises the cost, and the
 caller's threads keep running while a worker plans."""
 
+import itertools
 import threading
 import time
 
@@ -10,13 +11,21 @@ import pytest
 
 from planner.costmap import CostMap, CostWeights
 from planner.dijkstra import lattice_optimum
-from planner.routes import densify
 from planner.search import PLANNERS, Box, PlanningProblem, solve_in_workers
 
 pytestmark = pytest.mark.slow  # OMPL planners run for seconds
 
 AXES = (np.linspace(0, 2000, 41), np.linspace(0, 2000, 41), np.linspace(0, 300, 7))
 START, GOAL = (100.0, 1000.0, 100.0), (1900.0, 1000.0, 100.0)
+
+
+def densify(P: np.ndarray, spacing_m: float) -> np.ndarray:
+    """Points along the polyline every ``spacing_m`` at most, vertices included."""
+    parts = []
+    for a, b in itertools.pairwise(P):
+        n = max(int(np.ceil(np.linalg.norm(b - a) / spacing_m)), 1)
+        parts.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
+    return np.vstack([*parts, P[-1:]])
 
 
 @pytest.fixture(scope="module")
