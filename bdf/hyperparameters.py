@@ -32,6 +32,9 @@ counts them).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +42,33 @@ import numpy as np
 from bdf import sparse
 
 log = logging.getLogger(__name__)
+
+
+class Abandoned(Exception):
+    """A posterior's computation given up because its caller no longer needs it
+    (:func:`abandon_when`): a service's settling pass when a newer version waits."""
+
+
+_abandon: ContextVar[Callable[[], bool] | None] = ContextVar("abandon", default=None)
+
+
+@contextmanager
+def abandon_when(stop: Callable[[], bool]) -> Iterator[None]:
+    """Within the block, the searches and the variance of posteriors computed in this
+    context raise :class:`Abandoned` at their next factorisation once ``stop()`` is true."""
+    token = _abandon.set(stop)
+    try:
+        yield
+    finally:
+        _abandon.reset(token)
+
+
+def check_abandoned() -> None:
+    """Raise :class:`Abandoned` if this context's computation is no longer needed."""
+    stop = _abandon.get()
+    if stop is not None and stop():
+        raise Abandoned("the computation was abandoned: its result is no longer needed")
+
 
 #: Hyperparameters used for "auto" while a field holds no data (the paper's values).
 EMPTY_ALPHA, EMPTY_BETA = 1e-2, 1e2
@@ -302,6 +332,7 @@ def fit_evidence(
             latest, best, trail = [None], [np.inf, None], []
 
             def evaluate(x):
+                check_abandoned()
                 try:
                     sol = solve(stencil, band, proj, v_sq, scale * np.exp(x))
                 except sparse.NotPositiveDefinite:

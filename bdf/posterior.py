@@ -231,6 +231,7 @@ class Posterior:
         densities, columns = {}, []
         for sol in self._solutions:
             if id(sol) not in densities:
+                hyperparameters.check_abandoned()
                 inverse = sol.factor.inverse_band()
                 densities[id(sol)] = sparse.band_density(self.stencil, inverse, self.grid.midpoints())
             columns.append(list(densities).index(id(sol)))

@@ -84,6 +84,7 @@ class Prediction:
     region_version: int
     versions_behind: int = 0  # region versions written that the answer's map did not hold yet
     seconds_behind: float = 0.0  # since the first of them was written
+    refreshes_behind: int = 0  # the service's maps of the region finished since then (at most 1)
     evidence_gap: float = 0.0  # nats its "auto" hyperparameters lacked from the maximum (0: settled)
 
 
@@ -218,13 +219,14 @@ def _version(response: httpx.Response) -> int:
     return int(response.headers[wire.VERSION_HEADER])
 
 
-def _lag(response: httpx.Response) -> tuple[int, float, float]:
-    """How far the answer's map was behind the region (versions, seconds) and its
-    hyperparameters from the evidence maximum (nats)."""
+def _lag(response: httpx.Response) -> tuple[int, float, int, float]:
+    """How far the answer's map was behind the region (versions, seconds, refreshes) and
+    its hyperparameters from the evidence maximum (nats)."""
     headers = response.headers
     return (
         int(headers[wire.VERSIONS_BEHIND_HEADER]),
         float(headers[wire.SECONDS_BEHIND_HEADER]),
+        int(headers[wire.REFRESHES_BEHIND_HEADER]),
         float(headers[wire.EVIDENCE_GAP_HEADER]),
     )
 

@@ -337,16 +337,18 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, cr
     route = None
     measure = (client, region, spec, costmap, craft)
     if solution.exact:
-        route = _route("risk-aware", solution.waypoints, solution, *measure)
+        route = _route("risk-aware", solution.waypoints, solution, *measure, kept_in_tube=risk.hard_tube)
     baseline = _route("shortest", baseline_path, short, *measure)
     return RoutePlan(spec, costmap, route, baseline, solution.status)
 
 
-def _route(name, planned, solution, client, region, spec, costmap, craft) -> Route:
-    """The route flown (the planned polyline, made flyable by ``craft`` if given), judged on
-    the map as any route is (``assess_route``; the envelope's verdict kept with a vehicle),
-    and its cost on the plan's cost map (the planner's objective)."""
-    P = planned if craft is None else flyable(planned, craft)
+def _route(name, planned, solution, client, region, spec, costmap, craft, kept_in_tube=False) -> Route:
+    """The route flown (the planned polyline, made flyable by ``craft`` if given; with
+    ``kept_in_tube``, in the tube the planner kept to), judged on the map as any route is
+    (``assess_route``; the envelope's verdict kept with a vehicle), and its cost on the plan's
+    cost map (the planner's objective)."""
+    tube = costmap.segments_in_tube if kept_in_tube else None
+    P = planned if craft is None else flyable(planned, craft, in_tube=tube)
     cruise = costmap.weights.cruise_mps
     times_s = times_at(P, cruise)
     judge = dict(max_std_mps=costmap.weights.max_std_mps, vehicle=dataclasses.asdict(craft or _TIMED))

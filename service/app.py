@@ -175,8 +175,9 @@ class MapAnswer:
     """The headers of an answer computed from a region's map: its ETag, which names
     everything the answer depends on (the map's region instance and version, the request's
     path, query, Accept, Content-Type and body), and the version it came from and how far
-    that is behind the region's newest (versions, and seconds since the first of them was
-    written), which /metrics counts too, and the nats its "auto" hyperparameters lack from
+    that is behind the region's newest (versions, seconds since the first of them was
+    written, and this process's maps of the region finished since then), which /metrics
+    counts too, and the nats its "auto" hyperparameters lack from
     the evidence maximum (0 once settled; the ETag tells a settled map from the one before)."""
 
     def __init__(self, request: Request, svc: Service):
@@ -207,12 +208,13 @@ class MapAnswer:
         return info, None
 
     def headers(self, pred) -> dict:
-        self.svc.metrics.answered(pred.behind, pred.behind_s)
+        self.svc.metrics.answered(pred.behind, pred.behind_s, pred.refreshes_behind)
         return {
             "ETag": self.etag(pred.region_id, pred.version, pred.evidence_gap == 0),
             wire.VERSION_HEADER: str(pred.version),
             wire.VERSIONS_BEHIND_HEADER: str(pred.behind),
             wire.SECONDS_BEHIND_HEADER: f"{pred.behind_s:.3f}",
+            wire.REFRESHES_BEHIND_HEADER: str(pred.refreshes_behind),
             wire.EVIDENCE_GAP_HEADER: f"{pred.evidence_gap:.4g}",
         }
 
@@ -849,6 +851,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
                 wire.VERSION_HEADER,
                 wire.VERSIONS_BEHIND_HEADER,
                 wire.SECONDS_BEHIND_HEADER,
+                wire.REFRESHES_BEHIND_HEADER,
                 wire.EVIDENCE_GAP_HEADER,
                 wire.REQUEST_ID_HEADER,
                 "Location",

@@ -20,13 +20,14 @@ that gives up wastes nothing: the map it waited for is ready for the next.
 from __future__ import annotations
 
 import concurrent.futures
+import itertools
 import logging
 import multiprocessing
 import os
 import queue
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bdf import hyperparameters
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.region.evidence import Increment, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
@@ -88,6 +90,7 @@ class MapAssessment:
     region_id: str
     behind: int
     behind_s: float
+    refreshes_behind: int
     evidence_gap: float
 
 
@@ -151,6 +154,7 @@ class MapPrediction:
     modes: Modes | None = None  # per traffic class, when asked
     behind: int = 0  # versions written that the answer's map does not hold yet
     behind_s: float = 0.0  # since when (s): the age of the first of them
+    refreshes_behind: int = 0  # maps finished here since then (at most 1: each refresh is of the newest)
     evidence_gap: float = 0.0  # nats its "auto" hyperparameters lack from the maximum (0: settled)
 
 
@@ -165,6 +169,8 @@ class RefreshStats:
     last_s: float = 0.0
     failed: int = 0  # refreshes that raised (the previous map kept answering)
     settled: int = 0  # of the maps computed, those computed again to settle their "auto" hyperparameters
+    settling_seconds: float = 0.0  # their total time
+    abandoned: int = 0  # settling passes given up for a newer version (its refresh runs at once)
     last_gap: float = 0.0  # nats the last map's hyperparameters lack from its evidence maximum
 
 
@@ -186,13 +192,18 @@ class RegionMaps:
         request its other threads serve."""
         self.store = store
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
-        self._spawner = _Spawner() if isolate else None
+        #: the settling pass a newer version abandons (its job number; shared with the child)
+        self._abandon = multiprocessing.get_context("spawn").Value("q", 0, lock=False)
+        self._jobs = itertools.count(1)
+        self._spawner = _Spawner(self._abandon) if isolate else None
         self.cache = PosteriorCache(cache_mb)
         self.stats = RefreshStats()
         self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
         self._lock = threading.Lock()
         self._building: dict[str, threading.Lock] = {}  # region name -> one computation at a time
         self._refreshing: dict[str, bool] = {}  # region name -> written again since it started
+        self._settling: dict[str, tuple[int, int]] = {}  # region name -> (job, version) settling now
+        self._finished: dict[str, deque] = {}  # region_id -> (time, version) of its last maps published here
         self._done = threading.Condition(self._lock)  # a refresh ended (waiters look again)
         self._begun: dict[str, int] = {}  # region name -> refreshes begun (they run in order)
         self._ended: dict[str, int] = {}  # region name -> refreshes ended
@@ -209,7 +220,7 @@ class RegionMaps:
         with self._lock:
             self._closed = False
             if self._isolate and not (self._spawner and self._spawner.alive):
-                self._spawner = _Spawner()  # posterior processes run at this thread's priority
+                self._spawner = _Spawner(self._abandon)  # posterior processes run at this thread's priority
 
     def close(self) -> None:
         """Stop the background refreshes (after the ones under way): the store closes next."""
@@ -226,19 +237,20 @@ class RegionMaps:
             self._spawner.stop()
 
     def _posterior(
-        self, spec: RegionSpec, evidence, start=None, stored=True, settle=True
+        self, spec: RegionSpec, evidence, start=None, stored=True, settle=True, job=0
     ) -> Posterior | Mixture:
         """``compute_posterior(spec, evidence, start, stored=..., settle=...)``, in the child
-        process if isolated."""
+        process if isolated; a settling pass ``job`` (> 0) raises
+        :class:`bdf.hyperparameters.Abandoned` once a newer version abandons it."""
         if not self._isolate:
-            return compute_posterior(spec, evidence, start, stored=stored, settle=settle)
+            return _compute_posterior(spec, evidence, start, stored, settle, job, self._abandon)
         for attempt in range(2):
             with self._lock:
                 if self._pool is None:
                     self._pool = self._spawner.start()
                 pool = self._pool
             try:
-                future = pool.submit(_compute_posterior, spec, evidence, start, stored, settle)
+                future = pool.submit(_compute_posterior, spec, evidence, start, stored, settle, job)
                 return future.result(timeout=lanes.wait_timeout())
             except concurrent.futures.TimeoutError:
                 raise lanes.DeadlineExceeded(
@@ -304,7 +316,7 @@ class RegionMaps:
             state = MapState(spec, info.region_id, result["region_version"], post)
             self._publish(state)
         else:
-            self._schedule(region)
+            self._schedule(region, result["region_version"])
         return result
 
     def retract(self, region: str, upload_id: str, X, V, *, input_noise_std=None, sample_weight=None) -> dict:
@@ -323,7 +335,7 @@ class RegionMaps:
             increments,
             observations=summary["accepted"],
         )
-        self._schedule(region)
+        self._schedule(region, result["region_version"])
         return result
 
     def fit_hyperparameters(self, region: str) -> RegionInfo:
@@ -435,14 +447,16 @@ class RegionMaps:
         state = self.cache.peek((info.region_id, info.version))
         return state is not None and state.posterior.settled
 
-    def _lag(self, info: RegionInfo, state: MapState) -> tuple[int, float, float]:
+    def _lag(self, info: RegionInfo, state: MapState) -> tuple[int, float, int, float]:
         """How far ``state`` is behind the region as read (``info``): versions, the seconds
-        since the first of them was written, and the nats its hyperparameters lack from
-        its data's evidence maximum (0 once settled)."""
+        since the first of them was written, the maps of the region published here since
+        then without it (each refresh computes the newest version when it begins, so at
+        most the one under way then), and the nats its hyperparameters lack from its data's evidence
+        maximum (0 once settled)."""
         gap = state.posterior.evidence_gap
         behind = info.version - state.version if info.region_id == state.region_id else 0
         if behind <= 0:
-            return 0, 0.0, gap
+            return 0, 0.0, 0, gap
         key = (info.region_id, state.version + 1)
         since = self._committed.get(key)  # a version's time never changes: read it once
         if since is None:
@@ -454,7 +468,10 @@ class RegionMaps:
                     self._committed[key] = since
                     while len(self._committed) > self.COMMITTED_TIMES:
                         self._committed.popitem(last=False)
-        return behind, max(time.time() - since, 0.0), gap
+        with self._lock:  # maps without the version after the answer's, finished since it was written
+            finished = list(self._finished.get(state.region_id, ()))
+        refreshes = sum(t > since and version <= state.version for t, version in finished)
+        return behind, max(time.time() - since, 0.0), refreshes, gap
 
     def _state(self, region: str, info: RegionInfo, min_version: int) -> MapState:
         """The map at ``info``'s version if ready; else the newest ready one (a refresh is
@@ -465,7 +482,7 @@ class RegionMaps:
         with self._lock:
             newest = self._newest.get(info.region_id)
         if _serves(newest, info.spec, min_version, False):
-            self._schedule(region)
+            self._schedule(region, info.version)
             return newest
         return self.wait_for(info, min_version)
 
@@ -477,7 +494,7 @@ class RegionMaps:
         at_least = min(at_least, info.version)
         with self._done:
             mine = self._begun.get(region, 0) + 1  # the first refresh to read the store from now
-            self._schedule_locked(region)
+            self._schedule_locked(region, info.version)
             while True:
                 newest = self._newest.get(info.region_id)
                 if _serves(newest, info.spec, at_least, settled):
@@ -491,20 +508,22 @@ class RegionMaps:
                     if self._computed.get(region) != info.region_id:
                         raise RegionChanged(f"region {region!r} was deleted or re-created meanwhile")
                     mine = self._begun.get(region, 0) + 1
-                    self._schedule_locked(region)
+                    self._schedule_locked(region, info.version)
                 if not self._done.wait(timeout=lanes.wait_timeout()) and lanes.remaining() <= 0:
                     raise lanes.DeadlineExceeded(
                         f"the deadline passed while region {region!r}'s map of version {at_least} "
                         "was computed; it will be ready for a retry"
                     )
 
-    def _compute(self, region: str, at_least: int, settle: bool = False) -> MapState:
+    def _compute(self, region: str, at_least: int, settle: bool = False, yields: bool = False) -> MapState:
         """A map of the region at version ``at_least`` or newer: one computed meanwhile (a
         caller waiting here shares the refresh under way), else the current version's,
         computed now. One computation per region at a time. "auto" hyperparameters start at
         the newest map's; without ``settle`` they may stop within a nat of the evidence
         maximum (a refresh in the background: the map is fresh sooner), with it they are at
-        the maximum (a map within a nat of it is computed again)."""
+        the maximum (a map within a nat of it is computed again). ``yields`` (the
+        background's settling pass): a newer version written meanwhile abandons it, and the
+        newest map is returned as it was: the newer version's refresh starts at once."""
         with self._lock:
             lock = self._building.setdefault(region, threading.Lock())
         with lock:
@@ -517,10 +536,24 @@ class RegionMaps:
             if _serves(newest, info.spec, at_least, settle):
                 return newest
             started = time.perf_counter()
-            snap, evidence = self._snapshot_evidence(region, info.region_id)
-            spec = snap.region.spec
-            start = self._start(snap.region, newest)
-            post = self._posterior(spec, region_total(spec, evidence), start, settle=settle)
+            job = next(self._jobs) if yields else 0
+            if yields:
+                with self._lock:
+                    self._settling[region] = (job, info.version)
+            try:
+                snap, evidence = self._snapshot_evidence(region, info.region_id)
+                spec = snap.region.spec
+                start = self._start(snap.region, newest)
+                post = self._posterior(spec, region_total(spec, evidence), start, settle=settle, job=job)
+            except hyperparameters.Abandoned:
+                with self._lock:
+                    self.stats.abandoned += 1
+                log.info("region %s: settling version %d abandoned for a newer version", region, info.version)
+                return newest
+            finally:
+                if yields:
+                    with self._lock:
+                        self._settling.pop(region, None)
             state = MapState(spec, snap.region.region_id, snap.region.version, post)
             self._publish(state)
             seconds = time.perf_counter() - started
@@ -532,7 +565,9 @@ class RegionMaps:
                 self.stats.last_gap = post.evidence_gap
                 if newest is not None and newest.region_id == state.region_id:
                     self.stats.skipped += max(state.version - newest.version - 1, 0)
-                    self.stats.settled += newest.version == state.version
+                    again = newest.version == state.version
+                    self.stats.settled += again
+                    self.stats.settling_seconds += seconds * again
             log.info(
                 "region %s version %d: map ready in %.2f s (%d factorisations, %s)",
                 region,
@@ -600,17 +635,22 @@ class RegionMaps:
             newest = self._newest.get(state.region_id)
             if newest is None or (newest.version, newest.posterior.settled) < (state.version, True):
                 self._newest[state.region_id] = state
+            self._finished.setdefault(state.region_id, deque(maxlen=8)).append((time.time(), state.version))
 
-    def _schedule(self, region: str) -> None:
+    def _schedule(self, region: str, version: int = 0) -> None:
         """Refresh the region's map in the background: one refresh per region at a time; a
-        write during one makes it run once more, for the newest version then."""
+        write during one makes it run once more, for the newest version then. ``version``:
+        the newest known to the caller; a settling pass of an older one is abandoned."""
         with self._lock:
-            self._schedule_locked(region)
+            self._schedule_locked(region, version)
 
-    def _schedule_locked(self, region: str) -> None:
+    def _schedule_locked(self, region: str, version: int = 0) -> None:
         """:meth:`_schedule`, holding ``self._lock``."""
         if self._closed:
             return
+        settling = self._settling.get(region)
+        if settling is not None and version > settling[1]:
+            self._abandon.value = settling[0]
         if region in self._refreshing:
             self._refreshing[region] = True
             return
@@ -631,7 +671,7 @@ class RegionMaps:
                 with self._lock:
                     quiet = not self._refreshing.get(region)
                 if quiet and not state.posterior.settled:  # no newer version waits: settle this one
-                    state = self._compute(region, state.version, settle=True)
+                    state = self._compute(region, state.version, settle=True, yields=True)
                 computed = state.region_id
             except RegionNotFound as exc:
                 error = exc
@@ -692,24 +732,33 @@ def _joined(parts: list[tuple], axis: int) -> tuple:
     return mean, std, known, modes
 
 
-def _compute_posterior(spec: RegionSpec, evidence, start, stored, settle):
-    """:func:`bdf.region.map.compute_posterior` (a module function: what the posterior process runs)."""
-    return compute_posterior(spec, evidence, start, stored=stored, settle=settle)
+def _compute_posterior(spec: RegionSpec, evidence, start, stored, settle, job=0, abandon=None):
+    """:func:`bdf.region.map.compute_posterior` (a module function: what the posterior process
+    runs), given up (:class:`bdf.hyperparameters.Abandoned`) once ``abandon`` (the posterior
+    process's: :data:`_ABANDON`) holds the number of this settling pass, ``job``."""
+    abandon = abandon if abandon is not None else _ABANDON
+    with hyperparameters.abandon_when(lambda: job > 0 and abandon.value == job):
+        return compute_posterior(spec, evidence, start, stored=stored, settle=settle)
+
+
+#: In the posterior process: the number of the settling pass its parent abandons.
+_ABANDON = None
 
 
 #: How often the posterior process checks that the process that started it lives (s).
 PARENT_CHECK_S = 1.0
 
 
-def _posterior_process() -> ProcessPoolExecutor:
-    """One child process for posteriors (spawned: this process runs threads). It leaves
-    when this process dies: killed, a pool cannot tell its child, which would wait for work
-    forever, holding its memory (a quarter of a GB on the demo's map)."""
+def _posterior_process(abandon) -> ProcessPoolExecutor:
+    """One child process for posteriors (spawned: this process runs threads), sharing
+    ``abandon`` (:data:`_ABANDON`). It leaves when this process dies: killed, a pool cannot
+    tell its child, which would wait for work forever, holding its memory (a quarter of a GB
+    on the demo's map)."""
     return ProcessPoolExecutor(
         1,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=_leave_with_parent,
-        initargs=(os.getpid(),),
+        initializer=_posterior_child,
+        initargs=(os.getpid(), abandon),
     )
 
 
@@ -718,7 +767,8 @@ class _Spawner:
     inherits the priority of the thread that starts it, and the lanes' threads run at a
     lower one (:data:`service.lanes.NICE`) so that maps are computed first."""
 
-    def __init__(self):
+    def __init__(self, abandon):
+        self._abandon = abandon
         self._asked: queue.SimpleQueue = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name="posterior-spawner", daemon=True)
         self._thread.start()
@@ -744,15 +794,18 @@ class _Spawner:
             if started is None:
                 return
             try:
-                pool = _posterior_process()
+                pool = _posterior_process(self._abandon)
                 pool.submit(os.getpid)  # the child is spawned now, by this thread
                 started.set_result(pool)
             except Exception as exc:
                 started.set_exception(exc)
 
 
-def _leave_with_parent(parent: int) -> None:
-    """In the posterior process: exit once ``parent`` is no longer its parent."""
+def _posterior_child(parent: int, abandon) -> None:
+    """In the posterior process: keep ``abandon`` (:data:`_ABANDON`); exit once ``parent``
+    is no longer its parent."""
+    global _ABANDON
+    _ABANDON = abandon
 
     def watch():
         while os.getppid() == parent:

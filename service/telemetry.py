@@ -67,14 +67,22 @@ class Metrics:
             buckets=(0, *LATENCY_BUCKETS, 60, 300),
             registry=self.registry,
         )
+        self.refreshes_behind = Histogram(
+            "bdf_answer_refreshes_behind",
+            "maps of the region finished since the first version an answer's map did not hold "
+            "was written (at most 1: each refresh computes the newest version)",
+            buckets=(0, 1, 2, 3, 5),
+            registry=self.registry,
+        )
         self.deadlines = Counter(
             "bdf_request_deadlines", "requests answered 503 at their deadline", registry=self.registry
         )
         self.registry.register(_StateCollector(maps, work_lanes))
 
-    def answered(self, versions_behind: int, seconds_behind: float) -> None:
+    def answered(self, versions_behind: int, seconds_behind: float, refreshes_behind: int) -> None:
         self.versions_behind.observe(versions_behind)
         self.seconds_behind.observe(seconds_behind)
+        self.refreshes_behind.observe(refreshes_behind)
 
     def upload_applied(self, result: dict) -> None:
         if result.get("replayed"):
@@ -150,6 +158,18 @@ class _StateCollector:
                 "bdf_map_settles",
                 "maps computed again to settle their 'auto' hyperparameters at the evidence maximum",
                 refreshes.settled,
+            ),
+            (
+                CounterMetricFamily,
+                "bdf_map_settling_seconds",
+                "time computing maps again to settle them (part of bdf_map_refresh_seconds)",
+                refreshes.settling_seconds,
+            ),
+            (
+                CounterMetricFamily,
+                "bdf_map_settles_abandoned",
+                "settling passes given up for a newer version, whose refresh ran at once",
+                refreshes.abandoned,
             ),
             (
                 GaugeMetricFamily,

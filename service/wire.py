@@ -26,6 +26,9 @@ QUERY_COLUMNS = frozenset((*ENU_COLUMNS, *WGS84_COLUMNS, "heading_deg"))
 VERSION_HEADER = "X-Region-Version"
 VERSIONS_BEHIND_HEADER = "X-Region-Versions-Behind"
 SECONDS_BEHIND_HEADER = "X-Region-Seconds-Behind"
+#: the maps of the region the answering process finished since then: at most 1, as each
+#: refresh computes the newest version when it begins (the one under way then is behind)
+REFRESHES_BEHIND_HEADER = "X-Region-Refreshes-Behind"
 #: nats the map's "auto" hyperparameters lack from its data's evidence maximum (0: settled)
 EVIDENCE_GAP_HEADER = "X-Region-Evidence-Gap"
 REQUEST_ID_HEADER = "X-Request-ID"

@@ -295,14 +295,16 @@ class MapStore(ABC):
             )
             if not created:
                 raise RegionExists(f"region {spec.name!r} exists")
-            self._committed(q, created[0][0], 0, now)
+            self._committed(q, created[0][0], 0)
         return self.region(spec.name)
 
     @staticmethod
-    def _committed(q, region_id: str, version: int, now: float) -> None:
+    def _committed(q, region_id: str, version: int) -> None:
+        """Record when ``version`` was written: at the end of its transaction (the time a
+        version's lag counts from: no refresh could read it before)."""
         q(
             "INSERT INTO versions (region_id, version, committed_at) VALUES (?, ?, ?)",
-            (region_id, version, now),
+            (region_id, version, time.time()),
         )
 
     def committed_at(self, region_id: str, version: int) -> float | None:
@@ -444,9 +446,9 @@ class MapStore(ABC):
         region_version, tiles_updated, replayed); a replay returns the first one.
         """
         check_upload_id(upload_id)
-        now = time.time()
         with self._write() as q:
             version, spec, hyper_text = self._locked(q, name, region_id, "version, spec, hyper")
+            now = time.time()  # with the write lock won: a writer that waited is not older
             version, spec = int(version) + 1, _spec(spec)
             first = self._ledger(q, region_id, upload_id, digest)
             if first is not None:
@@ -479,12 +481,12 @@ class MapStore(ABC):
                 f" observations = {'' if replace else 'observations + '}? WHERE region_id = ?",
                 (version, now, hyper_text, int(observations), region_id),
             )
-            self._committed(q, region_id, version, now)
             q(
                 "INSERT INTO uploads (region_id, upload_id, kind, digest, result, applied_at)"
                 " VALUES (?, ?, ?, ?, ?, ?)",
                 (region_id, upload_id, result["kind"], digest, json.dumps(result), now),
             )
+            self._committed(q, region_id, version)
         return {**result, "replayed": False}
 
     @staticmethod
@@ -549,9 +551,9 @@ class MapStore(ABC):
         row turns ``retracted`` and keeps the retraction's result, so a retried retraction
         returns it (``replayed``). A fit cannot be retracted, nor an upload a later fit
         replaced (:class:`UploadConflict`)."""
-        now = time.time()
         with self._write() as q:
             version, spec = self._locked(q, name, region_id, "version, spec")
+            now = time.time()  # with the write lock won: a writer that waited is not older
             version, spec = int(version) + 1, _spec(spec)
             rows = q(
                 "SELECT kind, digest, result FROM uploads WHERE region_id = ? AND upload_id = ?",
@@ -603,11 +605,11 @@ class MapStore(ABC):
                 " WHERE region_id = ?",
                 (version, now, int(observations), region_id),
             )
-            self._committed(q, region_id, version, now)
             q(
                 "UPDATE uploads SET kind = 'retracted', result = ? WHERE region_id = ? AND upload_id = ?",
                 (json.dumps({**applied, "retraction": result}), region_id, upload_id),
             )
+            self._committed(q, region_id, version)
         return {**result, "replayed": False}
 
     def verify(self) -> dict[str, list[str]]:

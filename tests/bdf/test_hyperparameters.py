@@ -240,3 +240,34 @@ def test_a_search_that_ends_at_the_floor_factors_no_ratio_twice():
 
     values = {lam: evidence_at(lam) for lam in seen}
     assert max(values, key=values.get) == pytest.approx(fit.alpha[0] / fit.beta[0], rel=1e-12)
+
+
+def test_an_abandoned_computation_stops_at_its_next_factorisation():
+    """Inside ``abandon_when(stop)`` a posterior's search raises ``Abandoned`` at the first
+    factorisation after ``stop()`` turns true (the factorisations before it ran), and so
+    does its variance; outside the block, the same fit is whole."""
+    from bdf.hyperparameters import Abandoned, abandon_when
+
+    rng = np.random.default_rng(12)
+    X = rng.uniform(LOWER, UPPER, (1500, 3))
+    V = flow(X) + 0.3 * rng.standard_normal(X.shape)
+    field = BayesianDynamicField(LOWER, UPPER, 2.0, 0.25, alpha="auto", beta="auto").fit(X, V)
+    whole = field.posterior_
+    assert whole.factorisations >= 3
+    asked = []
+
+    def stop_after(n):
+        def stop():
+            asked.append(n)
+            return asked.count(n) > n
+
+        return stop
+
+    with abandon_when(stop_after(2)), pytest.raises(Abandoned):
+        field.set_evidence(field.evidence_).posterior_.compact()
+    assert asked.count(2) == 3  # two factorisations ran, the third was given up
+    searched = field.set_evidence(field.evidence_).posterior_
+    with abandon_when(lambda: True), pytest.raises(Abandoned):
+        searched.variance_table()
+    np.testing.assert_allclose(searched.weights, whole.weights, rtol=0, atol=0)
+    assert field.set_evidence(field.evidence_).posterior_.compact().factorisations == whole.factorisations

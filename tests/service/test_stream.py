@@ -130,11 +130,11 @@ def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_versio
     calls, gate = [], threading.Event()
     posterior = maps._posterior
 
-    def gated(spec, evidence, start, stored=True, settle=True):
+    def gated(spec, evidence, start, stored=True, settle=True, job=0):
         calls.append(settle)
         if settle:
             gate.wait(30)
-        return posterior(spec, evidence, start, stored=stored, settle=settle)
+        return posterior(spec, evidence, start, stored=stored, settle=settle, job=job)
 
     maps._posterior = gated
     maps.upload("town", "more", X[2950:], V[2950:], sample_weight=w[2950:])
@@ -158,3 +158,72 @@ def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_versio
     np.testing.assert_allclose(info.hyper["alpha"], single.alpha_, rtol=1e-6)
     np.testing.assert_allclose(settled.mean, single.predict(X[:5]), rtol=0, atol=1e-6 * np.abs(V).max())
     assert maps.stats.settled == 1
+
+
+@pytest.mark.parametrize("isolate", [False, True])
+def test_a_version_waits_only_for_the_refresh_under_way_and_abandons_a_settling_pass(store, isolate):
+    """A version written while a refresh computes the one before is served by the next
+    refresh: answers meanwhile say one version and one refresh behind. A version written
+    while the background settles the one before abandons that settling pass (at its next
+    factorisation, in the posterior process too): the newer version is computed next, then
+    settled on the single fit's maximum."""
+    spec = RegionSpec.model_validate(SPEC)
+    store.create_region(spec)
+    maps = RegionMaps(store, cache_mb=64, isolate=isolate)
+    X, V, w = lanes(3050, seed=6)
+    maps.upload("town", "base", X[:2900], V[:2900], sample_weight=w[:2900])
+    maps.refresh("town")
+    gates = [threading.Event() for _ in range(8)]
+    calls, ended = [], []
+    posterior = maps._posterior
+
+    def gated(spec, evidence, start=None, stored=True, settle=True, job=0):
+        k = len(calls)
+        calls.append((settle, job))
+        gates[k].wait(60)
+        try:
+            out = posterior(spec, evidence, start, stored=stored, settle=settle, job=job)
+        except Exception as exc:
+            ended.append(type(exc).__name__)
+            raise
+        ended.append("computed")
+        return out
+
+    def called(n):
+        for _ in range(6000):
+            if len(calls) >= n:
+                return
+            threading.Event().wait(0.01)
+        raise AssertionError(f"{len(calls)} posteriors asked for, not {n}")
+
+    def rows(a, b):
+        return X[a:b], V[a:b]
+
+    maps._posterior = gated
+    maps.upload("town", "v2", *rows(2900, 2950), sample_weight=w[2900:2950])
+    called(1)  # version 2's refresh is under way: version 3 waits for it and the next
+    maps.upload("town", "v3", *rows(2950, 3000), sample_weight=w[2950:3000])
+    gates[0].set()
+    called(2)
+    behind = maps.predict("town", X[:5])
+    assert (behind.version, behind.behind, behind.refreshes_behind) == (2, 1, 1)
+    gates[1].set()
+    called(3)  # version 3 served, its settling pass under way
+    assert calls[2][0] and calls[2][1] > 0
+    fresh = maps.predict("town", X[:5])
+    assert (fresh.version, fresh.behind, fresh.refreshes_behind) == (3, 0, 0) and fresh.evidence_gap > 0
+    maps.upload("town", "v4", *rows(3000, 3050), sample_weight=w[3000:3050])
+    waiting = maps.predict("town", X[:5])
+    assert (waiting.version, waiting.behind, waiting.refreshes_behind) == (3, 1, 0)
+    for gate in gates:
+        gate.set()
+    info = maps.fit_hyperparameters("town")
+    settled = maps.predict("town", X[:5])
+    maps.close()
+    assert [settle for settle, _ in calls] == [False, False, True, False, True]
+    assert ended == ["computed", "computed", "Abandoned", "computed", "computed"]
+    assert maps.stats.abandoned == 1
+    assert settled.version == 4 and settled.evidence_gap == 0 and info.hyper["evidence_version"] == 4
+    single = spec.field().fit(X, V, sample_weight=w)
+    np.testing.assert_allclose(info.hyper["alpha"], single.alpha_, rtol=1e-6)
+    np.testing.assert_allclose(settled.mean, single.predict(X[:5]), rtol=0, atol=1e-6 * np.abs(V).max())
