@@ -255,7 +255,8 @@ def test_row_07_a_hyperparameter_fit_of_a_region_recreated_meanwhile_is_a_409(cl
         app.state.service.maps.store.create_region(RegionSpec.model_validate(SPEC))
         return out
 
-    monkeypatch.setattr(app.state.service.maps, "_schedule", lambda region: None)  # no refresh of version 2
+    # no refresh of version 2
+    monkeypatch.setattr(app.state.service.maps, "_schedule", lambda region, version=0: None)
     assert post_obs(client, rows(*data(8, n=20)), "b").status_code == 200
     monkeypatch.setattr(app.state.service.maps, "_posterior", recreate_then)
     problem(client.post(f"/v1/regions/{NAME}/hyperparameters", headers=WRITE), 409, "re-created")
