@@ -8,8 +8,8 @@ turns its answer into a path of the Dubins-airplane kind, in two steps:
   segments (a fillet). Where two neighbouring fillets would overlap on a segment, or one
   would run past its segment's end, two corners that turn the same way become one where
   their outer segments meet (the path keeps to the outside of the bend), and otherwise the
-  corner that needs the longer tangent is dropped and its neighbours are joined, until
-  every fillet fits;
+  one nearer the join of its neighbours is dropped and they are joined, until every fillet
+  fits;
 * vertically, the altitudes of the corners kept, spread along the new path in proportion
   to its horizontal length, are clipped to the floor and ceiling and limited to the climb
   and descent angles by one pass forwards and one backwards (each keeps the other's bound:

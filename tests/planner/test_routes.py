@@ -196,7 +196,7 @@ def test_planned_routes_are_flown_within_the_vehicles_envelope_and_timed(service
             START,
             GOAL,
             weights=CostWeights(max_std_mps=BOUND),
-            seed=1,
+            seed=8,  # its planned route turns 32 then 3 degrees within 7 m, and its fillets cut corners
             max_iterations=3000,
             vehicle=DRONE,
         )
