@@ -306,8 +306,8 @@ def fit_evidence(
     if not (auto_a or auto_b):
         alpha_v = np.broadcast_to(np.asarray(alpha, float), (3,))
         beta_v = np.broadcast_to(np.asarray(beta, float), (3,))
-        sols = _at_ratios(stencil, band, proj, v_sq, alpha_v / beta_v)
         ratios = alpha_v / beta_v
+        sols = _at_ratios(stencil, band, proj, v_sq, ratios)
         return EvidenceFit(alpha_v.copy(), beta_v.copy(), sols, len({id(s) for s in sols}), True, 0.0, ratios)
 
     scale = max(float(np.mean(band[0])), 1e-300)

@@ -33,9 +33,10 @@ benchmark's 4 km x 4 km x 1 km cells, as bench_core.py). Region: the demo's
    abandoned) done during the load and their time (/metrics). Target: at most one refresh
    behind: an answer lacks only versions written since the refresh under way began, so no
    map finished since the first of them was written (refreshes behind 0), or only the one
-   under way then (1). In seconds that is at most the rest of that refresh and the next: up
-   to one refresh when uploads come less often than refreshes (a settling pass never makes
-   a version wait), up to two under a continuous stream.
+   under way then (1). In seconds that is the rest of that refresh and the next: when
+   uploads come less often than refreshes, one refresh plus the wait for a settling pass
+   to give up (a factorisation, or the selected inversion); about two under a continuous
+   stream.
 """
 
 from __future__ import annotations

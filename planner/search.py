@@ -5,7 +5,7 @@ subclass of ``PathLengthOptimizationObjective`` with ``motionCost`` (our integra
 straight-line ``motionCostHeuristic`` (admissible because cost >= length), validity is a
 Python ``StateValidityChecker`` and ``MotionValidator``, and only ``partialShortcutPath``
 simplifies without ignoring the objective. ``solve()`` holds the GIL and a seed works once
-per process, so :func:`solve_in_workers` runs each problem in a fresh spawned process.
+per process, so :func:`solve_in_workers` runs each problem in a fresh process (forked from a fork server).
 """
 
 from __future__ import annotations

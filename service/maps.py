@@ -451,8 +451,8 @@ class RegionMaps:
         """How far ``state`` is behind the region as read (``info``): versions, the seconds
         since the first of them was written, the maps of the region published here since
         then without it (each refresh computes the newest version when it begins, so at
-        most the one under way then), and the nats its hyperparameters lack from its data's evidence
-        maximum (0 once settled)."""
+        most the one under way then), and the nats its hyperparameters lack from its data's
+        evidence maximum (0 once settled)."""
         gap = state.posterior.evidence_gap
         behind = info.version - state.version if info.region_id == state.region_id else 0
         if behind <= 0:

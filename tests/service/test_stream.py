@@ -29,6 +29,15 @@ def lanes(n: int, seed: int = 0):
     return X, V, weight
 
 
+def wait_until(condition, polls: int = 6000) -> None:
+    """Poll ``condition`` every 10 ms until it holds (a background refresh reached a point)."""
+    for _ in range(polls):
+        if condition():
+            return
+        threading.Event().wait(0.01)
+    raise AssertionError("the background refresh did not get there")
+
+
 @pytest.mark.parametrize("directions", [1, 8])
 def test_a_map_built_by_many_uploads_is_the_single_fit(store, directions):
     """The same data as 1, 10 and 100 uploads of random sizes in shuffled orders: once the
@@ -140,10 +149,7 @@ def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_versio
     maps.upload("town", "more", X[2950:], V[2950:], sample_weight=w[2950:])
     quick = maps.predict("town", X[:5], min_version=2)
     assert quick.version == 2 and 0 < quick.evidence_gap < 1.0
-    for _ in range(3000):  # the settling pass has begun: the first map's record is written
-        if True in calls:
-            break
-        threading.Event().wait(0.01)
+    wait_until(lambda: True in calls)  # the settling pass has begun: the first map's record is written
     recorded = store.region("town").hyper
     assert recorded["evidence_version"] == 2 and not recorded["settled"]
     assert recorded["evidence_gap"] == pytest.approx(quick.evidence_gap)
@@ -189,26 +195,19 @@ def test_a_version_waits_only_for_the_refresh_under_way_and_abandons_a_settling_
         ended.append("computed")
         return out
 
-    def called(n):
-        for _ in range(6000):
-            if len(calls) >= n:
-                return
-            threading.Event().wait(0.01)
-        raise AssertionError(f"{len(calls)} posteriors asked for, not {n}")
-
     def rows(a, b):
         return X[a:b], V[a:b]
 
     maps._posterior = gated
     maps.upload("town", "v2", *rows(2900, 2950), sample_weight=w[2900:2950])
-    called(1)  # version 2's refresh is under way: version 3 waits for it and the next
+    wait_until(lambda: len(calls) >= 1)  # version 2 refreshing: version 3 waits for it and the next
     maps.upload("town", "v3", *rows(2950, 3000), sample_weight=w[2950:3000])
     gates[0].set()
-    called(2)
+    wait_until(lambda: len(calls) >= 2)
     behind = maps.predict("town", X[:5])
     assert (behind.version, behind.behind, behind.refreshes_behind) == (2, 1, 1)
     gates[1].set()
-    called(3)  # version 3 served, its settling pass under way
+    wait_until(lambda: len(calls) >= 3)  # version 3 served, its settling pass under way
     assert calls[2][0] and calls[2][1] > 0
     fresh = maps.predict("town", X[:5])
     assert (fresh.version, fresh.behind, fresh.refreshes_behind) == (3, 0, 0) and fresh.evidence_gap > 0
