@@ -130,8 +130,15 @@ def test_a_route_above_the_bound_at_the_service_is_planned_again_on_finer_grids(
 
     monkeypatch.setattr(routes, "_plan_on_grid", above_the_bound)
     with BDFClient(service.url) as bdf:
-        plan = plan_route(
-            bdf, "corridor", START, GOAL, weights=CostWeights(max_std_mps=BOUND), step=20.0, time_s=1.0
+        plan = plan_route(  # bounded by iterations, not time: a plan on every grid
+            bdf,
+            "corridor",
+            START,
+            GOAL,
+            weights=CostWeights(max_std_mps=BOUND),
+            step=20.0,
+            seed=1,
+            max_iterations=2000,
         )
     assert [s.tolist() for s in steps] == [[20.0] * 3, [10.0] * 3, [5.0] * 3]
     assert plan.costmap.step.tolist() == [5.0] * 3 and plan.route is not None
