@@ -38,6 +38,10 @@ class Observations:
     def __len__(self) -> int:
         return len(self.X)
 
+    def track_weights(self, gamma) -> np.ndarray:
+        """:func:`track_weights` of these rows, a track per flight, for a kernel ``gamma``."""
+        return track_weights(self.flight, self.time, self.V, gamma)
+
     def subset(self, mask) -> Observations:
         return Observations(
             self.X[mask], self.V[mask], self.time[mask], self.flight[mask], dict(self.dropped)
@@ -146,14 +150,26 @@ def adsb_observations(table: dict, frame: ENUFrame, *, source="table") -> Observ
     and incomplete rows are dropped."""
     X, V, keep, dropped = adsb_state(table, frame, source=source)
     log.info("%s: %d state vectors, dropped %s", source, len(keep), dropped)
-    n = len(keep)
+    flight, time = adsb_tracks(table, source)
+    flight = np.unique(flight[keep], return_inverse=True)[1].ravel()  # 0, 1, ... over the kept rows
+    return Observations(X, V, time[keep], flight.astype(np.int64), dropped)
+
+
+def adsb_tracks(table: dict, source="table") -> tuple[np.ndarray, np.ndarray]:
+    """The track of each state vector (a code per icao24 and callsign) and its time in
+    seconds (``timestamp`` or ``time``: Unix seconds, milliseconds or a date-time column)."""
+    n = len(table["icao24"])
     callsign = table.get("callsign", np.full(n, ""))
-    keys = np.array([f"{a}/{b}" for a, b in zip(table["icao24"], callsign, strict=True)])[keep]
-    _, flight = np.unique(keys, return_inverse=True)
-    time = float_column(table, "timestamp" if "timestamp" in table else "time", source)[keep]
-    if np.nanmax(np.abs(time), initial=0) > 1e11:  # milliseconds, as in the traffic samples
-        time = time / 1000.0
-    return Observations(X, V, time, flight.astype(np.int64), dropped)
+    keys = np.array([f"{a}/{b}" for a, b in zip(table["icao24"], callsign, strict=True)])
+    name = "timestamp" if "timestamp" in table else "time"
+    column = np.asarray(table[name]) if name in table else None
+    if column is not None and column.dtype.kind == "M":
+        time = column.astype("datetime64[ns]").astype(np.int64) / 1e9
+    else:
+        time = float_column(table, name, source)
+        if np.nanmax(np.abs(time), initial=0) > 1e11:  # milliseconds, as in the traffic samples
+            time = time / 1000.0
+    return track_codes(keys), time
 
 
 def read_adsb(path, frame: ENUFrame) -> Observations:
@@ -192,14 +208,91 @@ def train_test_split(obs: Observations, *, by: str = "point", test_fraction: flo
     raise ValueError(f"by must be 'point' or 'flight', got {by!r}")
 
 
-def track_weights(obs: Observations, cell_m) -> np.ndarray:
-    """Sample weights giving each flight one unit of weight per cell of size ``cell_m`` it visits.
+#: A track's rows count as if it flew at least this fast (m/s, the slow class's bound): a
+#: hovering vehicle's samples are as correlated in time as a cruising one's in space.
+MIN_TRACK_SPEED_MPS = 5.0
+#: The time a row stands for when its track has no other row among those given (an upload
+#: that cut it to one row): the sampling interval of ADS-B state vectors and of most radars.
+LONE_ROW_INTERVAL_S = 1.0
 
-    Samples along one track a second apart are not independent observations of the flow;
-    counted as such, they make the evidence trust the data far too much (overfitting and
-    overconfident std on flights not seen). Use a cell about the kernel width.
+
+def track_weights(
+    track,
+    time,
+    V,
+    gamma,
+    *,
+    min_speed_mps: float = MIN_TRACK_SPEED_MPS,
+    lone_interval_s: float = LONE_ROW_INTERVAL_S,
+) -> np.ndarray:
+    """Weights of the rows of tracks: about one observation per kernel width flown.
+
+    Rows of one track a second apart are not independent observations of the flow: counted
+    as such, the evidence trusts the data by orders of magnitude too much (the prior is
+    driven to nothing and the field oscillates between tracks). A row stands for the time
+    to its nearer neighbour in its own track (rows of a track at one ``time`` share it; a
+    row alone in its track stands for ``lone_interval_s``), flown at its own velocity ``V``
+    (at least ``min_speed_mps``), measured in kernel widths (``1 / sqrt(gamma)`` per axis),
+    and counts that many observations, at most one (after a long gap a row is one
+    independent observation).
+
+    The weight depends only on a row and its neighbours in its track among the rows given,
+    so the rows of one upload are weighed alone: any split of a track into uploads gives the
+    same weights wherever each cut lies between rows no further apart than the rows beside
+    them (regular sampling at ``lone_interval_s`` or faster: every cut), and retracting an
+    upload removes exactly what it added. Two flights along one line weigh twice one flight;
+    one flight sampled 16 times as often weighs the same. A track's two end rows stand for
+    a whole interval (a cut end cannot be told from a true one): half a sample more than
+    a trapezoid rule would give.
+
+    Parameters
+    ----------
+    track : (n,) integer track id of each row.
+    time : (n,) seconds, finite.
+    V : (n, 3) velocities, m/s.
+    gamma : (3,) the kernel's inverse squared widths per axis (1/m^2).
     """
-    cell = np.floor(obs.X / np.broadcast_to(np.asarray(cell_m, float), (3,))).astype(np.int64)
-    keys = np.concatenate([obs.flight[:, None], cell], axis=1)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    return 1.0 / counts[inverse.ravel()]
+    track = np.asarray(track)
+    time = np.asarray(time, dtype=float)
+    V = np.asarray(V, dtype=float)
+    gamma = np.broadcast_to(np.asarray(gamma, dtype=float), (3,))
+    n = len(track)
+    if time.shape != (n,) or V.shape != (n, 3):
+        raise ValueError(
+            f"track, time and V must have n, n and (n, 3) rows; got {track.shape}, {time.shape}, {V.shape}"
+        )
+    if not np.isfinite(time).all():
+        raise ValueError("every row of a track needs a finite time")
+    if n == 0:
+        return np.zeros(0)
+    order = np.lexsort((time, track))
+    k, t = track[order], time[order]
+    first = np.r_[True, (k[1:] != k[:-1]) | (t[1:] != t[:-1])]  # each (track, time) once
+    group = np.cumsum(first) - 1
+    gk, gt = k[first], t[first]
+    same = gk[1:] == gk[:-1]
+    gap = np.where(same, np.diff(gt), np.inf)
+    interval = np.minimum(np.r_[np.inf, gap], np.r_[gap, np.inf])  # to the nearer neighbour
+    interval[np.isinf(interval)] = lone_interval_s
+    sharing = np.bincount(group)
+    rate = np.maximum(
+        np.linalg.norm(V[order] * np.sqrt(gamma), axis=1), min_speed_mps * np.sqrt(gamma[:2].max())
+    )
+    with np.errstate(invalid="ignore"):  # inf x rate
+        w = np.minimum(interval[group] * rate, 1.0) / sharing[group]
+    out = np.empty(n)
+    out[order] = w
+    return out
+
+
+def track_codes(ids) -> np.ndarray:
+    """Integer codes of track ids (strings or integers; ``None`` or ``""``: no track, -1)."""
+    ids = np.asarray(ids)
+    if ids.dtype.kind in "iu":
+        return np.unique(ids, return_inverse=True)[1].ravel().astype(np.int64)
+    ids = ids.astype(object)
+    missing = np.array([v is None or v == "" for v in ids], dtype=bool)
+    codes = np.full(len(ids), -1, np.int64)
+    if (~missing).any():
+        codes[~missing] = np.unique(ids[~missing].astype(str), return_inverse=True)[1].ravel()
+    return codes

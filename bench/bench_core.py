@@ -303,7 +303,7 @@ def weighted_cv(
     """
     rows = []
     for spacing in spacings:
-        weight = ingest.track_weights(obs, spacing)
+        weight = obs.track_weights(1 / np.asarray(spacing) ** 2)
         t0 = time.perf_counter()
         _, found = crossval.cross_validate(
             obs.X,
@@ -326,7 +326,7 @@ def weighted_cv(
 def noise_cv(obs: ingest.Observations, lower, upper) -> list[dict]:
     """Flight-grouped 5-fold CV (MSLL) of local-noise lattices and prior weights on the
     4 km grid with track weights, on ``obs``; the first row is the global noise."""
-    weight = ingest.track_weights(obs, PARIS_SPACING_M)
+    weight = obs.track_weights(1 / np.asarray(PARIS_SPACING_M) ** 2)
     rows = []
     for noise_spacing, prior in [(None, None)] + [
         (s, p) for s in CV_NOISE_SPACINGS_M for p in CV_NOISE_PRIORS
@@ -403,7 +403,7 @@ def directions_table(obs, lower, upper, split, counts, repeat, soft=0) -> list[s
     """Rows of ``--directions`` for one split."""
     test = ingest.train_test_split(obs, by=split, test_fraction=0.2, seed=0)
     Xtr, Vtr, Xte, Vte = obs.X[~test], obs.V[~test], obs.X[test], obs.V[test]
-    weight = ingest.track_weights(obs.subset(~test), PARIS_SPACING_M)
+    weight = obs.subset(~test).track_weights(1 / np.asarray(PARIS_SPACING_M) ** 2)
     Q = np.random.default_rng(1).uniform(lower, upper, (100_000, 3))
     M = len(BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA).hinges)
     lines = [
@@ -505,7 +505,7 @@ def main():
         test = ingest.train_test_split(obs, by=split, test_fraction=0.2, seed=0)
         Xtr, Vtr, Xte, Vte = obs.X[~test], obs.V[~test], obs.X[test], obs.V[test]
         rows = []
-        weight = ingest.track_weights(obs.subset(~test), PARIS_SPACING_M)
+        weight = obs.subset(~test).track_weights(1 / np.asarray(PARIS_SPACING_M) ** 2)
         field, tr, q, mean, std = run_bdf(lower, upper, Xtr, Vtr, Xte, "auto", "auto", args.repeat, weight)
         rows.append(
             score(
@@ -543,7 +543,7 @@ def main():
                 "mean as above",
             )
         )
-        coarse = ingest.track_weights(obs.subset(~test), COARSE_SPACING_M)
+        coarse = obs.subset(~test).track_weights(1 / np.asarray(COARSE_SPACING_M) ** 2)
         coarse_field, tr, q, mean, std = run_bdf(
             lower, upper, Xtr, Vtr, Xte, "auto", "auto", args.repeat, coarse, COARSE_SPACING_M
         )

@@ -41,7 +41,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import rows_table
 
-from bdf import ingest
 from bdf.region.route import VEHICLES, envelope
 from bdf.region.spec import RegionSpec
 from clients import samples
@@ -86,7 +85,7 @@ def main() -> None:
         return
     with tempfile.TemporaryDirectory() as tmp, LocalService(Path(tmp)) as svc, BDFClient(svc.url) as bdf:
         bdf.create_region(spec)
-        bdf.fit(spec.name, obs.X, obs.V, sample_weight=ingest.track_weights(obs, spec.spacing_m))
+        bdf.fit(spec.name, obs.X, obs.V, track=obs.flight, t=obs.time)
         grid, bound, P = tube_voxels(bdf, spec)
         step = [float(a[1] - a[0]) for a in grid.axes]
         weights = CostWeights(max_std_mps=bound, cruise_mps=60.0)
@@ -168,7 +167,7 @@ def planner_rows(costmap: CostMap, a, b) -> list[dict]:
 
 def directional_pairs(obs, spec, args) -> str:
     """Directional planning against one class's over random pairs (see the module doc)."""
-    weight = ingest.track_weights(obs, spec.spacing_m)
+    weight = obs.track_weights(spec.gamma)
     maps, fit_s = {}, {}
     for S in (1, args.directions):
         t0 = time.perf_counter()
@@ -230,7 +229,7 @@ def flyable_pairs(obs, lower, upper, args) -> str:
     """Flyable routes for ``args.vehicle`` over random pairs on the demo's map (in process)."""
     spec = samples.paris_demo_region(lower, upper, directions=8)
     t0 = time.perf_counter()
-    source = LocalMap.fit(spec, obs.X, obs.V, sample_weight=ingest.track_weights(obs, spec.spacing_m))
+    source = LocalMap.fit(spec, obs.X, obs.V, sample_weight=obs.track_weights(spec.gamma))
     fit_s = time.perf_counter() - t0
     grid, bound, P = tube_voxels(source, spec)
     step = [float(a[1] - a[0]) for a in grid.axes]

@@ -61,7 +61,7 @@ def main() -> int:
     obs, lower, upper = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     X, V, probe = obs.X[~test], obs.V[~test], obs.X[test][:1]
-    weight = ingest.track_weights(obs.subset(~test), PARIS_SPACING_M)
+    weight = obs.subset(~test).track_weights(1 / np.asarray(PARIS_SPACING_M) ** 2)
 
     def fit(S, alpha="auto", beta="auto"):
         field = BayesianDynamicField(lower, upper, PARIS_SPACING_M, PARIS_GAMMA, alpha, beta, directions=S)

@@ -76,7 +76,7 @@ def split():
     obs, lower, upper = samples.load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     train = obs.subset(~test)
-    weight = ingest.track_weights(train, PARIS_SPACING_M)
+    weight = train.track_weights(1 / np.asarray(PARIS_SPACING_M) ** 2)
     return train, weight, obs.subset(test), lower, upper
 
 

@@ -92,7 +92,7 @@ def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
     """Largest error of the map at each cutoff against 1e-12 on 20,000 random points."""
     train = obs.subset(~test)
     exact = paris(spacing, DEFAULT_CUTOFF)
-    weight = ingest.track_weights(train, exact.spacing_m)
+    weight = train.track_weights(exact.gamma)
     climate = np.sqrt(np.average(train.V**2, axis=0, weights=weight))
     ref = exact.field().fit(train.X, train.V, sample_weight=weight)
     Q = np.random.default_rng(1).uniform(exact.lower, exact.upper, (20_000, 3))
@@ -125,7 +125,7 @@ def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
 def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
     spec = paris(spacing, cutoff, directions)
     train = obs.subset(~test)
-    weight = ingest.track_weights(train, spec.spacing_m)
+    weight = train.track_weights(spec.gamma)
     row = {"hinges": spec.grid.size, "stencil": len(spec.stencil.offsets)}
     with tempfile.TemporaryDirectory() as tmp:
         store = open_store(f"sqlite:///{tmp}")

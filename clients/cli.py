@@ -100,7 +100,13 @@ def _send_observations(args, kind: str) -> int:
         obs = read_observations(args.file, spec)
         if obs.dropped:
             print(f"{args.file}: dropped {obs.dropped}", file=sys.stderr)
-        kw = {"input_noise_std": obs.input_noise_std, "frame": obs.frame, "progress": args.progress}
+        kw = {
+            "input_noise_std": obs.input_noise_std,
+            "track": obs.track,
+            "t": obs.time,
+            "frame": obs.frame,
+            "progress": args.progress,
+        }
         if kind != "fit":
             kw["chunk_size"] = args.chunk_size
         result = getattr(bdf, kind)(args.name, obs.X, obs.V, **kw)
@@ -110,6 +116,8 @@ def _send_observations(args, kind: str) -> int:
         f"(rejected {result.rejected}, {result.chunks} request(s), {result.replayed_chunks} replayed); "
         f"region version {result.region_version}"
     )
+    for warning in result.warnings:
+        print(f"warning: {result.untracked} {warning}", file=sys.stderr)
     return 0
 
 
@@ -434,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
         help=text,
         description=f"{text[0].upper()}{text[1:]}. Files (Parquet, Arrow IPC, CSV, gzipped CSV) hold "
         "the columns an upload takes (x,y,z or lat,lon,alt_m; ve,vn,vu; optional input_noise_std, "
-        "sample_weight) or ADS-B state vectors (traffic/OpenSky Impala or OpenSky file columns). "
+        "sample_weight, track and t) or ADS-B state vectors (traffic/OpenSky Impala or OpenSky file "
+        "columns). "
         "Workers read slices of them (Parquet row groups, row ranges, CSV byte ranges) in bounded "
         "batches, so on a cluster every worker must see the paths. The build is one exactly-once "
         "upload: re-running it is a replay.",
@@ -520,7 +529,9 @@ def build_parser() -> argparse.ArgumentParser:
             name,
             text,
             epilog="Files: CSV, Parquet or JSON(.gz) with x,y,z or lat,lon,alt_m and "
-            "ve,vn,vu columns, or ADS-B state vectors (OpenSky/traffic columns).",
+            "ve,vn,vu columns (and track, t: each row's track id and time in seconds, so the "
+            "service weighs a track's correlated rows), or ADS-B state vectors (OpenSky/traffic "
+            "columns; tracks by icao24 and callsign).",
         )
         p.add_argument("name", help="region name")
         p.add_argument("file", type=Path, help="observations file")

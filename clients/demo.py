@@ -90,9 +90,9 @@ def _build(bdf: BDFClient, spec, obs, test, report: dict) -> None:
     """Learn the map from the training flights over HTTP, score it on the held-out
     flights, print both."""
     t0 = time.perf_counter()
-    # each flight counts once per grid cell it crosses: 1 Hz samples are not independent
-    weight = ingest.track_weights(obs.subset(~test), spec.spacing_m)
-    fit = bdf.fit(spec.name, obs.X[~test], obs.V[~test], sample_weight=weight)
+    # the rows as they come, with their tracks: the service weighs each track's 1 Hz samples
+    train = obs.subset(~test)
+    fit = bdf.fit(spec.name, train.X, train.V, track=train.flight, t=train.time)
     report["map build over HTTP [s]"] = round(time.perf_counter() - t0, 2)
     report["train points / tiles updated"] = f"{fit.accepted} / {fit.tiles_updated}"
     t0 = time.perf_counter()

@@ -2,11 +2,12 @@
 
 Three layouts are recognised by their columns:
 
-* ENU: ``x, y, z`` (region metres) and ``ve, vn, vu`` (m/s) [``input_noise_std``];
-* WGS84: ``lat, lon, alt_m`` and ``ve, vn, vu`` in each point's local axes;
+* ENU: ``x, y, z`` (region metres) and ``ve, vn, vu`` (m/s) [``input_noise_std``]
+  [``track``, ``t``: each row's track id and time in seconds];
+* WGS84: ``lat, lon, alt_m`` and ``ve, vn, vu`` in each point's local axes [the same];
 * ADS-B state vectors (OpenSky / ``traffic``): ``icao24, latitude, longitude, altitude``
   (ft), ``groundspeed`` (kt), ``track`` (deg), ``vertical_rate`` (ft/min), ``timestamp``;
-  on-ground and incomplete rows are dropped and counted.
+  on-ground and incomplete rows are dropped and counted; a track per icao24 and callsign.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ class FileObservations:
     input_noise_std: np.ndarray | None
     frame: str  # "enu" or "wgs84"
     dropped: dict[str, int]
+    track: np.ndarray | None = None  # (n,) id of each row's track, with ``time``
+    time: np.ndarray | None = None  # (n,) seconds
 
 
 def _columns(table: dict, names, path) -> np.ndarray:
@@ -37,10 +40,15 @@ def read_observations(path, spec: RegionSpec) -> FileObservations:
     noise = ingest.float_column(table, "input_noise_std", path) if "input_noise_std" in table else None
     if ingest.adsb_schema(table):
         obs = ingest.adsb_observations(table, spec.frame(), source=str(path))
-        return FileObservations(obs.X, obs.V, None, "enu", obs.dropped)
+        return FileObservations(obs.X, obs.V, None, "enu", obs.dropped, obs.flight, obs.time)
     frame, P = read_points_table(table, path)
     V = _columns(table, ("ve", "vn", "vu"), path)
-    return FileObservations(P, V, noise, frame, {})
+    if ("track" in table) != ("t" in table):
+        raise ValueError(f"{path}: the columns track and t go together (a track's rows weigh by their times)")
+    if "track" not in table:
+        return FileObservations(P, V, noise, frame, {})
+    track = ingest.track_codes(table["track"])
+    return FileObservations(P, V, noise, frame, {}, track, ingest.float_column(table, "t", path))
 
 
 def read_points_table(table: dict, path) -> tuple[str, np.ndarray]:

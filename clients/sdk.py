@@ -71,6 +71,10 @@ class UploadResult:
     chunks: int
     replayed_chunks: int
     upload_ids: list[str] = field(repr=False)
+    #: rows without a track id, counted as independent observations, and what the service
+    #: said of them
+    untracked: int = 0
+    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -235,7 +239,7 @@ def _json_body(body) -> dict:
     return {"content": json.dumps(body).encode(), "content_type": JSON}
 
 
-def _observations_body(X, V, noise, weight, frame: Frame) -> bytes:
+def _observations_body(X, V, noise, weight, track, t, frame: Frame) -> bytes:
     columns = {
         **_position_columns(X, frame),
         **{c: np.ascontiguousarray(V[:, j]) for j, c in enumerate(wire.VELOCITY_COLUMNS)},
@@ -244,6 +248,8 @@ def _observations_body(X, V, noise, weight, frame: Frame) -> bytes:
         columns["input_noise_std"] = noise
     if weight is not None:
         columns["sample_weight"] = weight
+    if track is not None:
+        columns["track"], columns["t"] = track, t
     return _arrow(columns)
 
 
@@ -258,21 +264,40 @@ def _per_point(value, n: int, name: str) -> np.ndarray | None:
         ) from None
 
 
-def _observations(X, V, noise, weight):
+def _observations(X, V, noise, weight, track, t):
     X, V = _points(X), _points(V, "V")
     if len(X) != len(V):
         raise ValueError(f"{len(X)} positions but {len(V)} velocities")
     if len(X) == 0:
         raise ValueError("no observations to send")
-    return X, V, _per_point(noise, len(X), "input_noise_std"), _per_point(weight, len(X), "sample_weight")
+    if (track is None) != (t is None):
+        raise ValueError("track and t go together: the service weighs a track's rows by their times")
+    if track is not None:
+        track = np.asarray(track)
+        if track.dtype.kind not in "iuUO" or track.shape != (len(X),):
+            raise ValueError(
+                f"track must hold one string or integer id per point ({len(X)}), "
+                f"got {track.dtype} {track.shape}"
+            )
+        if track.dtype.kind in "iu":
+            track = track.astype(np.int64)
+        t = _per_point(t, len(X), "t")
+    return (
+        X,
+        V,
+        _per_point(noise, len(X), "input_noise_std"),
+        _per_point(weight, len(X), "sample_weight"),
+        track,
+        t,
+    )
 
 
-def _upload_key(X, V, noise, weight, chunk_size: int, kind: str) -> str:
+def _upload_key(chunk_size: int, kind: str, *arrays) -> str:
     """Same data, same keys: a rerun of an interrupted upload skips the chunks already applied."""
     h = hashlib.sha256(kind.encode())
-    for a in (X, V, noise, weight):
+    for a in arrays:
         if a is not None:
-            h.update(np.ascontiguousarray(a).tobytes())
+            h.update(np.ascontiguousarray(a.astype(str) if a.dtype == object else a).tobytes())
     h.update(str(chunk_size).encode())
     return h.hexdigest()[:32]
 
@@ -392,18 +417,26 @@ class _Endpoints:
         *,
         input_noise_std=None,
         sample_weight=None,
+        track=None,
+        t=None,
         frame: Frame = "enu",
         chunk_size: int = 200_000,
         key: str | None = None,
         progress: bool | None = None,
     ) -> UploadResult:
         """Add observations: positions ``X`` (n, 3) ENU metres or lat, lon, alt_m with
-        ``frame="wgs84"``; velocities ``V`` (n, 3) east, north, up m/s; ``sample_weight``
-        per observation (e.g. :func:`bdf.ingest.track_weights`). Sent in chunks of
-        ``chunk_size`` with keys ``{key}-{i}``; ``key`` defaults to a hash of the data, so
-        running the same upload again applies nothing twice."""
+        ``frame="wgs84"``; velocities ``V`` (n, 3) east, north, up m/s; ``track`` (n,)
+        string or integer id of each row's track (aircraft, flight) and ``t`` (n,) its
+        time in seconds: the service weighs a track's correlated rows itself (rows without
+        them count as independent observations, and ``warnings`` says so);
+        ``sample_weight`` per row (with ``track``: times its track weight). Sent in chunks
+        of ``chunk_size`` with keys ``{key}-{i}`` (a track may be cut between chunks);
+        ``key`` defaults to a hash of the data, so running the same upload again applies
+        nothing twice."""
         return self._run(
-            self._upload(name, X, V, input_noise_std, sample_weight, frame, chunk_size, key, progress)
+            self._upload(
+                name, X, V, input_noise_std, sample_weight, track, t, frame, chunk_size, key, progress
+            )
         )
 
     def retract(
@@ -414,6 +447,8 @@ class _Endpoints:
         *,
         input_noise_std=None,
         sample_weight=None,
+        track=None,
+        t=None,
         frame: Frame = "enu",
         chunk_size: int = 200_000,
         key: str | None = None,
@@ -426,7 +461,18 @@ class _Endpoints:
         applies nothing twice."""
         return self._run(
             self._upload(
-                name, X, V, input_noise_std, sample_weight, frame, chunk_size, key, progress, "retractions"
+                name,
+                X,
+                V,
+                input_noise_std,
+                sample_weight,
+                track,
+                t,
+                frame,
+                chunk_size,
+                key,
+                progress,
+                "retractions",
             )
         )
 
@@ -438,6 +484,8 @@ class _Endpoints:
         *,
         input_noise_std=None,
         sample_weight=None,
+        track=None,
+        t=None,
         frame: Frame = "enu",
         key: str | None = None,
         wait: bool = True,
@@ -446,9 +494,12 @@ class _Endpoints:
     ) -> UploadResult | dict:
         """Replace the region's map with these observations (one request). A large fit runs
         as a job on the server: with ``wait`` the client polls it and returns its result;
-        without, it returns the job (``{"id", "state", "progress", ...}``)."""
+        without, it returns the job (``{"id", "state", "progress", ...}``). ``track`` and
+        ``t`` as for :meth:`upload`."""
         return self._run(
-            self._fit(name, X, V, input_noise_std, sample_weight, frame, key, wait, poll_s, progress)
+            self._fit(
+                name, X, V, input_noise_std, sample_weight, track, t, frame, key, wait, poll_s, progress
+            )
         )
 
     # -- maps ---------------------------------------------------------------------------------
@@ -571,12 +622,12 @@ class _Endpoints:
         return response.json()
 
     def _upload(
-        self, name, X, V, noise, weight, frame, chunk_size, key, progress, route="observations"
+        self, name, X, V, noise, weight, track, t, frame, chunk_size, key, progress, route="observations"
     ) -> Call:
-        X, V, noise, weight = _observations(X, V, noise, weight)
+        rows = X, V, noise, weight, track, t = _observations(X, V, noise, weight, track, t)
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
-        key = key or _upload_key(X, V, noise, weight, chunk_size, "observations")
+        key = key or _upload_key(chunk_size, "observations", *rows)
         results = []
         verb = "upload" if route == "observations" else "retract"
         with _progress_bar(len(X), f"{verb} {name}", progress) as bar:
@@ -586,10 +637,7 @@ class _Endpoints:
                     "POST",
                     f"/v1/regions/{name}/{route}",
                     content=_observations_body(
-                        X[part],
-                        V[part],
-                        None if noise is None else noise[part],
-                        None if weight is None else weight[part],
+                        *(None if a is None else a[part] for a in rows),
                         frame,
                     ),
                     content_type=ARROW,
@@ -600,14 +648,14 @@ class _Endpoints:
                 bar.update(len(X[part]))
         return _summary(results)
 
-    def _fit(self, name, X, V, noise, weight, frame, key, wait, poll_s, progress) -> Call:
-        X, V, noise, weight = _observations(X, V, noise, weight)
+    def _fit(self, name, X, V, noise, weight, track, t, frame, key, wait, poll_s, progress) -> Call:
+        rows = _observations(X, V, noise, weight, track, t)
         response = yield _Request(
             "POST",
             f"/v1/regions/{name}/fit",
-            content=_observations_body(X, V, noise, weight, frame),
+            content=_observations_body(*rows, frame),
             content_type=ARROW,
-            idempotency_key=key or _upload_key(X, V, noise, weight, len(X), "fit"),
+            idempotency_key=key or _upload_key(len(rows[0]), "fit", *rows),
         )
         if response.status_code != 202:
             self._wrote(name, response.json()["region_version"])
@@ -700,6 +748,8 @@ def _summary(results: Iterable[dict]) -> UploadResult:
         chunks=len(results),
         replayed_chunks=sum(bool(r["replayed"]) for r in results),
         upload_ids=[r["upload_id"] for r in results],
+        untracked=sum(r.get("untracked", 0) for r in results),
+        warnings=list(dict.fromkeys(w for r in results for w in r.get("warnings", []))),
     )
 
 

@@ -26,7 +26,7 @@ from fastapi import APIRouter, Depends, FastAPI, Header, Path, Query, Request, R
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from bdf import sectors
 from bdf.region.route import MAX_ROUTE_POINTS, SAMPLE_M
@@ -107,6 +107,10 @@ class UploadView(BaseModel):
     region_version: int
     tiles_updated: int
     replayed: bool
+    untracked: int = Field(
+        0, description="accepted rows without a track id, counted as independent observations"
+    )
+    warnings: list[str] = Field(default_factory=list, description="what the client should know of its data")
 
 
 class JobView(BaseModel):
@@ -433,6 +437,8 @@ def _apply(svc: Service, name: str, upload_id: str, obs: formats.UploadRows, ret
         obs.V,
         input_noise_std=obs.input_noise_std,
         sample_weight=obs.sample_weight,
+        track=obs.track,
+        time=obs.time,
         **kw,
     )
     svc.metrics.upload_applied(result)

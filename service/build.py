@@ -12,9 +12,11 @@ stores nothing. Every task is a pure function of its slice, so Dask recomputes t
 of a lost worker and the sum is the same. Service replicas see the new version at once.
 
 Columns: those an upload takes (``x, y, z`` or ``lat, lon, alt_m``; ``ve, vn, vu``;
-optionally ``input_noise_std`` and ``sample_weight``), or ADS-B state vectors in either
-schema of :data:`bdf.ingest.ADSB_SCHEMAS` (converted with the region's frame on the
-worker; rows on the ground are rejected and counted). Workers read files by path, so on
+optionally ``input_noise_std``, ``sample_weight``, ``track`` and ``t``), or ADS-B state
+vectors in either schema of :data:`bdf.ingest.ADSB_SCHEMAS` (converted with the region's
+frame on the worker, tracks by icao24 and callsign; rows on the ground are rejected and
+counted). A track's rows are weighed within each batch (:func:`bdf.ingest.track_weights`:
+a track cut between batches weighs the same where it is sampled regularly). Workers read files by path, so on
 a cluster every worker must see the paths (a shared volume, see the README).
 
 The upload id defaults to a digest of the files' bytes (read by the workers), so
@@ -45,7 +47,7 @@ from bdf.region.evidence import Increment, region_total
 from bdf.region.map import compute_posterior
 from bdf.region.spec import RegionSpec, TileKey
 from service import formats, wire
-from service.maps import REJECTED, fitted, observations_evidence, require_accepted
+from service.maps import REJECTED, UNTRACKED_WARNING, fitted, observations_evidence, require_accepted
 from service.problems import Problem
 from service.store import MapStore
 
@@ -66,6 +68,9 @@ _NUMERIC_COLUMNS = (
     *{c for cols, *_ in ingest.ADSB_SCHEMAS.values() for c in cols},
     "baroaltitude",
 )
+#: ADS-B columns read as numpy (the rest stay Arrow, never read): the numbers, the ground
+#: flag and what names and times a track
+_READ_COLUMNS = {*_NUMERIC_COLUMNS, "onground", "icao24", "callsign", "timestamp", "time"}
 
 
 #: Dask starts workers with ``MALLOC_TRIM_THRESHOLD_=65536``. Setting either threshold
@@ -223,22 +228,27 @@ def batch_evidence(spec: RegionSpec, batch: pa.RecordBatch | pa.Table) -> Part:
     if ingest.adsb_schema(batch.column_names):
         # the numbers and the ground flag as numpy; the strings stay Arrow (never read here)
         table = {
-            n: col.to_numpy(zero_copy_only=False) if n in _NUMERIC_COLUMNS or n == "onground" else col
+            n: col.to_numpy(zero_copy_only=False) if n in _READ_COLUMNS else col
             for n, col in zip(batch.column_names, batch.columns, strict=True)
         }
-        X, V, _, dropped = ingest.adsb_state(table, spec.frame())
-        increments, summary = observations_evidence(spec, X, V)
+        X, V, keep, dropped = ingest.adsb_state(table, spec.frame())
+        track, time = ingest.adsb_tracks(table)
+        increments, summary = observations_evidence(spec, X, V, track=track[keep], time=time[keep])
         summary["rejected"]["non_finite"] += dropped["incomplete"]
         summary["rejected"]["on_ground"] = dropped["on_ground"]
         return Part(increments, summary)
     obs = formats.table_observations(spec, batch)
-    return Part(*observations_evidence(spec, obs.X, obs.V, obs.input_noise_std, obs.sample_weight))
+    return Part(
+        *observations_evidence(
+            spec, obs.X, obs.V, obs.input_noise_std, obs.sample_weight, track=obs.track, time=obs.time
+        )
+    )
 
 
 def slice_evidence(spec_json: str, piece: Slice, batch_rows: int = BATCH_ROWS) -> Part:
     """The evidence of one slice (runs on a worker)."""
     spec = RegionSpec.model_validate_json(spec_json)
-    total = Part({}, {"accepted": 0, "rejected": dict.fromkeys(REJECTED, 0)})
+    total = Part({}, {"accepted": 0, "rejected": dict.fromkeys(REJECTED, 0), "untracked": 0})
     try:
         for batch in read_slice(piece, batch_rows):
             if batch.num_rows:
@@ -266,12 +276,16 @@ def merge(a: Part, b: Part) -> Part:
             inc if old is None else Increment(old.evidence + inc.evidence, old.points + inc.points)
         )
     reasons = a.summary["rejected"].keys() | b.summary["rejected"].keys()
+    untracked = a.summary.get("untracked", 0) + b.summary.get("untracked", 0)
     summary = {
         "accepted": a.summary["accepted"] + b.summary["accepted"],
         "rejected": {
             k: a.summary["rejected"].get(k, 0) + b.summary["rejected"].get(k, 0) for k in sorted(reasons)
         },
+        "untracked": untracked,
     }
+    if untracked:
+        summary["warnings"] = [UNTRACKED_WARNING]
     return Part(increments, summary)
 
 

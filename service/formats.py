@@ -26,6 +26,7 @@ from fastapi import Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
+from bdf import ingest
 from bdf.region.route import VEHICLES, Vehicle, checked, vehicle
 from bdf.region.spec import RegionSpec
 from service import slices
@@ -50,6 +51,7 @@ FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 Value = FiniteFloat | None  # null -> NaN: the row is rejected and counted, not the request
 Row3 = Annotated[list[Value], Field(min_length=3, max_length=3)]
 Frame = Literal["enu", "wgs84"]
+TrackId = Annotated[str, Field(max_length=256)] | Annotated[int, Field(strict=True)] | None
 
 
 @dataclass(frozen=True)
@@ -75,9 +77,16 @@ class ObservationsBody(BaseModel):
     )
     sample_weight: list[Value] | None = Field(
         None,
-        description="weight per observation (>= 0), e.g. 1 / samples of a track per cell: "
-        "correlated 1 Hz samples of one flight should not count as independent",
+        description="weight per observation (>= 0): how much to trust the row; with track, it "
+        "multiplies the row's track weight",
     )
+    track: list[TrackId] | None = Field(
+        None,
+        description="the track (aircraft, flight or radar track id: string or integer) of each row; "
+        "with t, the service weighs a track's correlated rows itself (about one observation per "
+        'kernel width flown). Rows without one (null or "") count as independent observations',
+    )
+    t: list[Value] | None = Field(None, description="time of each row, seconds (with track)")
 
 
 class QueryBody(BaseModel):
@@ -234,6 +243,8 @@ class UploadRows:
     V: np.ndarray  # (n, 3) region ENU axes
     input_noise_std: np.ndarray | None
     sample_weight: np.ndarray | None
+    track: np.ndarray | None = None  # (n,) int64 codes, -1: no track (:func:`bdf.ingest.track_codes`)
+    time: np.ndarray | None = None  # (n,) seconds, with ``track``
 
 
 def _array(rows, n_cols: int = 3) -> np.ndarray:
@@ -265,7 +276,8 @@ def _table(body: bytes, media: str, allowed: frozenset, limits: Limits) -> pa.Ta
 
 
 def _check_schema(schema: pa.Schema, allowed: frozenset) -> None:
-    """Documented columns only, each once, each a number (float or integer)."""
+    """Documented columns only, each once, each a number (float or integer; ``track`` may
+    also be a string)."""
     names = schema.names
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
@@ -274,7 +286,15 @@ def _check_schema(schema: pa.Schema, allowed: frozenset) -> None:
     if unknown:
         raise Problem(422, f"unknown column(s) {unknown}; this body takes {sorted(allowed)}")
     for field in schema:
-        _numeric(field.name, field.type)
+        if field.name == "track":
+            _track_type(field.type)
+        else:
+            _numeric(field.name, field.type)
+
+
+def _track_type(type_: pa.DataType) -> None:
+    if not (pa.types.is_integer(type_) or pa.types.is_string(type_) or pa.types.is_large_string(type_)):
+        raise Problem(422, f"column 'track' has type {type_}; it must be a string or an integer")
 
 
 def _numeric(name: str, type_: pa.DataType) -> None:
@@ -355,8 +375,17 @@ def _parquet_table(body: bytes, allowed: frozenset, limits: Limits) -> pa.Table:
     file = pq.ParquetFile(pa.BufferReader(body))
     schema = file.schema_arrow
     _check_schema(schema, allowed)
-    rows = file.metadata.num_rows
-    _check_size(rows, rows * sum(f.type.bit_width + 1 for f in schema) // 8, limits)
+    meta = file.metadata
+    rows = meta.num_rows
+    fixed = sum(f.type.bit_width + 1 for f in schema if pa.types.is_primitive(f.type)) * rows // 8
+    strings = [i for i, f in enumerate(schema) if not pa.types.is_primitive(f.type)]
+    # a string column's size is its chunks' uncompressed size (values and offsets), as declared
+    variable = sum(
+        meta.row_group(g).column(i).total_uncompressed_size + 9 * meta.row_group(g).num_rows
+        for g in range(meta.num_row_groups)
+        for i in strings
+    )
+    _check_size(rows, fixed + variable, limits)
     return file.read()
 
 
@@ -406,9 +435,10 @@ def read_observations(spec: RegionSpec, body: bytes, media: str, limits: Limits)
             noise = _array(noise, 3 if noise and isinstance(noise[0], list) else 1)
             if len(noise) != len(P):
                 raise Problem(422, f"input_noise_std has {len(noise)} rows for {len(P)} points")
-        if weight is not None and len(weight) != len(P):
-            raise Problem(422, f"sample_weight has {len(weight)} values for {len(P)} points")
-        return _observations(spec, frame, P, V, noise, weight)
+        for name, values in (("sample_weight", weight), ("track", obs.track), ("t", obs.t)):
+            if values is not None and len(values) != len(P):
+                raise Problem(422, f"{name} has {len(values)} values for {len(P)} points")
+        return _observations(spec, frame, P, V, noise, weight, obs.track, obs.t)
     if media == ARROW or media in PARQUET_ALIASES:
         return table_observations(
             spec, _table(body, ARROW if media == ARROW else PARQUET, UPLOAD_COLUMNS, limits)
@@ -424,22 +454,31 @@ def table_observations(spec: RegionSpec, table: pa.Table | pa.RecordBatch) -> Up
         raise Problem(422, f"the table lacks the velocity columns {missing}")
     frame, P = _table_positions(table)
     V = _columns(table, VELOCITY_COLUMNS)
-    noise, weight = (
+    noise, weight, time = (
         _columns(table, [c])[:, 0] if c in table.column_names else None
-        for c in ("input_noise_std", "sample_weight")
+        for c in ("input_noise_std", "sample_weight", "t")
     )
-    return _observations(spec, frame, P, V, noise, weight)
+    track = None
+    if "track" in table.column_names:
+        column = table.column("track")
+        _track_type(column.type)
+        track = column.to_numpy(zero_copy_only=False)
+    return _observations(spec, frame, P, V, noise, weight, track, time)
 
 
-def _observations(spec: RegionSpec, frame: str, P, V, noise, weight) -> UploadRows:
+def _observations(spec: RegionSpec, frame: str, P, V, noise, weight, track=None, time=None) -> UploadRows:
     if len(P) == 0:
         raise Problem(422, "the body holds no observations")
+    if (track is None) != (time is None):
+        raise Problem(422, "track and t go together: a track's rows are weighed by their times")
     X, V = _to_region(spec, frame, P, V)
     return UploadRows(
         X,
         V,
         None if noise is None else np.asarray(noise, float),
         None if weight is None else np.asarray(weight, float),
+        None if track is None else ingest.track_codes(track),
+        None if time is None else np.array(time, dtype=float),  # JSON null: NaN
     )
 
 

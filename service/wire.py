@@ -16,9 +16,12 @@ ENU_COLUMNS = ("x", "y", "z")
 WGS84_COLUMNS = ("lat", "lon", "alt_m")
 VELOCITY_COLUMNS = ("ve", "vn", "vu")
 STD_COLUMNS = ("std_e", "std_n", "std_u")
+#: a row's track (string or integer id) and its time (seconds): the service weighs the
+#: correlated rows of one track itself (:func:`bdf.ingest.track_weights`)
+TRACK_COLUMNS = ("track", "t")
 #: the columns a binary body may hold: an upload's, a query's (anything else is a 422)
 UPLOAD_COLUMNS = frozenset(
-    (*ENU_COLUMNS, *WGS84_COLUMNS, *VELOCITY_COLUMNS, "input_noise_std", "sample_weight")
+    (*ENU_COLUMNS, *WGS84_COLUMNS, *VELOCITY_COLUMNS, "input_noise_std", "sample_weight", *TRACK_COLUMNS)
 )
 QUERY_COLUMNS = frozenset((*ENU_COLUMNS, *WGS84_COLUMNS, "heading_deg"))
 

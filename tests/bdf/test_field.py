@@ -278,11 +278,3 @@ def test_sample_weight_equals_repeating_points(data):
     assert_close(weighted.beta_, repeated.beta_, 1e-9, "fitted beta")
     with pytest.raises(ValueError, match="sample_weight must be finite and >= 0"):
         weighted.fit(X, V, sample_weight=-weights)
-
-
-def test_track_weights_give_each_flight_one_unit_per_cell():
-    from bdf.ingest import Observations, track_weights
-
-    X = np.array([[0.5, 0, 0], [0.6, 0, 0], [0.7, 0, 0], [1.5, 0, 0], [0.5, 0, 0]])
-    obs = Observations(X, X, np.zeros(5), np.array([0, 0, 0, 0, 1]))
-    np.testing.assert_allclose(track_weights(obs, 1.0), [1 / 3, 1 / 3, 1 / 3, 1.0, 1.0])

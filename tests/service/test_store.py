@@ -16,7 +16,7 @@ import pytest
 from bdf.region.evidence import increments
 from bdf.region.spec import RegionSpec
 from service.lanes import Lane
-from service.maps import REJECTED, PosteriorCache, RegionMaps
+from service.maps import REJECTED, UNTRACKED_WARNING, PosteriorCache, RegionMaps
 from service.store import (
     RegionExists,
     RegionNotFound,
@@ -100,6 +100,8 @@ def test_upload_adds_exactly_the_increments_and_stores_them_losslessly(store, sp
         "region_version": 1,
         "tiles_updated": len(increments(spec, X[:100], V[:100])),
         "replayed": False,
+        "untracked": 100,  # rows without a track id: counted as independent, and said so
+        "warnings": [UNTRACKED_WARNING],
     }
     maps.upload("town", "b", X[100:], V[100:], sample_weight=w[100:])
     snap = store.snapshot("town")

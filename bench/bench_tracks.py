@@ -1,0 +1,224 @@
+"""Raw tracks in, a plausible calibrated map out: the Paris flight split as users send it.
+
+The training flights' raw 1 Hz rows go to the service over HTTP with their ``track`` and
+``t`` columns and nothing computed for them (no weights), in ``--chunks`` uploads cut by
+time (so flights are cut across uploads); the service weighs each track's rows
+(:func:`bdf.ingest.track_weights`). The map is scored on the held-out flights (20 %,
+seed 0): RMSE, MSLL, cov95, for directional maps the mixture MSLL and the conditional
+RMSE (the mode of the test point's own sector), and over the box it is judged as traffic
+can fly (:func:`plausibility`): on a 1 km grid at every 500 m of altitude, the fastest
+horizontal speed of the mean and of every mode with share >= 0.05, the share of voxels
+above the bound (1.1 x the 99.9th percentile of the horizontal speeds of the rows within
+1 km of the altitude, 400 m/s where none is), and the share of voxels ``known``.
+
+``--sweep`` adds the lattices a user would plausibly choose (horizontal spacing 1, 2, 4, 8
+km x vertical 0.5 and 1 km, 1 and 8 sectors, gamma = 1 / spacing^2) with the same rows,
+through the library's own path (the one function uploads learn through), with and
+without the track columns.
+
+    python bench/bench_tracks.py [--chunks 10] [--sweep] [--no-http]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_core import publish, rows_table  # bench/ is on the path when run as a script
+
+from bdf import ingest, metrics
+from bdf.region.evidence import region_total
+from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.spec import RegionSpec
+from clients import samples
+from clients.local import LocalService
+from clients.sdk import BDFClient
+from service.maps import observations_evidence
+
+#: the plausibility bound: this factor over the fastest traffic observed near the altitude
+PLAUSIBLE_FACTOR = 1.1
+#: rows within this distance of an altitude (metres) set its bound; the envelope's speed where none
+NEAR_ALT_M = 1000.0
+FASTEST_QUANTILE = 99.9
+ENVELOPE_MPS = 400.0
+#: modes with at least this share are judged
+MODE_SHARE = 0.05
+
+
+def split():
+    obs, lower, upper = samples.load_paris()
+    test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
+    return obs.subset(~test), obs.subset(test), lower, upper
+
+
+def speed_bound(train: ingest.Observations, alts) -> np.ndarray:
+    """The plausibility bound at each altitude of ``alts`` (m/s)."""
+    speed = np.hypot(train.V[:, 0], train.V[:, 1])
+    out = np.full(len(alts), ENVELOPE_MPS)
+    for i, z in enumerate(alts):
+        near = np.abs(train.X[:, 2] - z) <= NEAR_ALT_M
+        if near.any():
+            out[i] = PLAUSIBLE_FACTOR * np.percentile(speed[near], FASTEST_QUANTILE)
+    return out
+
+
+def plausibility(spec: RegionSpec, rmap: RegionMap, train) -> dict:
+    """The map over the box as traffic can fly it: a 1 km grid at every 500 m of altitude."""
+    axes = [np.arange(lo + 500.0, hi, 1000.0) for lo, hi in zip(spec.lower[:2], spec.upper[:2], strict=True)]
+    axes.append(np.arange(spec.lower[2] + 500.0, spec.upper[2], 500.0))
+    modes = rmap.predict_grid_modes(axes)
+    mean, _, known = rmap.predict_grid(axes, modes=modes)
+    fastest = np.hypot(mean[..., 0], mean[..., 1])
+    if spec.directions > 1:
+        mode_speed = np.hypot(modes.mean[..., 0], modes.mean[..., 1])
+        fastest = np.maximum(fastest, np.where(modes.share >= MODE_SHARE, mode_speed, 0.0).max(axis=-1))
+    bound = speed_bound(train, axes[2])[None, None, :]
+    over = fastest > bound
+    return {
+        "max speed [m/s]": float(fastest.max()),
+        "worst ratio to bound": float((fastest / bound).max()),
+        "implausible voxels": float(over.mean()),
+        "known": float(known.mean()),
+        "implausible among known": float(over[known].mean()) if known.any() else 0.0,
+    }
+
+
+def held_out(spec: RegionSpec, rmap: RegionMap, train, test) -> dict:
+    modes = rmap.predict_modes(test.X)
+    mean, std, known = rmap.predict(test.X, modes=modes)
+    row = {
+        "RMSE": float(metrics.rmse(test.V, mean)),
+        "MSLL": float(metrics.msll(test.V, mean, std, train.V.mean(0), train.V.std(0))),
+        "cov95": float(metrics.coverage(test.V, mean, std)),
+        "cov95 known": float(metrics.coverage(test.V[known], mean[known], std[known]))
+        if known.any()
+        else np.nan,
+        "known held-out": float(known.mean()),
+    }
+    if spec.directions > 1:
+        own = spec.sectors.classify(test.V)
+        rows = np.arange(len(test.V))
+        row["mixture MSLL"] = metrics.mixture_msll(
+            test.V, modes.share, modes.mean, modes.std, train.V.mean(0), train.V.std(0)
+        )
+        row["cond. RMSE"] = float(metrics.rmse(test.V, modes.mean[rows, own]))
+    return row
+
+
+def library_map(spec: RegionSpec, train, tracks: bool) -> RegionMap:
+    """The map of the rows through the library's own path (no tiles kept, no HTTP)."""
+    kw = {"track": train.flight, "time": train.time} if tracks else {}
+    increments, _ = observations_evidence(spec, train.X, train.V, **kw)
+    evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
+    return RegionMap(spec, compute_posterior(spec, evidence))
+
+
+def http_map(spec: RegionSpec, train, chunks: int, tmp: Path) -> tuple[RegionMap, dict]:
+    """The map the service builds from the raw rows in ``chunks`` uploads cut by time."""
+    order = np.argsort(train.time, kind="stable")
+    parts = np.array_split(order, chunks)
+    with LocalService(tmp / "data", log_path=tmp / "service.log") as svc, BDFClient(svc.url) as bdf:
+        bdf.create_region(spec)
+        t0 = time.perf_counter()
+        untracked = 0
+        for i, rows in enumerate(parts):
+            result = bdf.upload(
+                spec.name,
+                train.X[rows],
+                train.V[rows],
+                track=train.flight[rows],
+                t=train.time[rows],
+                key=f"c{i}",
+            )
+            untracked += result.untracked
+        upload_s = time.perf_counter() - t0
+        bdf.fit_hyperparameters(spec.name)  # the settled map
+        settled_s = time.perf_counter() - t0
+    # the same store, read back through the library: the map the service answers from
+    from service.store import open_store
+
+    store = open_store(f"sqlite:///{tmp / 'data'}")
+    try:
+        from service.maps import RegionMaps
+
+        state = RegionMaps(store, cache_mb=4096).refresh(spec.name)
+        rmap = RegionMap(spec, state.posterior)
+    finally:
+        store.close()
+    return rmap, {"uploads [s]": upload_s, "settled [s]": settled_s, "untracked": untracked}
+
+
+def sweep(train, test, lower, upper) -> list[dict]:
+    rows = []
+    for h in (1000.0, 2000.0, 4000.0, 8000.0):
+        for v in (500.0, 1000.0):
+            for directions in (1, 8):
+                spacing = np.array([h, h, v])
+                spec = samples.paris_region(lower, upper, spacing, 1 / spacing**2, directions=directions)
+                for tracks in (True, False):
+                    t0 = time.perf_counter()
+                    try:
+                        rmap = library_map(spec, train, tracks)
+                    except ValueError as exc:  # a lattice the service refuses
+                        rows.append({"spacing [km]": f"{h / 1e3:g} x {v / 1e3:g}", "error": str(exc)[:80]})
+                        break
+                    row = {
+                        "spacing [km]": f"{h / 1e3:g} x {v / 1e3:g}",
+                        "sectors": directions,
+                        "tracks": "yes" if tracks else "no",
+                        **held_out(spec, rmap, train, test),
+                        **plausibility(spec, rmap, train),
+                        "build [s]": time.perf_counter() - t0,
+                    }
+                    rows.append(row)
+                    print(row, flush=True)
+    return rows
+
+
+def main():
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--chunks", type=int, default=10)
+    parser.add_argument("--sweep", action="store_true")
+    parser.add_argument("--no-http", action="store_true", help="the library's path only")
+    parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
+    args = parser.parse_args()
+    train, test, lower, upper = split()
+    lines = [
+        f"Paris flight split: {len(train)} training rows of {len(np.unique(train.flight))} flights "
+        f"(raw 1 Hz, track and t columns, no weights), {len(test)} held-out rows; demo lattice "
+        "2 x 2 x 1 km."
+    ]
+    rows = []
+    for directions in (8, 1):
+        spec = samples.paris_demo_region(lower, upper, directions=directions)
+        if args.no_http:
+            rmap, extra = library_map(spec, train, True), {}
+            how = "library"
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                rmap, extra = http_map(spec, train, args.chunks, Path(tmp))
+            how = f"HTTP, {args.chunks} uploads"
+        row = {
+            "sectors": directions,
+            "built by": how,
+            **held_out(spec, rmap, train, test),
+            **plausibility(spec, rmap, train),
+            **extra,
+        }
+        print(row, flush=True)
+        rows.append(row)
+    lines.append(rows_table(rows))
+    if args.sweep:
+        lines += ["", "Sweep (library path; tracks: with the track columns or the rows as independent):"]
+        lines.append(rows_table(sweep(train, test, lower, upper)))
+    command = "python bench/bench_tracks.py" + (" --sweep" if args.sweep else "")
+    publish([f"\n## Raw tracks in ({time.strftime('%Y-%m-%d')}, `{command}`)\n", *lines], append=args.publish)
+
+
+if __name__ == "__main__":
+    main()

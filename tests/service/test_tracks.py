@@ -1,0 +1,137 @@
+"""Tracks as users send them: the service weighs a track's correlated rows itself
+(:func:`bdf.ingest.track_weights`), on every write path, keeping the store's guarantees."""
+
+import numpy as np
+import pytest
+
+from bdf import ingest
+from bdf.region.evidence import region_total
+from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.spec import RegionSpec
+from service.maps import UNTRACKED_WARNING, observations_evidence
+
+# 1 km x 400 m x 200 m, hinges every 50 m (kernel width 50 m horizontally, 40 m vertically)
+LINE = {
+    "name": "line",
+    "origin": {"lat": 48.0, "lon": 2.0},
+    "bounds_m": {"min": [0, 0, 0], "max": [1000, 400, 200]},
+    "tile_size_m": [250, 400, 200],
+    "spacing_m": [50, 50, 40],
+    "gamma": [1 / 2500, 1 / 2500, 1 / 1600],
+}
+
+
+def flight(hz: float, y: float = 200.0, speed: float = 20.0, t0: float = 0.0):
+    """A straight, level flight east at ``speed`` m/s along ``y`` for 960 m, sampled at
+    ``hz``: positions, velocities (a gentle flow along the track) and times."""
+    t = t0 + np.arange(round(960 / speed * hz) + 1) / hz
+    X = np.stack([10 + speed * (t - t0), np.full_like(t, y), np.full_like(t, 100.0)], axis=1)
+    V = np.stack([speed + 2 * np.sin(X[:, 0] / 120), 0.5 * np.cos(X[:, 0] / 90), 0 * t], axis=1)
+    return X, V, t
+
+
+def region_map(spec, X, V, track=None, time=None, weight=None) -> RegionMap:
+    increments, _ = observations_evidence(spec, X, V, sample_weight=weight, track=track, time=time)
+    evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
+    return RegionMap(spec, compute_posterior(spec, evidence))
+
+
+def assert_same_map(a: RegionMap, b: RegionMap, rtol: float, ends_m: float = 0.0) -> None:
+    """Mean within ``rtol`` of the largest, std within ``rtol``, over the flight's box but
+    ``ends_m`` from its ends."""
+    x = np.linspace(10 + ends_m, 970 - ends_m, 25)
+    Xq = np.stack(np.meshgrid(x, [150, 200, 250], [80, 100, 120]), -1).reshape(-1, 3)
+    (ma, sa, _), (mb, sb, _) = a.predict(Xq), b.predict(Xq)
+    scale = np.abs(ma).max(axis=0)
+    assert np.all(np.abs(ma - mb) <= rtol * scale), f"mean: {np.abs(ma - mb).max(axis=0)} vs {rtol * scale}"
+    np.testing.assert_allclose(sa, sb, rtol=rtol, err_msg="std")
+
+
+def test_a_track_sampled_1_4_or_16_times_a_second_gives_the_same_map():
+    # fixed hyperparameters: the evidence of noise-free data is flat, and its optimum moves
+    # by a percent with anything; the statistics are what the rule makes equal
+    spec = RegionSpec.model_validate({**LINE, "alpha": 1.0, "beta": 4.0})
+    maps = []
+    for hz in (1, 4, 16):
+        X, V, t = flight(hz)
+        maps.append(region_map(spec, X, V, np.zeros(len(t), np.int64), t))
+        # a row stands for speed / hz metres of its track: 20 m / 50 m at 1 Hz
+        w = ingest.track_weights(np.zeros(len(t), int), t, V, spec.gamma)
+        assert np.median(w) == pytest.approx(np.median(np.linalg.norm(V, axis=1)) / hz / 50, rel=1e-2)
+    # a track's end samples stand for their whole interval, not half (a cut end cannot be
+    # told from a true one): the maps differ near the ends, by half a sample of track
+    assert_same_map(maps[0], maps[1], 1e-3, ends_m=200)
+    assert_same_map(maps[0], maps[2], 1e-3, ends_m=200)
+    # the raw rows, counted as independent, are a different (overconfident) map
+    X, V, t = flight(16)
+    raw = region_map(spec, X, V)
+    assert np.median(raw.predict(X[::50])[1] / maps[2].predict(X[::50])[1]) < 0.9
+
+
+def test_two_flights_weigh_twice_one_and_16_times_the_samples_weigh_the_same():
+    gamma = LINE["gamma"]
+    X, V, t = flight(1)
+    one = ingest.track_weights(np.zeros(len(t), int), t, V, gamma).sum()
+    two = ingest.track_weights(
+        np.r_[np.zeros(len(t), int), np.ones(len(t), int)], np.r_[t, t], np.r_[V, V], gamma
+    )
+    assert two.sum() == pytest.approx(2 * one, rel=1e-12)
+    _, V16, t16 = flight(16)
+    dense = ingest.track_weights(np.zeros(len(t16), int), t16, V16, gamma).sum()
+    assert dense == pytest.approx(one, rel=2e-2)  # the same flight, up to its ends' sampling
+    # one track id for both flights at the same times: they share each time's weight
+    same = ingest.track_weights(np.zeros(2 * len(t), int), np.r_[t, t], np.r_[V, V], gamma)
+    assert same.sum() == pytest.approx(one, rel=1e-12)
+
+
+def test_the_rule_is_local_to_a_track_and_its_neighbours():
+    gamma = np.array(LINE["gamma"])
+    t = np.array([0.0, 1.0, 2.0, 3.0, 10.0, 100.0])
+    V = np.tile([20.0, 0.0, 0.0], (6, 1))
+    w = ingest.track_weights(np.zeros(6, int), t, V, gamma)
+    # nearer neighbour 1 s away: 20 m of 50; 7 s and 90 s: one observation at most
+    np.testing.assert_allclose(w, [0.4, 0.4, 0.4, 0.4, 1.0, 1.0])
+    # a row alone in its track (an upload cut it there) stands for a second
+    np.testing.assert_allclose(ingest.track_weights([3], [5.0], V[:1], gamma), [0.4])
+    # rows in any order; a hover counts at the slow speed (5 m/s), not as nothing
+    order = np.random.default_rng(0).permutation(6)
+    np.testing.assert_allclose(ingest.track_weights(np.zeros(6, int), t[order], V[order], gamma), w[order])
+    hover = ingest.track_weights(np.zeros(3, int), [0.0, 1.0, 2.0], np.zeros((3, 3)), gamma)
+    np.testing.assert_allclose(hover, 5.0 / 50)
+    # a track cut anywhere (sampled regularly): each part weighs as it did in the whole
+    _, V, t = flight(1)
+    whole = ingest.track_weights(np.zeros(len(t), int), t, V, gamma)
+    for cut in (1, 2, 7, len(t) - 2, len(t) - 1):
+        parts = [slice(0, cut), slice(cut, None)]
+        np.testing.assert_array_equal(
+            np.concatenate(
+                [ingest.track_weights(np.zeros(len(t[p]), int), t[p], V[p], gamma) for p in parts]
+            ),
+            whole,
+        )
+    with pytest.raises(ValueError, match="finite time"):
+        ingest.track_weights([0, 0], [0.0, np.nan], V[:2], gamma)
+
+
+def test_track_codes_take_strings_integers_and_none():
+    np.testing.assert_array_equal(ingest.track_codes(["b", "a", "b", None, ""]), [1, 0, 1, -1, -1])
+    np.testing.assert_array_equal(ingest.track_codes(np.array([7, 3, 7])), [1, 0, 1])
+
+
+def test_untracked_rows_are_counted_and_sample_weight_multiplies_the_track_weight():
+    spec = RegionSpec.model_validate(LINE)
+    X, V, t = flight(1)
+    track = np.zeros(len(t), np.int64)
+    track[:5] = -1  # five rows without a track
+    _, summary = observations_evidence(spec, X, V, track=track, time=t)
+    assert summary["untracked"] == 5 and summary["warnings"] == [UNTRACKED_WARNING]
+    _, summary = observations_evidence(spec, X, V, track=np.zeros(len(t), np.int64), time=t)
+    assert summary["untracked"] == 0 and "warnings" not in summary
+    # a row of a track without its time is not finite
+    t_bad = t.copy()
+    t_bad[3] = np.nan
+    _, summary = observations_evidence(spec, X, V, track=np.zeros(len(t), np.int64), time=t_bad)
+    assert summary["rejected"]["non_finite"] == 1
+    halves = region_map(spec, X, V, np.zeros(len(t), np.int64), t, np.full(len(t), 0.5))
+    weights = 0.5 * ingest.track_weights(np.zeros(len(t), int), t, V, spec.gamma)
+    assert_same_map(halves, region_map(spec, X, V, weight=weights), 1e-12)
