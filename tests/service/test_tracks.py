@@ -70,7 +70,7 @@ def test_a_track_sampled_1_4_or_16_times_a_second_gives_the_same_map():
 
 def test_two_flights_weigh_twice_one_and_16_times_the_samples_weigh_the_same():
     gamma = LINE["gamma"]
-    X, V, t = flight(1)
+    _, V, t = flight(1)
     one = ingest.track_weights(np.zeros(len(t), int), t, V, gamma).sum()
     two = ingest.track_weights(
         np.r_[np.zeros(len(t), int), np.ones(len(t), int)], np.r_[t, t], np.r_[V, V], gamma
