@@ -65,6 +65,7 @@ _NUMERIC_COLUMNS = (
     *wire.VELOCITY_COLUMNS,
     "input_noise_std",
     "sample_weight",
+    "t",
     *{c for cols, *_ in ingest.ADSB_SCHEMAS.values() for c in cols},
     "baroaltitude",
 )
@@ -202,12 +203,13 @@ def _csv_batches(path: Path, piece: Slice, batch_rows: int) -> Iterator[pa.Recor
             fh.seek(begin)
             source = pa.BufferReader(header + fh.read(end - begin))
     names = header.decode().strip().split(",")
+    types = {n: pa.float64() for n in names if n in _NUMERIC_COLUMNS}
+    if not ingest.adsb_schema(names) and "track" in names:  # an upload's track id, not a heading
+        types["track"] = pa.string()
     reader = pacsv.open_csv(
         source,
         read_options=pacsv.ReadOptions(block_size=max(batch_rows * 64, 1 << 20)),
-        convert_options=pacsv.ConvertOptions(
-            column_types={n: pa.float64() for n in names if n in _NUMERIC_COLUMNS}
-        ),
+        convert_options=pacsv.ConvertOptions(column_types=types),
     )
     for batch in reader:
         for c in range(0, batch.num_rows, batch_rows):

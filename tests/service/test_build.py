@@ -27,12 +27,13 @@ from tests.service.test_store import NO_REJECTS, SPEC, assert_evidence_equal, da
 pytestmark = pytest.mark.slow  # Dask clusters
 
 
-def write(path, X, V, weight=None, rows=None):
+def write(path, X, V, weight=None, rows=None, **extra):
     """``X, V`` in the format of ``path``'s suffix, in chunks of ``rows`` rows (row groups,
-    record batches)."""
+    record batches); ``extra`` columns after them."""
     columns = enu_columns(X, V)
     if weight is not None:
         columns["sample_weight"] = weight
+    columns.update(extra)
     table = pa.table(columns)
     name = path.name
     if name.endswith(".parquet"):
@@ -43,7 +44,8 @@ def write(path, X, V, weight=None, rows=None):
             writer.write_table(table, max_chunksize=rows)
     else:
         lines = [",".join(columns)] + [
-            ",".join(repr(float(v)) for v in row) for row in zip(*columns.values(), strict=True)
+            ",".join(v if isinstance(v, str) else repr(float(v)) for v in row)
+            for row in zip(*columns.values(), strict=True)
         ]
         text = "\n".join(lines) + "\n"
         if name.endswith(".gz"):
@@ -99,6 +101,28 @@ def test_slices_of_every_format_build_what_one_upload_of_all_rows_learns(store, 
     assert refit["region_version"] == 3 and store.region("town").observations == 1498
 
 
+def test_tracks_cut_across_slices_and_batches_build_the_map_of_one_upload(store, spec, client, tmp_path):
+    """Raw tracks with string ids in Parquet and CSV, cut across files, slices and batches:
+    the build weighs them as one upload of all rows does."""
+    from tests.service.test_tracks import tracks
+
+    X, V, track, t = tracks(3)
+    order = np.argsort(t, kind="stable")  # by time: every flight is cut between the files
+    X, V, track, t = X[order], V[order], track[order], t[order]
+    ids = np.array([f"flight-{k}" for k in track])
+    half = len(X) // 2
+    paths = [
+        write(tmp_path / "a.parquet", X[:half], V[:half], rows=37, track=ids[:half], t=t[:half]),
+        write(tmp_path / "b.csv", X[half:], V[half:], track=ids[half:].tolist(), t=t[half:]),
+    ]
+    store.create_region(spec.model_copy(update={"name": "batch"}))
+    expected = RegionMaps(store).upload("batch", "all", X, V, track=track, time=t)
+    result = build(store, "town", paths, client, progress=False, rows_per_task=50, batch_rows=23)
+    assert (result["accepted"], result["untracked"]) == (len(X), 0) and "warnings" not in result
+    assert result["tiles_updated"] == expected["tiles_updated"]
+    assert_evidence_equal(store.snapshot("town").evidence, store.snapshot("batch").evidence, rtol=1e-9)
+
+
 def test_adsb_state_vectors_build_in_the_regions_frame(store, spec, client, tmp_path):
     """traffic-schema CSV and OpenSky-schema Parquet: converted on the worker, on-ground rows
     rejected and counted."""
@@ -109,7 +133,7 @@ def test_adsb_state_vectors_build_in_the_regions_frame(store, spec, client, tmp_
     speed, track = np.hypot(local[:, 0], local[:, 1]), np.degrees(np.arctan2(local[:, 0], local[:, 1])) % 360
     onground = np.arange(len(X)) % 50 == 0
     traffic = {
-        "timestamp": np.arange(len(X)) * 1000.0,
+        "timestamp": 1.6e12 + np.arange(len(X)) * 1000.0,  # Unix milliseconds, 1 Hz
         "icao24": np.array(["abc"] * len(X)),
         "latitude": lat,
         "longitude": lon,
@@ -136,9 +160,16 @@ def test_adsb_state_vectors_build_in_the_regions_frame(store, spec, client, tmp_
         store, "town", [csv, tmp_path / "states.parquet"], client, progress=False, rows_per_task=64
     )
     keep = ~onground
-    assert result["accepted"] == 2 * keep.sum()
+    assert result["accepted"] == 2 * keep.sum() and result["untracked"] == 0
     assert result["rejected"] == {**NO_REJECTS, "on_ground": 2 * onground.sum()}
-    expected = increments(spec, np.concatenate([X[keep]] * 2), np.concatenate([V[keep]] * 2))
+    # one track (icao24 "abc"), 1 Hz: weighed in each file alike, whatever its slices
+    weight = ingest.track_weights(np.zeros(keep.sum(), int), np.arange(len(X))[keep], V[keep], spec.gamma)
+    expected = increments(
+        spec,
+        np.concatenate([X[keep]] * 2),
+        np.concatenate([V[keep]] * 2),
+        sample_weight=np.r_[weight, weight],
+    )
     assert_evidence_equal(store.snapshot("town").evidence, {k: i.evidence for k, i in expected.items()}, 1e-9)
 
 

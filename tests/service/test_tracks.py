@@ -135,3 +135,65 @@ def test_untracked_rows_are_counted_and_sample_weight_multiplies_the_track_weigh
     halves = region_map(spec, X, V, np.zeros(len(t), np.int64), t, np.full(len(t), 0.5))
     weights = 0.5 * ingest.track_weights(np.zeros(len(t), int), t, V, spec.gamma)
     assert_same_map(halves, region_map(spec, X, V, weight=weights), 1e-12)
+
+
+def tracks(seed: int, flights: int = 12):
+    """Raw 1 Hz tracks across the region ``town`` (300 x 200 x 60 m): straight lines at
+    4-12 m/s in random directions, a flow of their own plus noise; rows, track ids, times."""
+    rng = np.random.default_rng(seed)
+    X, V, track, t = [], [], [], []
+    for f in range(flights):
+        start = rng.uniform([20, 20, 10], [280, 180, 50])
+        heading = rng.uniform(0, 2 * np.pi)
+        speed = rng.uniform(4, 12)
+        v = speed * np.array([np.sin(heading), np.cos(heading), 0.0])
+        times = rng.uniform(0, 100) + np.arange(40.0)
+        pos = start + (times - times[0])[:, None] * v
+        inside = np.all((pos > 1) & (pos < [299, 199, 59]), axis=1)
+        X.append(pos[inside])
+        V.append(v + 0.3 * rng.standard_normal((inside.sum(), 3)))
+        track.append(np.full(inside.sum(), f))
+        t.append(times[inside])
+    return np.concatenate(X), np.concatenate(V), np.concatenate(track), np.concatenate(t)
+
+
+def test_tracks_cut_across_uploads_in_any_order_give_the_map_of_one_upload(store, spec):
+    """1, 10 and 100 uploads of the same rows cut by time (flights cut across them), applied
+    in shuffled orders: the same stored statistics (1e-9) and map (1e-6) as one upload, and
+    retracting one upload leaves the region built without it."""
+    from service.maps import RegionMaps
+    from tests.service.test_store import assert_evidence_equal
+
+    X, V, track, t = tracks(0)
+    maps = RegionMaps(store)
+    order = np.argsort(t, kind="stable")
+    Q = np.random.default_rng(1).uniform([0, 0, 0], [300, 200, 60], (200, 3))
+    answers = {}
+    for uploads in (1, 10, 100):
+        name = f"u{uploads}"
+        store.create_region(spec.model_copy(update={"name": name}))
+        chunks = np.array_split(order, uploads)
+        for k in np.random.default_rng(uploads).permutation(uploads):
+            rows = chunks[k]
+            result = maps.upload(name, f"c{k}", X[rows], V[rows], track=track[rows], time=t[rows])
+            assert result["untracked"] == 0 and "warnings" not in result
+        assert store.region(name).observations == len(X)
+        answers[uploads] = maps.predict(name, Q, min_version=uploads)
+        if uploads > 1:
+            assert_evidence_equal(store.snapshot(name).evidence, store.snapshot("u1").evidence, rtol=1e-9)
+    for uploads in (10, 100):
+        got, want = answers[uploads], answers[1]
+        np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-6 * np.abs(want.mean).max())
+        np.testing.assert_allclose(got.std, want.std, rtol=1e-6)
+    # the rows weighed as a track weigh far less than as independent rows
+    one = store.snapshot("u1").evidence
+    assert sum(ev.classes[0].count for ev in one.values()) < 0.5 * len(X)
+    # retract upload 3 of 10: the region built from the other 9
+    chunks = np.array_split(order, 10)
+    rows = chunks[3]
+    maps.retract("u10", "c3", X[rows], V[rows], track=track[rows], time=t[rows])
+    store.create_region(spec.model_copy(update={"name": "without"}))
+    for k in (0, 1, 2, 4, 5, 6, 7, 8, 9):
+        rows = chunks[k]
+        maps.upload("without", f"c{k}", X[rows], V[rows], track=track[rows], time=t[rows])
+    assert_evidence_equal(store.snapshot("u10").evidence, store.snapshot("without").evidence, rtol=1e-9)
