@@ -348,6 +348,8 @@ def _build(args) -> int:
         f"{' (a replay: nothing changed)' if result['replayed'] else ''}; evidence "
         f"{result['seconds']['evidence']:.1f} s, commit {result['seconds']['commit']:.1f} s"
     )
+    for warning in result.get("warnings", []):
+        print(f"warning: {result['untracked']} {warning}", file=sys.stderr)
     return 0
 
 
