@@ -304,8 +304,10 @@ class BayesianDynamicField:
         path = Path(path)
         with np.load(path, allow_pickle=False) as data:
             version = int(data["format_version"]) if "format_version" in data else None
-            if version != FORMAT_VERSION:
-                raise ValueError(f"{path}: format version {version}, this library reads {FORMAT_VERSION}")
+            if version not in (3, FORMAT_VERSION):  # 4 changed only the stored tiles' blobs
+                raise ValueError(
+                    f"{path}: format version {version}, this library reads 3 and {FORMAT_VERSION}"
+                )
             params = json.loads(str(data["params"]))
             arrays = {k.removeprefix("evidence_"): data[k] for k in data.files if k.startswith("evidence_")}
         time = params.pop("time_")

@@ -278,6 +278,9 @@ class EvidenceFit:
     settled: bool
     gap: float  # nats the evidence lacks from its maximum (the local quadratic; 0 settled)
     next_start: np.ndarray  # (3,) ratios alpha / beta a next search starts at
+    #: "auto" ended at the search's floor (within NEAR_FLOOR of it) or top: the evidence
+    #: could not place alpha / beta inside the range
+    at_bound: bool = False
 
 
 def fit_evidence(
@@ -317,7 +320,7 @@ def fit_evidence(
     probes = _probes(len(proj))
     starts = None if start is None else np.broadcast_to(np.asarray(start, float), (3,))
     alpha_v, beta_v, sols, factorisations = np.empty(3), np.empty(3), [None] * 3, 0
-    settled, gap, next_start = True, 0.0, np.empty(3)
+    settled, gap, next_start, at_bound = True, 0.0, np.empty(3), False
     for comps in groups:
         span = bounds
         if tied:  # beta = alpha / lam stays below its cap, so alpha stays the fixed one
@@ -398,8 +401,10 @@ def fit_evidence(
         for c in comps:
             sols[c] = sol
         next_start[comps] = sol.lam
+        at = np.log(sol.lam / scale)
+        at_bound = at_bound or at < bounds[0] + NEAR_FLOOR or at > bounds[1] - LOG_TOLERANCE
         if ended is not None and abs(ended.step) >= LOG_TOLERANCE:
             settled, gap = False, gap + ended.gain
             next_start[comps] = scale * np.exp(ended.x + ended.step)
         log.debug("evidence fit for components %s: lam=%.6g", comps, sol.lam)
-    return EvidenceFit(alpha_v, beta_v, sols, factorisations, settled, gap, next_start)
+    return EvidenceFit(alpha_v, beta_v, sols, factorisations, settled, gap, next_start, at_bound)

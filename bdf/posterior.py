@@ -103,6 +103,11 @@ class Posterior:
         )
         self.alpha, self.beta, sols = fit.alpha, fit.beta, fit.solutions
         self.factorisations, self.settled, self.evidence_gap = fit.factorisations, fit.settled, fit.gap
+        self.at_bound = fit.at_bound
+        #: a region's map (set by :func:`bdf.region.map.compute_posterior`): the fastest
+        #: plausible horizontal speed at each hinge layer, and how the map compares with it
+        self.speed_bound: np.ndarray | None = None
+        self.plausibility: dict | None = None
         #: where a next search of "auto" hyperparameters best starts (ratios alpha / beta):
         #: the optimum, or where the search pointed when it stopped within a nat of it
         self.next_start = fit.next_start
@@ -372,6 +377,8 @@ class Mixture:
         # the classes' data densities side by side, gathered with the variance densities
         self._densities = np.stack([e.density for e in evidence.classes], axis=-1)
         self.fitted = self.total.fitted
+        self.speed_bound: np.ndarray | None = None  # as the Posterior's
+        self.plausibility: dict | None = None
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])
         n = counts.sum()
@@ -403,6 +410,11 @@ class Mixture:
     @property
     def settled(self) -> bool:
         return self.total.settled and all(m.settled for m in self.modes)
+
+    @property
+    def at_bound(self) -> bool:
+        """A search of the map or of a mode ended at its range's floor or top."""
+        return self.total.at_bound or any(m.at_bound for m in self.modes)
 
     @property
     def evidence_gap(self) -> float:

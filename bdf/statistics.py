@@ -34,6 +34,12 @@ grid, noise lattice and stencil; the length tells whether ``gram_noisy`` is ther
 A directional map (:mod:`bdf.sectors`) keeps one :class:`Evidence` per traffic class
 (:class:`SectorEvidence`); its blob is the classes' blobs one after the other, each
 preceded by its length in values (little-endian int64).
+
+Version 4 adds, before that, the region's count of rows per hinge layer and horizontal
+speed (:data:`SPEED_BIN_MPS` wide bins, :data:`SPEED_BINS` of them: what the fastest
+traffic near each altitude is, :func:`bdf.region.map.speed_bound`), as its length in values
+(int64, 0 without it) and the values (layers x bins, C order); a class's own blob is as in
+version 3.
 """
 
 from __future__ import annotations
@@ -48,9 +54,12 @@ from bdf.kernel import Kernel
 from bdf.sectors import Sectors
 from bdf.validation import take_rows
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: Blob formats this code reads.
-READABLE_FORMATS = (2, 3)
+READABLE_FORMATS = (2, 3, 4)
+#: The speed histogram's bins (m/s), up to SPEED_BINS x SPEED_BIN_MPS (faster rows: the last)
+SPEED_BIN_MPS = 2.0
+SPEED_BINS = 256
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
 MIDPOINT_BLOCK = 2
 
@@ -275,10 +284,13 @@ class SectorEvidence:
     its parts; a map of one class is its one part."""
 
     classes: tuple[Evidence, ...]
+    #: rows per hinge layer of the grid and horizontal speed bin (layers, SPEED_BINS), or None
+    speeds: np.ndarray | None = None
 
     @classmethod
     def zeros(cls, grid: HingeGrid, noise_lattice: Lattice | None, sectors: Sectors) -> SectorEvidence:
-        return cls(tuple(Evidence.zeros(grid, noise_lattice) for _ in range(sectors.classes)))
+        classes = tuple(Evidence.zeros(grid, noise_lattice) for _ in range(sectors.classes))
+        return cls(classes, np.zeros((grid.shape[2], SPEED_BINS)))
 
     @classmethod
     def from_points(
@@ -322,14 +334,21 @@ class SectorEvidence:
             raise ValueError(f"cannot add evidence of {len(self.classes)} and {len(other.classes)} classes")
         return zip(self.classes, other.classes, strict=True)
 
+    def _speeds(self, other: SectorEvidence, sign: float) -> np.ndarray | None:
+        """The histograms' sum, or None where either is unknown (a tile stored before them)."""
+        if self.speeds is None or other.speeds is None:
+            return None
+        return self.speeds + sign * other.speeds
+
     def __add__(self, other: SectorEvidence) -> SectorEvidence:
-        return SectorEvidence(tuple(a + b for a, b in self._zip(other)))
+        return SectorEvidence(tuple(a + b for a, b in self._zip(other)), self._speeds(other, 1.0))
 
     def __sub__(self, other: SectorEvidence) -> SectorEvidence:
-        return SectorEvidence(tuple(a - b for a, b in self._zip(other)))
+        return SectorEvidence(tuple(a - b for a, b in self._zip(other)), self._speeds(other, -1.0))
 
     def scaled(self, factor: float) -> SectorEvidence:
-        return SectorEvidence(tuple(e.scaled(factor) for e in self.classes))
+        speeds = None if self.speeds is None else self.speeds * factor
+        return SectorEvidence(tuple(e.scaled(factor) for e in self.classes), speeds)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Plain arrays, ``"{class}_{name}"``."""
@@ -348,10 +367,12 @@ class SectorEvidence:
         return cls(tuple(parts))
 
     def to_bytes(self) -> bytes:
-        """One class: its blob; several: each blob after its length (int64, in values)."""
+        """The speed histogram after its length (int64, in values); then one class: its
+        blob; several: each blob after its length."""
+        speeds = np.zeros(0) if self.speeds is None else self.speeds.ravel()
+        out = [np.array([len(speeds)], "<i8").tobytes(), speeds.astype("<f8").tobytes()]
         if len(self.classes) == 1:
-            return self.classes[0].to_bytes()
-        out = []
+            return b"".join([*out, self.classes[0].to_bytes()])
         for e in self.classes:
             blob = e.to_bytes()
             out += [np.array([len(blob) // 8], "<i8").tobytes(), blob]
@@ -367,8 +388,16 @@ class SectorEvidence:
         sectors: Sectors,
         format_version: int = FORMAT_VERSION,
     ) -> SectorEvidence:
+        speeds = None
+        if format_version >= 4:
+            n = int(np.frombuffer(blob[:8], "<i8")[0]) if len(blob) >= 8 else -1
+            if n < 0 or 8 + 8 * n > len(blob) or n not in (0, grid.shape[2] * SPEED_BINS):
+                raise ValueError(f"an evidence blob of {len(blob)} bytes has no speed histogram of its grid")
+            if n:
+                speeds = np.frombuffer(blob[8 : 8 + 8 * n], "<f8").astype(np.float64).reshape(-1, SPEED_BINS)
+            blob = blob[8 + 8 * n :]
         if sectors.classes == 1:
-            return cls((Evidence.from_bytes(blob, grid, stencil, noise_lattice, format_version),))
+            return cls((Evidence.from_bytes(blob, grid, stencil, noise_lattice, format_version),), speeds)
         if format_version < 3:
             raise ValueError(f"statistics format {format_version} holds one class, not {sectors.classes}")
         parts, at = [], 0
@@ -384,4 +413,4 @@ class SectorEvidence:
             raise ValueError(
                 f"an evidence blob has {len(blob) - at} bytes after its {sectors.classes} classes"
             )
-        return cls(tuple(parts))
+        return cls(tuple(parts), speeds)

@@ -87,6 +87,22 @@ class Hyperparameters(BaseModel):
     settled: bool | None
     evidence_gap: float | None
     log_evidence: list[float] | list[list[float]] | None
+    at_bound: bool | None = Field(
+        None,
+        description="the search ended at its range's floor or top: the evidence could not place "
+        "alpha / beta, and the map there is its prior's as much as its data's",
+    )
+
+
+class Plausibility(BaseModel):
+    """The map of ``evidence_version`` against the traffic it learnt from
+    (:func:`bdf.region.map.plausibility`): no mean, and no mode with a share of at least
+    0.05, should fly faster horizontally than 1.1 x the 99.9th percentile of the horizontal
+    speeds of the rows within 1 km of its altitude (the envelope's speed where none is)."""
+
+    worst_ratio: float = Field(description="the fastest mean or mode over that bound, anywhere in the box")
+    implausible_share: float = Field(description="the share of the judging grid's voxels above the bound")
+    grid_step_m: list[float] = Field(description="the judging grid's steps (x, y, z)")
 
 
 class RegionView(BaseModel):
@@ -97,6 +113,9 @@ class RegionView(BaseModel):
     created_at: float
     updated_at: float
     hyperparameters: Hyperparameters
+    plausibility: Plausibility | None = Field(
+        None, description="how the map of the hyperparameters' evidence_version compares with its traffic"
+    )
 
 
 class UploadView(BaseModel):
@@ -143,7 +162,9 @@ def _view(info: RegionInfo) -> dict:
             "settled": fitted.get("settled", True) if fitted else None,
             "evidence_gap": fitted.get("evidence_gap", 0.0) if fitted else None,
             "log_evidence": fitted.get("log_evidence"),
+            "at_bound": fitted.get("at_bound") if fitted else None,
         },
+        "plausibility": fitted.get("plausibility"),
     }
 
 

@@ -849,6 +849,8 @@ def fitted(post: Posterior) -> dict | None:
         "fitted_at": time.time(),
         "settled": bool(post.settled),
         "evidence_gap": float(post.evidence_gap),
+        "at_bound": bool(post.at_bound),
+        "plausibility": post.plausibility,
     }
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from bdf import sparse
 from bdf.region.spec import RegionSpec, TileKey
-from bdf.statistics import FORMAT_VERSION, Evidence, SectorEvidence
+from bdf.statistics import FORMAT_VERSION, SPEED_BIN_MPS, SPEED_BINS, Evidence, SectorEvidence
 from bdf.validation import as_noise_std, as_observations, as_sample_weight, take_rows
 
 
@@ -53,17 +53,26 @@ def increments(
     out = {}
     groups = spec.home_tiles(X)
     for done, (key, idx) in enumerate(groups.items(), start=1):
+        grid = spec.tile_grid(key)
+        rows = take_rows((X, V, input_noise, weight), idx)
         evidence = SectorEvidence.from_points(
-            spec.tile_grid(key),
-            spec.kernel,
-            *take_rows((X, V, input_noise, weight), idx),
-            sectors=spec.sectors,
-            noise_lattice=spec.tile_noise_lattice(key),
+            grid, spec.kernel, *rows, sectors=spec.sectors, noise_lattice=spec.tile_noise_lattice(key)
         )
+        evidence.speeds = speed_histogram(grid, rows[0], rows[1])
         out[key] = Increment(evidence, len(idx))
         if progress is not None:
             progress(done / len(groups))
     return out
+
+
+def speed_histogram(grid, X: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Rows per hinge layer of ``grid`` (the nearest) and horizontal speed bin: (layers,
+    :data:`bdf.statistics.SPEED_BINS`); additive, so the region knows how fast its traffic
+    flies near each altitude (:func:`bdf.region.map.speed_bound`)."""
+    layer = np.clip(np.rint((X[:, 2] - grid.origin[2]) / grid.step[2]).astype(np.int64), 0, grid.shape[2] - 1)
+    speed = np.minimum(np.hypot(V[:, 0], V[:, 1]) // SPEED_BIN_MPS, SPEED_BINS - 1).astype(np.int64)
+    counts = np.bincount(layer * SPEED_BINS + speed, minlength=grid.shape[2] * SPEED_BINS)
+    return counts.reshape(grid.shape[2], SPEED_BINS).astype(float)
 
 
 def decode_tile(
@@ -78,12 +87,20 @@ def decode_tile(
 
 
 def region_total(spec: RegionSpec, tiles: Mapping[TileKey, SectorEvidence]) -> SectorEvidence:
-    """The region's evidence: the sum of its tiles', each placed on the region's lattice."""
+    """The region's evidence: the sum of its tiles', each placed on the region's lattice
+    (the speed histogram too, where every tile has one: tiles stored before it have none)."""
+    speeds = None
+    if tiles and all(ev.speeds is not None for ev in tiles.values()):
+        speeds = np.zeros((spec.grid.shape[2], SPEED_BINS))
+        for key, ev in tiles.items():
+            k0 = int(np.round((spec.tile_grid(key).origin[2] - spec.grid.origin[2]) / spec.grid.step[2]))
+            speeds[k0 : k0 + len(ev.speeds)] += ev.speeds
     return SectorEvidence(
         tuple(
             _class_total(spec, {k: ev.classes[c] for k, ev in tiles.items()})
             for c in range(spec.sectors.classes)
-        )
+        ),
+        speeds,
     )
 
 

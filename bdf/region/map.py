@@ -8,10 +8,17 @@ directional map, and ``known``.
 
 Where the region has no data the field reverts to its prior, whose predictive variance
 under "auto" is set by the region's evidence (on the scale of its velocities). ``known``
-marks the points where the data within the kernel's reach weigh at least
-:data:`bdf.posterior.KNOWN_WEIGHT` (their own density,
-:meth:`bdf.posterior.Posterior.data_weight`, not the boxes of the tiles that hold them);
-per class, the same says where a mode is only its prior.
+marks the points where the map can be trusted: the data within the kernel's reach weigh at
+least :data:`bdf.posterior.KNOWN_WEIGHT` (their own density,
+:meth:`bdf.posterior.Posterior.data_weight`, not the boxes of the tiles that hold them) and
+the answer flies no faster than the traffic near its altitude (below); per class, the
+weight says where a mode is only its prior.
+
+Plausibility: a map is judged against the traffic it learnt from (:func:`plausibility`):
+no mean, and no mode with a share of at least :data:`MODE_SHARE`, should fly faster
+horizontally than :data:`PLAUSIBLE_FACTOR` times the fastest traffic near its altitude
+(:func:`speed_bound`, from the rows' speed histogram the tiles keep). Each map computed
+for a region records its worst ratio to that bound.
 """
 
 from __future__ import annotations
@@ -24,10 +31,21 @@ import numpy as np
 from bdf.posterior import Mixture, Modes, Posterior, known
 from bdf.region.spec import RegionSpec
 from bdf.sparse import NotPositiveDefinite
-from bdf.statistics import SectorEvidence
+from bdf.statistics import SPEED_BIN_MPS, SectorEvidence
 from bdf.validation import as_headings
 
 log = logging.getLogger(__name__)
+#: the plausibility bound: this factor over the fastest traffic observed near an altitude
+PLAUSIBLE_FACTOR = 1.1
+#: "near": rows within this distance of the altitude (metres; by their nearest hinge layer)
+NEAR_ALTITUDE_M = 1000.0
+#: "fastest": this quantile of the horizontal speeds of the rows near the altitude
+FASTEST_QUANTILE = 0.999
+#: modes with at least this share are judged (a mode of almost no traffic is its prior)
+MODE_SHARE = 0.05
+#: the judging grid: 1 km apart horizontally, 500 m vertically, at most this many per axis
+JUDGE_CELLS = 160
+JUDGE_STEP_M = (1000.0, 500.0)
 
 
 def compute_posterior(
@@ -42,7 +60,18 @@ def compute_posterior(
 
     Fixed values that do not factor on ``stored`` data (which must be served) are
     raised (alpha by powers of ten) to the least that factors, with a warning; on data
-    not stored yet (a fit, before it is applied) they raise ``NotPositiveDefinite``."""
+    not stored yet (a fit, before it is applied) they raise ``NotPositiveDefinite``.
+
+    The posterior's ``speed_bound`` (:func:`speed_bound` of the evidence's speeds) and
+    ``plausibility`` (:func:`plausibility`) are set."""
+    post = _posterior(spec, evidence, start, stored, settle)
+    post.speed_bound = speed_bound(spec, evidence.speeds)
+    post.plausibility = plausibility(RegionMap(spec, post))
+    return post
+
+
+def _posterior(spec: RegionSpec, evidence: SectorEvidence, start, stored: bool, settle: bool):
+    """:func:`compute_posterior` but its judgement."""
     try:
         return spec.field().set_evidence(evidence, start=start, settle=settle).posterior_.compact()
     except NotPositiveDefinite:
@@ -59,6 +88,53 @@ def compute_posterior(
         log.warning("region %s: served at alpha x 1e%d: its fixed alpha does not factor", spec.name, power)
         return post
     raise NotPositiveDefinite(f"region {spec.name}: no alpha up to 1e12 times the spec's factors")
+
+
+def speed_bound(spec: RegionSpec, speeds: np.ndarray | None) -> np.ndarray:
+    """The plausibility bound (m/s) at each hinge layer of the region: :data:`PLAUSIBLE_FACTOR`
+    x the :data:`FASTEST_QUANTILE` of the horizontal speeds of the rows whose layer lies
+    within :data:`NEAR_ALTITUDE_M` (the upper edge of its histogram bin); the region
+    envelope's horizontal speed where none does. ``speeds``: the region's histogram
+    (:func:`bdf.region.evidence.speed_histogram`, summed), or None (tiles stored before it)."""
+    z = spec.grid.axis(2)
+    out = np.full(len(z), spec.envelope.max_horizontal_speed_mps)
+    if speeds is None:
+        return out
+    for k, at in enumerate(z):
+        near = speeds[np.abs(z - at) <= NEAR_ALTITUDE_M].sum(axis=0)
+        if near.sum() > 0:
+            edge = np.searchsorted(np.cumsum(near), FASTEST_QUANTILE * near.sum()) + 1
+            out[k] = PLAUSIBLE_FACTOR * edge * SPEED_BIN_MPS
+    return out
+
+
+def plausibility(rmap: RegionMap) -> dict:
+    """The map over its box against its posterior's ``speed_bound``: on a grid 1 km apart
+    horizontally and 500 m vertically (coarser where an axis would have more than
+    :data:`JUDGE_CELLS` cells, finer where it would have fewer than 2), the fastest
+    horizontal speed of the mean and of each mode with a share of at least
+    :data:`MODE_SHARE`; its worst ratio to the bound there and the share of voxels above it."""
+    spec = rmap.spec
+    extent = spec.upper - spec.lower
+    finest = np.array([JUDGE_STEP_M[0], JUDGE_STEP_M[0], JUDGE_STEP_M[1]])
+    step = np.maximum(np.minimum(finest, extent / 2), extent / JUDGE_CELLS)  # a small box: 2 cells
+    axes = [np.arange(lo + h / 2, hi, h) for lo, hi, h in zip(spec.lower, spec.upper, step, strict=True)]
+    if spec.directions == 1:
+        mean, _, _ = rmap.predict_grid(axes)
+        fastest = np.hypot(mean[..., 0], mean[..., 1])
+    else:
+        modes = rmap.predict_grid_modes(axes)
+        mean, _, _ = rmap.predict_grid(axes, modes=modes)
+        mode_speed = np.where(
+            modes.share >= MODE_SHARE, np.hypot(modes.mean[..., 0], modes.mean[..., 1]), 0.0
+        )
+        fastest = np.maximum(np.hypot(mean[..., 0], mean[..., 1]), mode_speed.max(axis=-1))
+    ratio = fastest / rmap.bound_at(axes[2])[None, None, :]
+    return {
+        "worst_ratio": float(ratio.max()),
+        "implausible_share": float(np.mean(ratio > 1.0)),
+        "grid_step_m": step.tolist(),
+    }
 
 
 @dataclass(frozen=True)
@@ -85,7 +161,21 @@ class RegionMap:
             modes = self.posterior.predict_modes(X) if modes is None else modes
             mean, std = modes.answer(self.spec.sectors, heading_deg)
             weight = modes.weight
-        return mean, std, known(weight)
+        return mean, std, self._known(weight, mean, X[:, 2])
+
+    def bound_at(self, z: np.ndarray) -> np.ndarray:
+        """The plausibility bound (m/s) at altitudes ``z``: the posterior's ``speed_bound``
+        between its hinge layers, or the envelope's speed (a posterior without one)."""
+        bound = self.posterior.speed_bound
+        if bound is None:
+            return np.full(np.shape(z), self.spec.envelope.max_horizontal_speed_mps)
+        return np.interp(z, self.spec.grid.axis(2), bound)
+
+    def _known(self, weight: np.ndarray, mean: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Where the answer can be trusted: data weigh at least
+        :data:`bdf.posterior.KNOWN_WEIGHT` within the kernel's reach, and its mean flies no
+        faster horizontally than the traffic near that altitude (:meth:`bound_at`)."""
+        return known(weight) & (np.hypot(mean[..., 0], mean[..., 1]) <= self.bound_at(z))
 
     def predict_modes(self, X) -> Modes:
         """:class:`~bdf.posterior.Modes` at ``X`` inside the region."""
@@ -104,7 +194,7 @@ class RegionMap:
         else:
             mean, std = modes.answer(self.spec.sectors)
             weight = modes.weight
-        return mean, std, known(weight)
+        return mean, std, self._known(weight, mean, axes[2][None, None, :])
 
     def predict_grid_modes(self, axes) -> Modes:
         """:class:`~bdf.posterior.Modes` on the grid ``axes``, the grid's shape first."""

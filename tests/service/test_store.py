@@ -472,6 +472,7 @@ def test_a_retraction_leaves_exactly_the_map_without_that_upload(store, spec, di
     assert_evidence_equal(after.evidence, expected.evidence, rtol=1e-9)
     assert [t.points for t in after.tiles.values()] == [t.points for t in expected.tiles.values()]
     Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (300, 3))
+    maps.fit_hyperparameters("town"), maps.fit_hyperparameters("clean")  # the settled maps
     got, want = maps.predict("town", Q, min_version=4), maps.predict("clean", Q, min_version=2)
     # the same evidence to rounding, its maximum found from other starts: the acceptance's 1e-6
     np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-6 * np.abs(want.mean).max())

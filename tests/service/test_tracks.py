@@ -1,7 +1,11 @@
 """Tracks as users send them: the service weighs a track's correlated rows itself
 (:func:`bdf.ingest.track_weights`), on every write path, keeping the store's guarantees."""
 
+import io
+
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from bdf import ingest
@@ -178,6 +182,7 @@ def test_tracks_cut_across_uploads_in_any_order_give_the_map_of_one_upload(store
             result = maps.upload(name, f"c{k}", X[rows], V[rows], track=track[rows], time=t[rows])
             assert result["untracked"] == 0 and "warnings" not in result
         assert store.region(name).observations == len(X)
+        maps.fit_hyperparameters(name)  # the settled map: "auto" at the evidence maximum itself
         answers[uploads] = maps.predict(name, Q, min_version=uploads)
         if uploads > 1:
             assert_evidence_equal(store.snapshot(name).evidence, store.snapshot("u1").evidence, rtol=1e-9)
@@ -197,3 +202,112 @@ def test_tracks_cut_across_uploads_in_any_order_give_the_map_of_one_upload(store
         rows = chunks[k]
         maps.upload("without", f"c{k}", X[rows], V[rows], track=track[rows], time=t[rows])
     assert_evidence_equal(store.snapshot("u10").evidence, store.snapshot("without").evidence, rtol=1e-9)
+
+
+@pytest.mark.slow  # a live server
+def test_tracks_over_http_in_every_format_and_rows_without_them_warned_of(live_server):
+    import httpx
+
+    from service.formats import arrow_bytes
+    from tests.service.test_api import enu_columns, library, settle
+    from tests.service.test_store import SPEC
+
+    server = live_server()
+    spec = RegionSpec.model_validate(SPEC)
+    X, V, track, t = tracks(4)
+    order = np.argsort(t, kind="stable")  # by time: flights cut across the three uploads
+    X, V, track, t = X[order], V[order], track[order], t[order]
+    names = np.array([f"N{k:03d}" for k in track])
+    a, b = len(X) // 3, 2 * len(X) // 3
+    with httpx.Client(base_url=server.url, timeout=60) as client:
+        assert client.post("/v1/regions", json=SPEC).status_code == 201
+        assert client.post("/v1/regions", json={**SPEC, "name": "raw"}).status_code == 201
+        body = {
+            "points": X[:a].tolist(),
+            "velocities": V[:a].tolist(),
+            "track": names[:a].tolist(),
+            "t": t[:a].tolist(),
+        }
+        answers = [client.post("/v1/regions/town/observations", json=body, headers={"Idempotency-Key": "j"})]
+        columns = {**enu_columns(X[a:b], V[a:b]), "track": track[a:b], "t": t[a:b]}  # integer ids
+        answers.append(
+            client.post(
+                "/v1/regions/town/observations",
+                content=arrow_bytes(columns),
+                headers={"Idempotency-Key": "a", "Content-Type": "application/vnd.apache.arrow.stream"},
+            )
+        )
+        buf = io.BytesIO()
+        pq.write_table(pa.table({**enu_columns(X[b:], V[b:]), "track": names[b:], "t": t[b:]}), buf)
+        answers.append(
+            client.post(
+                "/v1/regions/town/observations",
+                content=buf.getvalue(),
+                headers={"Idempotency-Key": "p", "Content-Type": "application/vnd.apache.parquet"},
+            )
+        )
+        for r in answers:
+            assert r.status_code == 200, r.text
+            assert (r.json()["untracked"], r.json()["warnings"]) == (0, [])
+        settle(client, "town")
+        Q = np.random.default_rng(5).uniform([0, 0, 0], [300, 200, 60], (150, 3))
+        got = client.post("/v1/regions/town/query", json={"points": Q.tolist()}).json()
+        # one field fitted on all rows, each weighed by its whole track: the same map
+        weight = ingest.track_weights(track, t, V, spec.gamma)
+        mean, std, _ = library(spec, X, V, Q, sample_weight=weight)
+        np.testing.assert_allclose(got["mean"], mean, rtol=0, atol=1e-6 * np.abs(mean).max())
+        np.testing.assert_allclose(got["std"], std, rtol=1e-6)
+        # the same rows without their tracks: accepted, counted, warned of
+        r = client.post(
+            "/v1/regions/raw/observations",
+            json={"points": X.tolist(), "velocities": V.tolist()},
+            headers={"Idempotency-Key": "r"},
+        )
+        assert (r.json()["accepted"], r.json()["untracked"]) == (len(X), len(X))
+        assert r.json()["warnings"] == [UNTRACKED_WARNING]
+        settle(client, "raw")
+        for name in ("town", "raw"):
+            view = client.get(f"/v1/regions/{name}").json()
+            assert view["plausibility"]["worst_ratio"] > 0 and view["hyperparameters"]["at_bound"] in (
+                True,
+                False,
+            )
+        # refused as a whole, nothing stored: a track without its times, a track of floats
+        bad = {**body, "t": None}
+        r = client.post("/v1/regions/town/observations", json=bad, headers={"Idempotency-Key": "b1"})
+        assert r.status_code == 422 and "track and t go together" in r.json()["detail"]
+        floats = arrow_bytes({**enu_columns(X[:5], V[:5]), "track": np.ones(5), "t": t[:5]})
+        r = client.post(
+            "/v1/regions/town/observations",
+            content=floats,
+            headers={"Idempotency-Key": "b2", "Content-Type": "application/vnd.apache.arrow.stream"},
+        )
+        assert r.status_code == 422 and "'track'" in r.json()["detail"]
+        assert client.get("/v1/regions/town").json()["version"] == 3
+
+
+def test_the_speed_bound_is_the_fastest_traffic_near_each_layer():
+    """The tiles' speed histograms, summed over the region: 1.1 x the 99.9th percentile of
+    the horizontal speeds of the rows whose nearest hinge layer lies within 1 km (the upper
+    edge of its 2 m/s bin); the envelope's speed where no row is near."""
+    from bdf.region.evidence import increments
+    from bdf.region.map import speed_bound
+
+    spec = RegionSpec.model_validate(
+        {**LINE, "bounds_m": {"min": [0, 0, 0], "max": [1000, 400, 5000]}, "tile_size_m": [250, 200, 1000]}
+    )
+    rng = np.random.default_rng(2)
+    X = rng.uniform([0, 0, 0], [1000, 400, 2000], (3000, 3))  # nothing above 2 km
+    V = np.stack([rng.uniform(0, 50 + 0.05 * X[:, 2]), rng.normal(0, 5, 3000), np.zeros(3000)], 1)
+    total = region_total(spec, {k: i.evidence for k, i in increments(spec, X, V).items()})
+    z = spec.grid.axis(2)
+    layer = np.rint(X[:, 2] / spec.spacing_m[2])
+    speed = np.hypot(V[:, 0], V[:, 1])
+    want = np.full(len(z), spec.envelope.max_horizontal_speed_mps)
+    for k, at in enumerate(z):
+        near = np.abs(z[layer.astype(int)] - at) <= 1000
+        if near.any():
+            q = np.sort(speed[near])[int(np.ceil(0.999 * near.sum())) - 1]
+            want[k] = 1.1 * (np.floor(q / 2.0) + 1) * 2.0
+    np.testing.assert_allclose(speed_bound(spec, total.speeds), want)
+    assert want[-1] == spec.envelope.max_horizontal_speed_mps and want[0] < 200
