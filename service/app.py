@@ -54,10 +54,21 @@ VIEWER_POLICY = (
 RegionName = Annotated[str, Path(pattern=NAME, description="region name")]
 
 
-def _body_doc(model: type[BaseModel], binary: tuple[str, ...]) -> dict:
-    """The request body in OpenAPI: the JSON model and the binary media types also taken."""
+#: what an Arrow or Parquet body of observations holds
+OBSERVATION_COLUMNS = (
+    "a table with the columns x, y, z (ENU m) or lat, lon, alt_m; ve, vn, vu (m/s); optional "
+    "input_noise_std, sample_weight, and track (string or integer id) with t (seconds): the service "
+    "weighs the rows of a track itself (about one observation per kernel width flown); rows without "
+    "one count as independent observations, and the answer says how many (untracked, warnings)"
+)
+
+
+def _body_doc(model: type[BaseModel], binary: tuple[str, ...], columns: str = "") -> dict:
+    """The request body in OpenAPI: the JSON model and the binary media types also taken
+    (``columns``: what their tables hold)."""
     content = {JSON: {"schema": model.model_json_schema(ref_template="#/components/schemas/{model}")}}
-    content.update({m: {"schema": {"type": "string", "format": "binary"}} for m in binary})
+    schema = {"type": "string", "format": "binary", **({"description": columns} if columns else {})}
+    content.update({m: {"schema": schema} for m in binary})
     return {"requestBody": {"required": True, "content": content}}
 
 
@@ -419,7 +430,7 @@ IdempotencyKey = Annotated[
 @router.post(
     "/regions/{name}/observations",
     response_model=UploadView,
-    **scoped("write", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
+    **scoped("write", **_body_doc(formats.ObservationsBody, (ARROW, PARQUET), OBSERVATION_COLUMNS)),
 )
 async def post_observations(name: RegionName, request: Request, upload_id: IdempotencyKey, svc: ServiceDep):
     """Add observations to the map (exactly once per Idempotency-Key)."""
@@ -471,7 +482,7 @@ def _apply(svc: Service, name: str, upload_id: str, obs: formats.UploadRows, ret
     response_model=UploadView,
     **scoped(
         "write",
-        **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET)),
+        **_body_doc(formats.ObservationsBody, (ARROW, PARQUET), OBSERVATION_COLUMNS),
         responses={202: {"model": JobView, "description": "a large fit runs as a job"}},
     ),
 )
@@ -496,7 +507,7 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
 @router.post(
     "/regions/{name}/retractions",
     response_model=UploadView,
-    **scoped("admin", **_body_doc(formats.ObservationsBody, binary=(ARROW, PARQUET))),
+    **scoped("admin", **_body_doc(formats.ObservationsBody, (ARROW, PARQUET), OBSERVATION_COLUMNS)),
 )
 async def post_retraction(name: RegionName, request: Request, upload_id: IdempotencyKey, svc: ServiceDep):
     """Retract an acknowledged upload exactly (a sensor found broken): the Idempotency-Key
