@@ -135,7 +135,7 @@ def http_map(spec: RegionSpec, train, chunks: int, tmp: Path) -> tuple[RegionMap
             )
             untracked += result.untracked
         upload_s = time.perf_counter() - t0
-        bdf.fit_hyperparameters(spec.name)  # the settled map
+        view = bdf.fit_hyperparameters(spec.name)  # the settled map
         settled_s = time.perf_counter() - t0
     # the same store, read back through the library: the map the service answers from
     from service.store import open_store
@@ -148,7 +148,14 @@ def http_map(spec: RegionSpec, train, chunks: int, tmp: Path) -> tuple[RegionMap
         rmap = RegionMap(spec, state.posterior)
     finally:
         store.close()
-    return rmap, {"uploads [s]": upload_s, "settled [s]": settled_s, "untracked": untracked}
+    extra = {
+        "view: worst ratio": view.plausibility["worst_ratio"],
+        "view: at bound": str(view.hyperparameters["at_bound"]),
+        "uploads [s]": upload_s,
+        "settled [s]": settled_s,
+        "untracked": untracked,
+    }
+    return rmap, extra
 
 
 def sweep(train, test, lower, upper) -> list[dict]:
@@ -209,6 +216,16 @@ def main():
             **held_out(spec, rmap, train, test),
             **plausibility(spec, rmap, train),
             **extra,
+        }
+        print(row, flush=True)
+        rows.append(row)
+        # side by side: the same rows as sent without their track columns (independent)
+        raw = library_map(spec, train, False)
+        row = {
+            "sectors": directions,
+            "built by": "library, no track columns",
+            **held_out(spec, raw, train, test),
+            **plausibility(spec, raw, train),
         }
         print(row, flush=True)
         rows.append(row)

@@ -56,8 +56,11 @@ class Region:
     created_at: float
     updated_at: float
     #: alpha, beta (the latest found; "auto" until then), fitted_at, evidence_version,
-    #: settled, evidence_gap
+    #: settled, evidence_gap, at_bound
     hyperparameters: dict
+    #: that map against its traffic: worst_ratio, implausible_share, grid_step_m (None
+    #: before the first map of "auto" hyperparameters)
+    plausibility: dict | None = None
 
 
 @dataclass(frozen=True)
