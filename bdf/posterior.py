@@ -105,8 +105,8 @@ class Posterior:
         self.factorisations, self.settled, self.evidence_gap = fit.factorisations, fit.settled, fit.gap
         self.at_bound = fit.at_bound
         #: a region's map (set by :func:`bdf.region.map.compute_posterior`): the fastest
-        #: plausible horizontal speed at each hinge layer, and how the map compares with it
-        self.speed_bound: np.ndarray | None = None
+        #: plausible horizontal speed by altitude (a ``SpeedBound``), and how the map compares
+        self.speed_bound = None
         self.plausibility: dict | None = None
         #: where a next search of "auto" hyperparameters best starts (ratios alpha / beta):
         #: the optimum, or where the search pointed when it stopped within a nat of it
@@ -377,7 +377,7 @@ class Mixture:
         # the classes' data densities side by side, gathered with the variance densities
         self._densities = np.stack([e.density for e in evidence.classes], axis=-1)
         self.fitted = self.total.fitted
-        self.speed_bound: np.ndarray | None = None  # as the Posterior's
+        self.speed_bound = None  # as the Posterior's
         self.plausibility: dict | None = None
         # the share field, on the factorisation of the map with one class
         counts = np.array([e.count for e in evidence.classes])

@@ -172,7 +172,7 @@ def sweep(train, test, lower, upper) -> list[dict]:
                     spec = samples.paris_region(lower, upper, spacing, 1 / spacing**2, directions=directions)
                     rmap = library_map(spec, train, True)
                 except ValueError as exc:  # a lattice the service refuses
-                    rows.append({**label, "error": str(exc)[:120]})
+                    rows.append({**label, "error": " ".join(str(exc).split())[:160]})
                     continue
                 row = {
                     **label,

@@ -90,22 +90,44 @@ def _posterior(spec: RegionSpec, evidence: SectorEvidence, start, stored: bool, 
     raise NotPositiveDefinite(f"region {spec.name}: no alpha up to 1e12 times the spec's factors")
 
 
-def speed_bound(spec: RegionSpec, speeds: np.ndarray | None) -> np.ndarray:
-    """The plausibility bound (m/s) at each hinge layer of the region: :data:`PLAUSIBLE_FACTOR`
-    x the :data:`FASTEST_QUANTILE` of the horizontal speeds of the rows whose layer lies
-    within :data:`NEAR_ALTITUDE_M` (the upper edge of its histogram bin); the region
+@dataclass(frozen=True)
+class SpeedBound:
+    """The plausibility bound (m/s) as a function of altitude: piecewise constant, ``values[i]``
+    between ``breaks[i - 1]`` and ``breaks[i]``, ``at_breaks[i]`` at ``breaks[i]``
+    (:func:`speed_bound`)."""
+
+    breaks: np.ndarray
+    values: np.ndarray
+    at_breaks: np.ndarray
+
+    def __call__(self, z) -> np.ndarray:
+        z = np.asarray(z, float)
+        i = np.searchsorted(self.breaks, z)
+        on = self.breaks[np.minimum(i, len(self.breaks) - 1)] == z
+        return np.where(on, self.at_breaks[np.minimum(i, len(self.breaks) - 1)], self.values[i])
+
+
+def speed_bound(spec: RegionSpec, speeds: np.ndarray | None) -> SpeedBound:
+    """The plausibility bound at each altitude: :data:`PLAUSIBLE_FACTOR` x the
+    :data:`FASTEST_QUANTILE` of the horizontal speeds of the rows whose hinge layer lies
+    within :data:`NEAR_ALTITUDE_M` of it (the upper edge of its histogram bin); the region
     envelope's horizontal speed where none does. ``speeds``: the region's histogram
-    (:func:`bdf.region.evidence.speed_histogram`, summed), or None (tiles stored before it)."""
+    (:func:`bdf.region.evidence.speed_histogram`, summed), or None (tiles stored before it).
+    The layers in reach change only where an altitude is that far from a layer: the bound
+    is constant between those breaks."""
     z = spec.grid.axis(2)
-    out = np.full(len(z), spec.envelope.max_horizontal_speed_mps)
-    if speeds is None:
-        return out
-    for k, at in enumerate(z):
-        near = speeds[np.abs(z - at) <= NEAR_ALTITUDE_M].sum(axis=0)
-        if near.sum() > 0:
-            edge = np.searchsorted(np.cumsum(near), FASTEST_QUANTILE * near.sum()) + 1
-            out[k] = PLAUSIBLE_FACTOR * edge * SPEED_BIN_MPS
-    return out
+    envelope = spec.envelope.max_horizontal_speed_mps
+    breaks = np.unique(np.concatenate([z - NEAR_ALTITUDE_M, z + NEAR_ALTITUDE_M]))
+    mids = np.concatenate([[breaks[0] - 1.0], (breaks[:-1] + breaks[1:]) / 2, [breaks[-1] + 1.0]])
+
+    def at(alt: float) -> float:
+        near = 0.0 if speeds is None else speeds[np.abs(z - alt) <= NEAR_ALTITUDE_M].sum(axis=0)
+        if np.sum(near) == 0:
+            return envelope
+        edge = np.searchsorted(np.cumsum(near), FASTEST_QUANTILE * np.sum(near)) + 1
+        return PLAUSIBLE_FACTOR * edge * SPEED_BIN_MPS
+
+    return SpeedBound(breaks, np.array([at(m) for m in mids]), np.array([at(b) for b in breaks]))
 
 
 def plausibility(rmap: RegionMap) -> dict:
@@ -164,12 +186,12 @@ class RegionMap:
         return mean, std, self._known(weight, mean, X[:, 2])
 
     def bound_at(self, z: np.ndarray) -> np.ndarray:
-        """The plausibility bound (m/s) at altitudes ``z``: the posterior's ``speed_bound``
-        between its hinge layers, or the envelope's speed (a posterior without one)."""
+        """The plausibility bound (m/s) at altitudes ``z``: the posterior's ``speed_bound``,
+        or the envelope's speed (a posterior without one)."""
         bound = self.posterior.speed_bound
         if bound is None:
             return np.full(np.shape(z), self.spec.envelope.max_horizontal_speed_mps)
-        return np.interp(z, self.spec.grid.axis(2), bound)
+        return bound(z)
 
     def _known(self, weight: np.ndarray, mean: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Where the answer can be trusted: data weigh at least
