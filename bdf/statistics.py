@@ -35,11 +35,12 @@ A directional map (:mod:`bdf.sectors`) keeps one :class:`Evidence` per traffic c
 (:class:`SectorEvidence`); its blob is the classes' blobs one after the other, each
 preceded by its length in values (little-endian int64).
 
-Version 4 adds, before that, the region's count of rows per hinge layer and horizontal
-speed (:data:`SPEED_BIN_MPS` wide bins, :data:`SPEED_BINS` of them: what the fastest
-traffic near each altitude is, :func:`bdf.region.map.speed_bound`), as its length in values
-(int64, 0 without it) and the values (layers x bins, C order); a class's own blob is as in
-version 3.
+Version 4 adds, before that, the count of rows per altitude bin (:data:`ALT_BIN_M` of
+altitude, over the grid's altitudes: :func:`altitude_bins`) and horizontal speed bin
+(:data:`SPEED_BIN_MPS` wide, :data:`SPEED_BINS` of them): how fast the traffic near each
+altitude flies (:func:`bdf.region.map.speed_bound`), as its length in values (int64, 0
+without it) and the values (altitude bins x speed bins, C order); a class's own blob is as
+in version 3.
 """
 
 from __future__ import annotations
@@ -60,6 +61,17 @@ READABLE_FORMATS = (2, 3, 4)
 #: The speed histogram's bins (m/s), up to SPEED_BINS x SPEED_BIN_MPS (faster rows: the last)
 SPEED_BIN_MPS = 2.0
 SPEED_BINS = 256
+#: The speed histogram's altitude bins (metres): bin k holds altitudes [k, k + 1) x ALT_BIN_M
+ALT_BIN_M = 100.0
+
+
+def altitude_bins(grid: HingeGrid) -> tuple[int, int]:
+    """The first altitude bin over ``grid``'s altitudes and how many there are."""
+    top = grid.origin[2] + (grid.shape[2] - 1) * grid.step[2]
+    first = int(np.floor(grid.origin[2] / ALT_BIN_M))
+    return first, int(np.floor(top / ALT_BIN_M)) - first + 1
+
+
 #: Midpoint-lattice cells per block: 2 = one hinge cell (fewest BLAS calls for the flops, measured).
 MIDPOINT_BLOCK = 2
 
@@ -284,13 +296,14 @@ class SectorEvidence:
     its parts; a map of one class is its one part."""
 
     classes: tuple[Evidence, ...]
-    #: rows per hinge layer of the grid and horizontal speed bin (layers, SPEED_BINS), or None
+    #: rows per altitude bin over the grid and horizontal speed bin (altitude_bins, SPEED_BINS),
+    #: or None
     speeds: np.ndarray | None = None
 
     @classmethod
     def zeros(cls, grid: HingeGrid, noise_lattice: Lattice | None, sectors: Sectors) -> SectorEvidence:
         classes = tuple(Evidence.zeros(grid, noise_lattice) for _ in range(sectors.classes))
-        return cls(classes, np.zeros((grid.shape[2], SPEED_BINS)))
+        return cls(classes, np.zeros((altitude_bins(grid)[1], SPEED_BINS)))
 
     @classmethod
     def from_points(
@@ -391,7 +404,7 @@ class SectorEvidence:
         speeds = None
         if format_version >= 4:
             n = int(np.frombuffer(blob[:8], "<i8")[0]) if len(blob) >= 8 else -1
-            if n < 0 or 8 + 8 * n > len(blob) or n not in (0, grid.shape[2] * SPEED_BINS):
+            if n < 0 or 8 + 8 * n > len(blob) or n not in (0, altitude_bins(grid)[1] * SPEED_BINS):
                 raise ValueError(f"an evidence blob of {len(blob)} bytes has no speed histogram of its grid")
             if n:
                 speeds = np.frombuffer(blob[8 : 8 + 8 * n], "<f8").astype(np.float64).reshape(-1, SPEED_BINS)

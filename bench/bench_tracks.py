@@ -16,7 +16,11 @@ km x vertical 0.5 and 1 km, 1 and 8 sectors, gamma = 1 / spacing^2) with the sam
 their track columns, through the library's own path (the one function uploads learn
 through).
 
-    python bench/bench_tracks.py [--chunks 10] [--sweep] [--no-http]
+``--additivity`` instead: the same rows as 1, 10 and 100 uploads cut by time, in shuffled
+orders, through the library's own path: how far each map is from one upload's.
+
+    python bench/bench_tracks.py [--chunks 10] [--sweep] [--no-http] [--publish]
+    python bench/bench_tracks.py --additivity [--publish]
 """
 
 from __future__ import annotations
@@ -158,6 +162,44 @@ def http_map(spec: RegionSpec, train, chunks: int, tmp: Path) -> tuple[RegionMap
     return rmap, extra
 
 
+def additivity(train, test, lower, upper, counts=(10, 100)) -> list[dict]:
+    """The same raw rows as 1, 10 and 100 uploads cut by time (flights cut across them),
+    summed in a shuffled order through the function uploads learn through: the largest
+    difference of the held-out answers from one upload's (mean over the climatology std,
+    std relative)."""
+    rows = []
+    climate = train.V.std(axis=0)
+    order = np.argsort(train.time, kind="stable")
+    for directions in (1, 8):
+        spec = samples.paris_demo_region(lower, upper, directions=directions)
+        answers = {}
+        for count in (1, *counts):
+            chunks = np.array_split(order, count)
+            total = {}
+            for k in np.random.default_rng(count).permutation(count):
+                part = chunks[k]
+                kw = {"track": train.flight[part], "time": train.time[part]}
+                increments, _ = observations_evidence(spec, train.X[part], train.V[part], **kw)
+                for key, inc in increments.items():
+                    total[key] = inc.evidence if key not in total else total[key] + inc.evidence
+            rmap = RegionMap(spec, compute_posterior(spec, region_total(spec, total)))
+            answers[count] = rmap.predict(test.X)[:2]
+        for count in counts:
+            (mean, std), (mean1, std1) = answers[count], answers[1]
+            rows.append(
+                {
+                    "sectors": directions,
+                    "uploads": count,
+                    "max |mean - one upload's| / climatology std": float(
+                        (np.abs(mean - mean1) / climate).max()
+                    ),
+                    "max |std / one upload's - 1|": float(np.abs(std / std1 - 1).max()),
+                }
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
 def sweep(train, test, lower, upper) -> list[dict]:
     """The map of the raw rows with their track columns on each lattice of the sweep,
     coarsest first, through the library's own path."""
@@ -191,10 +233,22 @@ def main():
     )
     parser.add_argument("--chunks", type=int, default=10)
     parser.add_argument("--sweep", action="store_true")
+    parser.add_argument(
+        "--additivity", action="store_true", help="only: 1, 10 and 100 uploads, the library's path"
+    )
     parser.add_argument("--no-http", action="store_true", help="the library's path only")
     parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
     args = parser.parse_args()
     train, test, lower, upper = split()
+    if args.additivity:
+        lines = ["Paris flight split, raw rows with track and t, demo lattice, 1 and 8 sectors:"]
+        lines.append(rows_table(additivity(train, test, lower, upper)))
+        command = "python bench/bench_tracks.py --additivity"
+        publish(
+            [f"\n## Tracks cut across uploads ({time.strftime('%Y-%m-%d')}, `{command}`)\n", *lines],
+            args.publish,
+        )
+        return
     lines = [
         f"Paris flight split: {len(train)} training rows of {len(np.unique(train.flight))} flights "
         f"(raw 1 Hz, track and t columns, no weights), {len(test)} held-out rows; demo lattice "

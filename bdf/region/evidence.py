@@ -22,7 +22,15 @@ import numpy as np
 
 from bdf import sparse
 from bdf.region.spec import RegionSpec, TileKey
-from bdf.statistics import FORMAT_VERSION, SPEED_BIN_MPS, SPEED_BINS, Evidence, SectorEvidence
+from bdf.statistics import (
+    ALT_BIN_M,
+    FORMAT_VERSION,
+    SPEED_BIN_MPS,
+    SPEED_BINS,
+    Evidence,
+    SectorEvidence,
+    altitude_bins,
+)
 from bdf.validation import as_noise_std, as_observations, as_sample_weight, take_rows
 
 
@@ -66,13 +74,15 @@ def increments(
 
 
 def speed_histogram(grid, X: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """Rows per hinge layer of ``grid`` (the nearest) and horizontal speed bin: (layers,
-    :data:`bdf.statistics.SPEED_BINS`); additive, so the region knows how fast its traffic
-    flies near each altitude (:func:`bdf.region.map.speed_bound`)."""
-    layer = np.clip(np.rint((X[:, 2] - grid.origin[2]) / grid.step[2]).astype(np.int64), 0, grid.shape[2] - 1)
+    """Rows per altitude bin over ``grid`` (:func:`bdf.statistics.altitude_bins`) and
+    horizontal speed bin: additive, so the region knows how fast its traffic flies near each
+    altitude (:func:`bdf.region.map.speed_bound`)."""
+    first, count = altitude_bins(grid)
+    alt = np.clip(np.floor(X[:, 2] / ALT_BIN_M).astype(np.int64) - first, 0, count - 1)
     speed = np.minimum(np.hypot(V[:, 0], V[:, 1]) // SPEED_BIN_MPS, SPEED_BINS - 1).astype(np.int64)
-    counts = np.bincount(layer * SPEED_BINS + speed, minlength=grid.shape[2] * SPEED_BINS)
-    return counts.reshape(grid.shape[2], SPEED_BINS).astype(float)
+    return (
+        np.bincount(alt * SPEED_BINS + speed, minlength=count * SPEED_BINS).reshape(count, SPEED_BINS) * 1.0
+    )
 
 
 def decode_tile(
@@ -91,9 +101,10 @@ def region_total(spec: RegionSpec, tiles: Mapping[TileKey, SectorEvidence]) -> S
     (the speed histogram too, where every tile has one: tiles stored before it have none)."""
     speeds = None
     if tiles and all(ev.speeds is not None for ev in tiles.values()):
-        speeds = np.zeros((spec.grid.shape[2], SPEED_BINS))
+        first, count = altitude_bins(spec.grid)
+        speeds = np.zeros((count, SPEED_BINS))
         for key, ev in tiles.items():
-            k0 = int(np.round((spec.tile_grid(key).origin[2] - spec.grid.origin[2]) / spec.grid.step[2]))
+            k0 = altitude_bins(spec.tile_grid(key))[0] - first
             speeds[k0 : k0 + len(ev.speeds)] += ev.speeds
     return SectorEvidence(
         tuple(

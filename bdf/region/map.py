@@ -17,7 +17,8 @@ weight says where a mode is only its prior.
 Plausibility: a map is judged against the traffic it learnt from (:func:`plausibility`):
 no mean, and no mode with a share of at least :data:`MODE_SHARE`, should fly faster
 horizontally than :data:`PLAUSIBLE_FACTOR` times the fastest traffic near its altitude
-(:func:`speed_bound`, from the rows' speed histogram the tiles keep). Each map computed
+(:func:`speed_bound`, from the rows' speed histogram the tiles keep, per 100 m of
+altitude). Each map computed
 for a region records its worst ratio to that bound.
 """
 
@@ -31,13 +32,13 @@ import numpy as np
 from bdf.posterior import Mixture, Modes, Posterior, known
 from bdf.region.spec import RegionSpec
 from bdf.sparse import NotPositiveDefinite
-from bdf.statistics import SPEED_BIN_MPS, SectorEvidence
+from bdf.statistics import ALT_BIN_M, SPEED_BIN_MPS, SectorEvidence, altitude_bins
 from bdf.validation import as_headings
 
 log = logging.getLogger(__name__)
 #: the plausibility bound: this factor over the fastest traffic observed near an altitude
 PLAUSIBLE_FACTOR = 1.1
-#: "near": rows within this distance of the altitude (metres; by their nearest hinge layer)
+#: "near": rows within this distance of the altitude (metres; by their 100 m altitude bin)
 NEAR_ALTITUDE_M = 1000.0
 #: "fastest": this quantile of the horizontal speeds of the rows near the altitude
 FASTEST_QUANTILE = 0.999
@@ -109,19 +110,20 @@ class SpeedBound:
 
 def speed_bound(spec: RegionSpec, speeds: np.ndarray | None) -> SpeedBound:
     """The plausibility bound at each altitude: :data:`PLAUSIBLE_FACTOR` x the
-    :data:`FASTEST_QUANTILE` of the horizontal speeds of the rows whose hinge layer lies
-    within :data:`NEAR_ALTITUDE_M` of it (the upper edge of its histogram bin); the region
-    envelope's horizontal speed where none does. ``speeds``: the region's histogram
-    (:func:`bdf.region.evidence.speed_histogram`, summed), or None (tiles stored before it).
-    The layers in reach change only where an altitude is that far from a layer: the bound
-    is constant between those breaks."""
-    z = spec.grid.axis(2)
+    :data:`FASTEST_QUANTILE` of the horizontal speeds of the rows within
+    :data:`NEAR_ALTITUDE_M` of it (by their altitude bin's centre, 100 m bins; the upper
+    edge of their speed bin); the region envelope's horizontal speed where none is.
+    ``speeds``: the region's histogram (:func:`bdf.region.evidence.speed_histogram`,
+    summed), or None (tiles stored before it). The bins in reach change only where an
+    altitude is that far from a bin's centre: the bound is constant between those breaks."""
+    first, count = altitude_bins(spec.grid)
+    centres = (first + np.arange(count) + 0.5) * ALT_BIN_M
     envelope = spec.envelope.max_horizontal_speed_mps
-    breaks = np.unique(np.concatenate([z - NEAR_ALTITUDE_M, z + NEAR_ALTITUDE_M]))
+    breaks = np.unique(np.concatenate([centres - NEAR_ALTITUDE_M, centres + NEAR_ALTITUDE_M]))
     mids = np.concatenate([[breaks[0] - 1.0], (breaks[:-1] + breaks[1:]) / 2, [breaks[-1] + 1.0]])
 
     def at(alt: float) -> float:
-        near = 0.0 if speeds is None else speeds[np.abs(z - alt) <= NEAR_ALTITUDE_M].sum(axis=0)
+        near = 0.0 if speeds is None else speeds[np.abs(centres - alt) <= NEAR_ALTITUDE_M].sum(axis=0)
         if np.sum(near) == 0:
             return envelope
         edge = np.searchsorted(np.cumsum(near), FASTEST_QUANTILE * np.sum(near)) + 1

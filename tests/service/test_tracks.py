@@ -288,8 +288,8 @@ def test_tracks_over_http_in_every_format_and_rows_without_them_warned_of(live_s
 
 def test_the_speed_bound_is_the_fastest_traffic_near_each_altitude():
     """The tiles' speed histograms, summed over the region: 1.1 x the 99.9th percentile of
-    the horizontal speeds of the rows whose nearest hinge layer lies within 1 km (the upper
-    edge of its 2 m/s bin); the envelope's speed where no row is near."""
+    the horizontal speeds of the rows within 1 km (by their 100 m altitude bin's centre; the
+    upper edge of its 2 m/s speed bin); the envelope's speed where no row is near."""
     from bdf.region.evidence import increments
     from bdf.region.map import speed_bound
 
@@ -301,8 +301,7 @@ def test_the_speed_bound_is_the_fastest_traffic_near_each_altitude():
     V = np.stack([rng.uniform(0, 50 + 0.05 * X[:, 2]), rng.normal(0, 5, 3000), np.zeros(3000)], 1)
     total = region_total(spec, {k: i.evidence for k, i in increments(spec, X, V).items()})
     bound = speed_bound(spec, total.speeds)
-    z = spec.grid.axis(2)
-    layer_z = z[np.rint(X[:, 2] / spec.spacing_m[2]).astype(int)]
+    layer_z = (np.floor(X[:, 2] / 100.0) + 0.5) * 100.0
     speed = np.hypot(V[:, 0], V[:, 1])
     alts = np.arange(-500.0, 5500.0, 125.0)
     want = np.full(len(alts), spec.envelope.max_horizontal_speed_mps)
