@@ -39,8 +39,12 @@ class Observations:
         return len(self.X)
 
     def track_weights(self, gamma) -> np.ndarray:
-        """:func:`track_weights` of these rows, a track per flight, for a kernel ``gamma``."""
-        return track_weights(self.flight, self.time, self.V, gamma)
+        """:func:`track_weights` of these rows, a track per flight, for a kernel ``gamma``
+        (a row without a track, flight -1, weighs 1)."""
+        out = np.ones(len(self))
+        on = self.flight >= 0
+        out[on] = track_weights(self.flight[on], self.time[on], self.V[on], gamma)
+        return out
 
     def subset(self, mask) -> Observations:
         return Observations(
@@ -177,17 +181,19 @@ def read_adsb(path, frame: ENUFrame) -> Observations:
 
 
 def read_radar(path) -> Observations:
-    """Radar point cloud CSV with columns x, y, z, vx, vy, vz [, t] (metres, m/s, seconds)."""
+    """Radar point cloud CSV with columns x, y, z, vx, vy, vz [, t] [, track] (metres, m/s,
+    seconds; the radar's track id: without one, each row is its own track, -1)."""
     table = read_table(path)
     cols = [float_column(table, c, path) for c in RADAR_COLUMNS]
     t = float_column(table, "t", path) if "t" in table else np.zeros(len(cols[0]))
     data = np.stack([*cols, t], 1)
     ok = np.all(np.isfinite(data), axis=1)
+    track = track_codes(table["track"]) if "track" in table else np.full(len(ok), -1, np.int64)
     return Observations(
         data[ok, :3],
         data[ok, 3:6],
         data[ok, 6],
-        np.zeros(int(ok.sum()), np.int64),
+        track[ok],
         {"incomplete": int((~ok).sum())},
     )
 

@@ -122,3 +122,6 @@ def test_radar_csv(tmp_path):
     np.testing.assert_array_equal(obs.X, [[1, 2, 3]])
     np.testing.assert_array_equal(obs.V, [[4, 5, 6]])
     assert obs.dropped == {"incomplete": 1}
+    np.testing.assert_array_equal(obs.flight, [-1])  # no track id: a track of its own
+    (tmp_path / "s.csv").write_text("x,y,z,vx,vy,vz,t,track\n1,2,3,4,5,6,0.5,T9\n1,2,3,4,5,6,0.6,T2\n")
+    np.testing.assert_array_equal(ingest.read_radar(tmp_path / "s.csv").flight, [1, 0])
