@@ -23,6 +23,12 @@ KT = 1852.0 / 3600.0
 FT_PER_MIN = FT / 60.0
 
 RADAR_COLUMNS = ("x", "y", "z", "vx", "vy", "vz")
+#: A track's rows count as if it flew at least this fast (m/s, the slow class's bound): a
+#: hovering vehicle's samples are as correlated in time as a cruising one's in space.
+MIN_TRACK_SPEED_MPS = 5.0
+#: The longest time a row stands for: the sampling interval of ADS-B state vectors and of
+#: most radars (a region's ``track_interval_s``).
+MAX_ROW_INTERVAL_S = 1.0
 
 
 @dataclass
@@ -38,12 +44,14 @@ class Observations:
     def __len__(self) -> int:
         return len(self.X)
 
-    def track_weights(self, gamma) -> np.ndarray:
+    def track_weights(self, gamma, max_interval_s: float = MAX_ROW_INTERVAL_S) -> np.ndarray:
         """:func:`track_weights` of these rows, a track per flight, for a kernel ``gamma``
         (a row without a track, flight -1, weighs 1)."""
         out = np.ones(len(self))
         on = self.flight >= 0
-        out[on] = track_weights(self.flight[on], self.time[on], self.V[on], gamma)
+        out[on] = track_weights(
+            self.flight[on], self.time[on], self.V[on], gamma, max_interval_s=max_interval_s
+        )
         return out
 
     def subset(self, mask) -> Observations:
@@ -214,14 +222,6 @@ def train_test_split(obs: Observations, *, by: str = "point", test_fraction: flo
     raise ValueError(f"by must be 'point' or 'flight', got {by!r}")
 
 
-#: A track's rows count as if it flew at least this fast (m/s, the slow class's bound): a
-#: hovering vehicle's samples are as correlated in time as a cruising one's in space.
-MIN_TRACK_SPEED_MPS = 5.0
-#: The time a row stands for when its track has no other row among those given (an upload
-#: that cut it to one row): the sampling interval of ADS-B state vectors and of most radars.
-LONE_ROW_INTERVAL_S = 1.0
-
-
 def track_weights(
     track,
     time,
@@ -229,27 +229,28 @@ def track_weights(
     gamma,
     *,
     min_speed_mps: float = MIN_TRACK_SPEED_MPS,
-    lone_interval_s: float = LONE_ROW_INTERVAL_S,
+    max_interval_s: float = MAX_ROW_INTERVAL_S,
 ) -> np.ndarray:
     """Weights of the rows of tracks: about one observation per kernel width flown.
 
     Rows of one track a second apart are not independent observations of the flow: counted
     as such, the evidence trusts the data by orders of magnitude too much (the prior is
     driven to nothing and the field oscillates between tracks). A row stands for the time
-    to its nearer neighbour in its own track (rows of a track at one ``time`` share it; a
-    row alone in its track stands for ``lone_interval_s``), flown at its own velocity ``V``
-    (at least ``min_speed_mps``), measured in kernel widths (``1 / sqrt(gamma)`` per axis),
-    and counts that many observations, at most one (after a long gap a row is one
-    independent observation).
+    to its nearer neighbour in its own track, at most ``max_interval_s`` (rows of a track
+    at one ``time`` share it; a row alone in its track stands for ``max_interval_s``),
+    flown at its own velocity ``V`` (at least ``min_speed_mps``), measured in kernel widths
+    (``1 / sqrt(gamma)`` per axis), and counts that many observations, at most one.
 
     The weight depends only on a row and its neighbours in its track among the rows given,
-    so the rows of one upload are weighed alone: any split of a track into uploads gives the
-    same weights wherever each cut lies between rows no further apart than the rows beside
-    them (regular sampling at ``lone_interval_s`` or faster: every cut), and retracting an
-    upload removes exactly what it added. Two flights along one line weigh twice one flight;
-    one flight sampled 16 times as often weighs the same. A track's two end rows stand for
-    a whole interval (a cut end cannot be told from a true one): half a sample more than
-    a trapezoid rule would give.
+    so the rows of one upload are weighed alone and retracting an upload removes exactly
+    what it added. Rows sampled ``max_interval_s`` apart or further weigh by themselves
+    alone: any split of such tracks into uploads gives the same weights. Faster sampling
+    is weighed by the neighbours, the same whatever the split where it is regular (cut
+    between rows no further apart than the rows beside them). Tracks sampled more sparsely
+    count for less than they carry (each row ``max_interval_s`` of flight): under-, never
+    over-confident. Two flights along one line weigh twice one flight; one flight sampled
+    16 times as often weighs the same. A track's two end rows stand for a whole interval (a
+    cut end cannot be told from a true one): half a sample more than a trapezoid rule.
 
     Parameters
     ----------
@@ -278,14 +279,12 @@ def track_weights(
     gk, gt = k[first], t[first]
     same = gk[1:] == gk[:-1]
     gap = np.where(same, np.diff(gt), np.inf)
-    interval = np.minimum(np.r_[np.inf, gap], np.r_[gap, np.inf])  # to the nearer neighbour
-    interval[np.isinf(interval)] = lone_interval_s
+    interval = np.minimum(np.minimum(np.r_[np.inf, gap], np.r_[gap, np.inf]), max_interval_s)
     sharing = np.bincount(group)
     rate = np.maximum(
         np.linalg.norm(V[order] * np.sqrt(gamma), axis=1), min_speed_mps * np.sqrt(gamma[:2].max())
     )
-    with np.errstate(invalid="ignore"):  # inf x rate
-        w = np.minimum(interval[group] * rate, 1.0) / sharing[group]
+    w = np.minimum(interval[group] * rate, 1.0) / sharing[group]
     out = np.empty(n)
     out[order] = w
     return out

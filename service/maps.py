@@ -911,7 +911,9 @@ def _evidence(spec: RegionSpec, X, V, noise, weight, track=None, time=None, *, p
     if tracked.any():  # the kept rows of each track weigh what they carry
         weight = np.ones(len(X)) if weight is None else weight.copy()
         on = keep & tracked
-        weight[on] *= ingest.track_weights(track[on], time[on], V[on], spec.gamma)
+        weight[on] *= ingest.track_weights(
+            track[on], time[on], V[on], spec.gamma, max_interval_s=spec.track_interval_s
+        )
     every = keep.all()
 
     def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows

@@ -147,6 +147,9 @@ class RegionSpec(BaseModel):
     #: Heading sectors (1: the paper's model; more: a mixture, :mod:`bdf.sectors`).
     directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] = 1
     slow_mps: Positive = 5.0
+    #: The longest time a row of a track stands for (its tracks' sampling interval, at most:
+    #: :func:`bdf.ingest.track_weights`); sparser tracks count for less than they carry.
+    track_interval_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 1.0
     envelope: Envelope = Envelope()
 
     @model_validator(mode="after")

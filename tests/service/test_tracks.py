@@ -90,22 +90,27 @@ def test_two_flights_weigh_twice_one_and_16_times_the_samples_weigh_the_same():
 
 def test_the_rule_is_local_to_a_track_and_its_neighbours():
     gamma = np.array(LINE["gamma"])
-    t = np.array([0.0, 1.0, 2.0, 3.0, 10.0, 100.0])
+    t = np.array([0.0, 0.25, 0.5, 1.5, 10.0, 100.0])
     V = np.tile([20.0, 0.0, 0.0], (6, 1))
     w = ingest.track_weights(np.zeros(6, int), t, V, gamma)
-    # nearer neighbour 1 s away: 20 m of 50; 7 s and 90 s: one observation at most
-    np.testing.assert_allclose(w, [0.4, 0.4, 0.4, 0.4, 1.0, 1.0])
-    # a row alone in its track (an upload cut it there) stands for a second
+    # nearer neighbour 0.25 s away: 5 m of 50; 1 s or more (or alone): 1 s, 20 m of 50
+    np.testing.assert_allclose(w, [0.1, 0.1, 0.1, 0.4, 0.4, 0.4])
     np.testing.assert_allclose(ingest.track_weights([3], [5.0], V[:1], gamma), [0.4])
+    # a region of tracks sampled every 10 s says so: then those rows are one observation each
+    sparse = ingest.track_weights(np.zeros(6, int), t, V, gamma, max_interval_s=10.0)
+    np.testing.assert_allclose(sparse, [0.1, 0.1, 0.1, 0.4, 1.0, 1.0])
     # rows in any order; a hover counts at the slow speed (5 m/s), not as nothing
     order = np.random.default_rng(0).permutation(6)
+    w = ingest.track_weights(np.zeros(6, int), t, V, gamma)
     np.testing.assert_allclose(ingest.track_weights(np.zeros(6, int), t[order], V[order], gamma), w[order])
     hover = ingest.track_weights(np.zeros(3, int), [0.0, 1.0, 2.0], np.zeros((3, 3)), gamma)
     np.testing.assert_allclose(hover, 5.0 / 50)
-    # a track cut anywhere (sampled regularly): each part weighs as it did in the whole
+    # a track cut anywhere (sampled regularly, or at 1 s and slower with gaps): each part
+    # weighs as it did in the whole
     _, V, t = flight(1)
+    t = t + np.cumsum(np.where(np.arange(len(t)) % 7 == 3, 5.0, 0.0))  # gaps of 6 s
     whole = ingest.track_weights(np.zeros(len(t), int), t, V, gamma)
-    for cut in (1, 2, 7, len(t) - 2, len(t) - 1):
+    for cut in range(1, len(t)):
         parts = [slice(0, cut), slice(cut, None)]
         np.testing.assert_array_equal(
             np.concatenate(

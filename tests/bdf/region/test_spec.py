@@ -17,6 +17,7 @@ def test_spec_json_is_the_service_body():
         "cutoff": 1e-12,
         "directions": 1,
         "slow_mps": 5.0,
+        "track_interval_s": 1.0,
         "envelope": {  # aircraft
             "max_horizontal_speed_mps": 400.0,
             "max_vertical_speed_mps": 100.0,
