@@ -80,9 +80,8 @@ def speed_histogram(grid, X: np.ndarray, V: np.ndarray) -> np.ndarray:
     first, count = altitude_bins(grid)
     alt = np.clip(np.floor(X[:, 2] / ALT_BIN_M).astype(np.int64) - first, 0, count - 1)
     speed = np.minimum(np.hypot(V[:, 0], V[:, 1]) // SPEED_BIN_MPS, SPEED_BINS - 1).astype(np.int64)
-    return (
-        np.bincount(alt * SPEED_BINS + speed, minlength=count * SPEED_BINS).reshape(count, SPEED_BINS) * 1.0
-    )
+    counts = np.bincount(alt * SPEED_BINS + speed, minlength=count * SPEED_BINS)
+    return counts.reshape(count, SPEED_BINS).astype(float)
 
 
 def decode_tile(

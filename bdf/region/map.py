@@ -18,8 +18,7 @@ Plausibility: a map is judged against the traffic it learnt from (:func:`plausib
 no mean, and no mode with a share of at least :data:`MODE_SHARE`, should fly faster
 horizontally than :data:`PLAUSIBLE_FACTOR` times the fastest traffic near its altitude
 (:func:`speed_bound`, from the rows' speed histogram the tiles keep, per 100 m of
-altitude). Each map computed
-for a region records its worst ratio to that bound.
+altitude). Each map computed for a region records its worst ratio to that bound.
 """
 
 from __future__ import annotations
