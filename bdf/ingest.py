@@ -291,12 +291,13 @@ def track_weights(
 
 
 def track_codes(ids) -> np.ndarray:
-    """Integer codes of track ids (strings or integers; ``None`` or ``""``: no track, -1)."""
+    """Integer codes of track ids (strings or integers; ``None``, ``""`` or NaN, as a file's
+    numeric column with gaps reads: no track, -1)."""
     ids = np.asarray(ids)
     if ids.dtype.kind in "iu":
         return np.unique(ids, return_inverse=True)[1].ravel().astype(np.int64)
     ids = ids.astype(object)
-    missing = np.array([v is None or v == "" for v in ids], dtype=bool)
+    missing = np.array([v is None or v == "" or (isinstance(v, float) and v != v) for v in ids], dtype=bool)
     codes = np.full(len(ids), -1, np.int64)
     if (~missing).any():
         codes[~missing] = np.unique(ids[~missing].astype(str), return_inverse=True)[1].ravel()

@@ -125,6 +125,7 @@ def test_the_rule_is_local_to_a_track_and_its_neighbours():
 def test_track_codes_take_strings_integers_and_none():
     np.testing.assert_array_equal(ingest.track_codes(["b", "a", "b", None, ""]), [1, 0, 1, -1, -1])
     np.testing.assert_array_equal(ingest.track_codes(np.array([7, 3, 7])), [1, 0, 1])
+    np.testing.assert_array_equal(ingest.track_codes(np.array([7.0, np.nan, 7.0])), [0, -1, 0])
 
 
 def test_untracked_rows_are_counted_and_sample_weight_multiplies_the_track_weight():
