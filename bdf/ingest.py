@@ -45,14 +45,8 @@ class Observations:
         return len(self.X)
 
     def track_weights(self, gamma, max_interval_s: float = MAX_ROW_INTERVAL_S) -> np.ndarray:
-        """:func:`track_weights` of these rows, a track per flight, for a kernel ``gamma``
-        (a row without a track, flight -1, weighs 1)."""
-        out = np.ones(len(self))
-        on = self.flight >= 0
-        out[on] = track_weights(
-            self.flight[on], self.time[on], self.V[on], gamma, max_interval_s=max_interval_s
-        )
-        return out
+        """:func:`track_weights` of these rows, a track per flight, for a kernel ``gamma``."""
+        return track_weights(self.flight, self.time, self.V, gamma, max_interval_s=max_interval_s)
 
     def subset(self, mask) -> Observations:
         return Observations(
@@ -172,7 +166,9 @@ def adsb_tracks(table: dict, source="table") -> tuple[np.ndarray, np.ndarray]:
     seconds (``timestamp`` or ``time``: Unix seconds, milliseconds or a date-time column)."""
     n = len(table["icao24"])
     callsign = table.get("callsign", np.full(n, ""))
-    keys = np.array([f"{a}/{b}" for a, b in zip(table["icao24"], callsign, strict=True)])
+    keys = np.char.add(
+        np.char.add(np.asarray(table["icao24"]).astype(str), "/"), np.asarray(callsign).astype(str)
+    )
     name = "timestamp" if "timestamp" in table else "time"
     column = np.asarray(table[name]) if name in table else None
     if column is not None and column.dtype.kind == "M":
@@ -239,7 +235,8 @@ def track_weights(
     to its nearer neighbour in its own track, at most ``max_interval_s`` (rows of a track
     at one ``time`` share it; a row alone in its track stands for ``max_interval_s``),
     flown at its own velocity ``V`` (at least ``min_speed_mps``), measured in kernel widths
-    (``1 / sqrt(gamma)`` per axis), and counts that many observations, at most one.
+    (``1 / sqrt(gamma)`` per axis), and counts that many observations, at most one. A row
+    without a track (``track`` -1, :func:`track_codes`) is one observation, its time unused.
 
     The weight depends only on a row and its neighbours in its track among the rows given,
     so the rows of one upload are weighed alone and retracting an upload removes exactly
@@ -254,8 +251,8 @@ def track_weights(
 
     Parameters
     ----------
-    track : (n,) integer track id of each row.
-    time : (n,) seconds, finite.
+    track : (n,) integer track id of each row (-1: none).
+    time : (n,) seconds, finite where a row has a track.
     V : (n, 3) velocities, m/s.
     gamma : (3,) the kernel's inverse squared widths per axis (1/m^2).
     """
@@ -268,10 +265,19 @@ def track_weights(
         raise ValueError(
             f"track, time and V must have n, n and (n, 3) rows; got {track.shape}, {time.shape}, {V.shape}"
         )
-    if not np.isfinite(time).all():
+    out = np.ones(n)
+    on = track >= 0
+    if not np.isfinite(time[on]).all():
         raise ValueError("every row of a track needs a finite time")
-    if n == 0:
-        return np.zeros(0)
+    if not on.any():
+        return out
+    out[on] = _tracked_weights(track[on], time[on], V[on], gamma, min_speed_mps, max_interval_s)
+    return out
+
+
+def _tracked_weights(track, time, V, gamma, min_speed_mps, max_interval_s) -> np.ndarray:
+    """:func:`track_weights` of rows that all have a track."""
+    n = len(track)
     order = np.lexsort((time, track))
     k, t = track[order], time[order]
     first = np.r_[True, (k[1:] != k[:-1]) | (t[1:] != t[:-1])]  # each (track, time) once
@@ -297,7 +303,7 @@ def track_codes(ids) -> np.ndarray:
     if ids.dtype.kind in "iu":
         return np.unique(ids, return_inverse=True)[1].ravel().astype(np.int64)
     ids = ids.astype(object)
-    missing = np.array([v is None or v == "" or (isinstance(v, float) and v != v) for v in ids], dtype=bool)
+    missing = np.array([v is None or v == "" or (isinstance(v, float) and v != v) for v in ids], bool)
     codes = np.full(len(ids), -1, np.int64)
     if (~missing).any():
         codes[~missing] = np.unique(ids[~missing].astype(str), return_inverse=True)[1].ravel()

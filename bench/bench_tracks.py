@@ -35,21 +35,23 @@ from bench_core import publish, rows_table  # bench/ is on the path when run as 
 
 from bdf import ingest, metrics
 from bdf.region.evidence import region_total
-from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.map import (
+    FASTEST_QUANTILE,
+    MODE_SHARE,
+    NEAR_ALTITUDE_M,
+    PLAUSIBLE_FACTOR,
+    RegionMap,
+    compute_posterior,
+)
 from bdf.region.spec import RegionSpec
 from clients import samples
 from clients.local import LocalService
 from clients.sdk import BDFClient
 from service.maps import observations_evidence
 
-#: the plausibility bound: this factor over the fastest traffic observed near the altitude
-PLAUSIBLE_FACTOR = 1.1
-#: rows within this distance of an altitude (metres) set its bound; the envelope's speed where none
-NEAR_ALT_M = 1000.0
-FASTEST_QUANTILE = 99.9
-ENVELOPE_MPS = 400.0
-#: modes with at least this share are judged
-MODE_SHARE = 0.05
+#: the bound's definition, the service's (:mod:`bdf.region.map`), computed here from the rows
+#: themselves at each altitude exactly: an independent check of the service's histogram
+FASTEST_PERCENTILE = 100 * FASTEST_QUANTILE
 
 
 def split():
@@ -58,14 +60,14 @@ def split():
     return obs.subset(~test), obs.subset(test), lower, upper
 
 
-def speed_bound(train: ingest.Observations, alts) -> np.ndarray:
-    """The plausibility bound at each altitude of ``alts`` (m/s)."""
+def speed_bound(train: ingest.Observations, alts, envelope_mps: float) -> np.ndarray:
+    """The plausibility bound at each altitude of ``alts`` (m/s), from the rows."""
     speed = np.hypot(train.V[:, 0], train.V[:, 1])
-    out = np.full(len(alts), ENVELOPE_MPS)
+    out = np.full(len(alts), envelope_mps)
     for i, z in enumerate(alts):
-        near = np.abs(train.X[:, 2] - z) <= NEAR_ALT_M
+        near = np.abs(train.X[:, 2] - z) <= NEAR_ALTITUDE_M
         if near.any():
-            out[i] = PLAUSIBLE_FACTOR * np.percentile(speed[near], FASTEST_QUANTILE)
+            out[i] = PLAUSIBLE_FACTOR * np.percentile(speed[near], FASTEST_PERCENTILE)
     return out
 
 
@@ -79,7 +81,7 @@ def plausibility(spec: RegionSpec, rmap: RegionMap, train) -> dict:
     if spec.directions > 1:
         mode_speed = np.hypot(modes.mean[..., 0], modes.mean[..., 1])
         fastest = np.maximum(fastest, np.where(modes.share >= MODE_SHARE, mode_speed, 0.0).max(axis=-1))
-    bound = speed_bound(train, axes[2])[None, None, :]
+    bound = speed_bound(train, axes[2], spec.envelope.max_horizontal_speed_mps)[None, None, :]
     over = fastest > bound
     return {
         "max speed [m/s]": float(fastest.max()),

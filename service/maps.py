@@ -909,11 +909,9 @@ def _evidence(spec: RegionSpec, X, V, noise, weight, track=None, time=None, *, p
         noise_ok = speed if noise is None else speed & envelope.noise_ok(noise)
         keep = noise_ok if weight is None else noise_ok & envelope.weight_ok(weight)
     if tracked.any():  # the kept rows of each track weigh what they carry
-        weight = np.ones(len(X)) if weight is None else weight.copy()
-        on = keep & tracked
-        weight[on] *= ingest.track_weights(
-            track[on], time[on], V[on], spec.gamma, max_interval_s=spec.track_interval_s
-        )
+        on = np.where(keep, track, -1)  # rejected rows are no neighbours
+        carried = ingest.track_weights(on, time, V, spec.gamma, max_interval_s=spec.track_interval_s)
+        weight = carried if weight is None else weight * carried
     every = keep.all()
 
     def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
