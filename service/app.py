@@ -29,7 +29,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
 
 from bdf import sectors
-from bdf.region.route import MAX_ROUTE_POINTS, SAMPLE_M
+from bdf.region.route import ENVELOPE_SAMPLES_PER_POINT, MAX_ROUTE_POINTS, SAMPLE_M
+from bdf.region.route import samples as route_samples
 from bdf.region.spec import RegionSpec, key_str
 from service import formats, problems, slices, wire
 from service.auth import PUBLIC, require
@@ -605,16 +606,35 @@ async def assess_route(
         if not_modified:
             return not_modified
         route = formats.read_route(info.spec, answer.body, media, svc.limits(MAX_ROUTE_POINTS))
-        samples = int(np.sum(np.linalg.norm(np.diff(route.P, axis=0), axis=1)) / SAMPLE_M) + len(route.P)
+        cost = _route_cost(svc, route)
 
         def work():
             got = svc.maps.assess(name, route, info, min_version)
             content = {**got.result, "region_version": got.version}
             return JSONResponse(content, headers=answer.headers(got))
 
-        return _light_or_heavy(svc, info, min_version, samples, work)
+        return _light_or_heavy(svc, info, min_version, cost, work)
 
     return await svc.run(step)
+
+
+def _route_cost(svc: Service, route: formats.RouteQuery) -> int:
+    """What assessing ``route`` costs, in map samples (as many query points), before any
+    work: its samples on the map and its envelope's (each about
+    :data:`ENVELOPE_SAMPLES_PER_POINT` times cheaper); 422 beyond a query's points. Memory
+    is a chunk's whatever the route (:func:`bdf.region.route.assess`)."""
+    on_map, on_envelope = route_samples(route.P, route.vehicle)
+    cost = on_map + on_envelope // ENVELOPE_SAMPLES_PER_POINT
+    limit = svc.settings.max_query_points
+    if cost > limit:
+        km = float(np.linalg.norm(np.diff(route.P, axis=0), axis=1).sum()) / 1e3
+        raise Problem(
+            422,
+            f"a route of {km:.4g} km is read at {on_map} samples on the map (every {SAMPLE_M:g} m) and "
+            f"{on_envelope} for the vehicle's envelope, together as costly as {cost} query points, more "
+            f"than the {limit} one request may read: assess it in shorter parts",
+        )
+    return cost
 
 
 def _on_grid(

@@ -22,12 +22,13 @@ import orjson
 import pyarrow as pa
 import pyarrow.ipc
 import pyarrow.parquet as pq
+import pydantic_core
 from fastapi import Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
 
 from bdf import ingest
-from bdf.region.route import VEHICLES, Vehicle, checked, vehicle
+from bdf.region.route import MAX_ROUTE_SPEED_MPS, MIN_TUBE_STD_MPS, VEHICLES, Vehicle, checked, vehicle
 from bdf.region.spec import RegionSpec
 from service import slices
 from service.problems import Problem
@@ -105,7 +106,7 @@ class VehicleBody(BaseModel):
     """A vehicle's envelope (:class:`bdf.region.route.Vehicle`)."""
 
     model_config = ConfigDict(extra="forbid")
-    cruise_mps: Annotated[float, Field(gt=0, allow_inf_nan=False)]
+    cruise_mps: Annotated[float, Field(gt=0, le=MAX_ROUTE_SPEED_MPS, allow_inf_nan=False)]
     min_turn_radius_m: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     max_climb_deg: Annotated[float, Field(gt=0, lt=90)]
     max_descent_deg: Annotated[float, Field(gt=0, lt=90)]
@@ -128,7 +129,7 @@ class RouteBody(BaseModel):
     heading_deg: list[FiniteFloat] | None = Field(
         None, description="heading flown on each segment, degrees from north (default: its own direction)"
     )
-    max_std_mps: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
+    max_std_mps: Annotated[float, Field(ge=MIN_TUBE_STD_MPS, allow_inf_nan=False)] = Field(
         description="the tube bound on the predictive std, m/s"
     )
     vehicle: Literal[tuple(VEHICLES)] | VehicleBody = "evtol"
@@ -163,10 +164,7 @@ def read_route(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> Rou
     region ENU points inside the region."""
     if media not in (JSON, GEOJSON):
         raise Problem(415, f"send {JSON} or {GEOJSON}, not {media or 'no Content-Type'}")
-    try:
-        raw = json.loads(json_body(body, limits))
-    except json.JSONDecodeError as exc:
-        raise Problem(422, f"the route is not JSON: {exc}") from None
+    raw = json_document(body, limits, "the route")
     if media == GEOJSON:
         raw = _geojson_route(raw)
     route = RouteBody.model_validate(raw)
@@ -186,9 +184,10 @@ def read_route(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> Rou
 def _geojson_route(doc) -> dict:
     """A GeoJSON route as :class:`RouteBody`'s fields (frame wgs84)."""
     if isinstance(doc, dict) and doc.get("type") == "FeatureCollection":
-        lines = [
-            f for f in doc.get("features") or [] if (f.get("geometry") or {}).get("type") == "LineString"
-        ]
+        features = doc.get("features")
+        if not isinstance(features, list):
+            raise Problem(422, "a FeatureCollection's features are a list of Features")
+        lines = [f for f in features if _member(f, "geometry").get("type") == "LineString"]
         if len(lines) != 1:
             raise Problem(422, f"a FeatureCollection to assess holds one LineString, not {len(lines)}")
         doc = lines[0]
@@ -201,6 +200,8 @@ def _geojson_route(doc) -> dict:
     if not isinstance(coordinates, list) or not all(isinstance(c, list) and len(c) == 3 for c in coordinates):
         raise Problem(422, "a route's coordinates are [lon, lat, alt_m] triples")
     properties = doc.get("properties") or {}
+    if not isinstance(properties, dict):
+        raise Problem(422, "a Feature's properties are an object: times_s, heading_deg, max_std_mps, vehicle")
     fields = {
         k: properties[k] for k in ("times_s", "heading_deg", "max_std_mps", "vehicle") if k in properties
     }
@@ -409,6 +410,22 @@ def _table_positions(table: pa.Table | pa.RecordBatch) -> tuple[str, np.ndarray]
             f" exactly one of them; it has {sorted(names)}",
         )
     return ("enu", _columns(table, ENU_COLUMNS)) if has_enu else ("wgs84", _columns(table, WGS84_COLUMNS))
+
+
+def _member(doc, key: str) -> dict:
+    """``doc[key]`` where both are JSON objects, else an empty one."""
+    value = doc.get(key) if isinstance(doc, dict) else None
+    return value if isinstance(value, dict) else {}
+
+
+def json_document(body: bytes, limits: Limits, what: str):
+    """A JSON body as Python objects, by the rules every JSON body follows: bounded in size
+    (:func:`json_body`) and nesting, UTF-8; 422 naming what is wrong. (Bodies with a model
+    are read by its ``model_validate_json``, which applies the same parser.)"""
+    try:
+        return pydantic_core.from_json(json_body(body, limits), allow_inf_nan=False)
+    except ValueError as exc:
+        raise Problem(422, f"{what} is not JSON: {exc}") from None
 
 
 def json_body(body: bytes, limits: Limits) -> bytes:

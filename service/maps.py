@@ -422,6 +422,7 @@ class RegionMaps:
             craft=query.vehicle,
             times_s=query.times_s,
             heading_deg=query.heading_deg,
+            checkpoint=lanes.check,
         )
         return MapAssessment(result, state.version, state.region_id, *self._lag(info, state))
 

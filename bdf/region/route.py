@@ -16,6 +16,7 @@ of radius R give R exactly; a corner gives a radius of the order of the window).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,18 @@ SAMPLE_M = 10.0
 TURN_WINDOW_M = 50.0
 #: The envelope holds to within this fraction (discretised arcs and rounding).
 ENVELOPE_TOLERANCE = 0.02
+#: The envelope's finest sample spacing (m): a vehicle turning tighter than a chord of three
+#: of them is judged as one turning within it (its own radius is not resolved).
+MIN_ENVELOPE_SAMPLE_M = 1.0
+#: The least tube bound (m/s): the risk divides by it.
+MIN_TUBE_STD_MPS = 1e-3
+#: The fastest a route may be flown, or a vehicle cruise (m/s; about Mach 3).
+MAX_ROUTE_SPEED_MPS = 1000.0
+#: Route samples read and judged at once: a route's memory is a chunk's, not its length's.
+CHUNK_SAMPLES = 4096
+#: An envelope sample costs about this many times less than a sample read on the map
+#: (0.15 us against 4-17 us, one class and 8 sectors: bench/RESULTS.md, "Route assessment").
+ENVELOPE_SAMPLES_PER_POINT = 32
 
 
 @dataclass(frozen=True)
@@ -60,6 +73,8 @@ class Vehicle:
         for name in ("cruise_mps", "min_turn_radius_m"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if self.cruise_mps > MAX_ROUTE_SPEED_MPS:
+            raise ValueError(f"cruise_mps must be at most {MAX_ROUTE_SPEED_MPS:g}, got {self.cruise_mps!r}")
         for name in ("max_climb_deg", "max_descent_deg"):
             if not 0 < getattr(self, name) < 90:
                 raise ValueError(f"{name} must be in (0, 90) degrees, got {getattr(self, name)!r}")
@@ -99,53 +114,98 @@ def as_route(P, name: str = "route") -> np.ndarray:
 
 def resample(P: np.ndarray, spacing_m: float) -> np.ndarray:
     """Points every ``spacing_m`` of 3-D length along the polyline, its ends included."""
-    length = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
-    s = np.append(np.arange(0.0, length[-1], spacing_m), length[-1])
-    return np.stack([np.interp(s, length, P[:, d]) for d in range(3)], axis=1)
+    path = _Path(P)
+    return path.at(np.arange(path.samples(spacing_m)) * spacing_m)
 
 
-def turn_radii(P: np.ndarray, sample_m: float = SAMPLE_M, window_m: float = TURN_WINDOW_M) -> np.ndarray:
-    """The horizontal turn radius (m) at each sample every ``sample_m`` along ``P``: the
-    circle through the samples ``window_m`` before and after it (inf on a straight line)."""
-    Q = resample(P, sample_m)[:, :2]
-    k = max(round(window_m / sample_m), 1)
-    if len(Q) < 2 * k + 1:
-        return np.full(0, np.inf)
-    a, b, c = Q[: -2 * k], Q[k:-k], Q[2 * k :]
-    ab, bc, ca = (np.linalg.norm(u - v, axis=1) for u, v in ((a, b), (b, c), (c, a)))
+class _Path:
+    """A polyline by its 3-D arc length: points at any lengths along it (its end beyond)."""
+
+    def __init__(self, P: np.ndarray):
+        self.P = P
+        self.s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+        self.length = float(self.s[-1])
+
+    def samples(self, spacing_m: float) -> int:
+        """How many points every ``spacing_m`` from its start, its end included."""
+        return int(np.ceil(self.length / spacing_m)) + 1
+
+    def at(self, s: np.ndarray) -> np.ndarray:
+        s = np.minimum(s, self.length)
+        return np.stack([np.interp(s, self.s, self.P[:, d]) for d in range(3)], axis=1)
+
+
+def _radii(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The radius of the horizontal circle through ``a``, ``b``, ``c`` (rows; inf: a line)."""
+    ab, bc, ca = (np.linalg.norm(u[:, :2] - v[:, :2], axis=1) for u, v in ((a, b), (b, c), (c, a)))
     cross = np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
     with np.errstate(divide="ignore"):
         return np.where(cross > 1e-9 * ab * bc, ab * bc * ca / (2.0 * cross), np.inf)
 
 
-def envelope(P, craft: Vehicle, sample_m: float = SAMPLE_M, tolerance: float = ENVELOPE_TOLERANCE) -> dict:
-    """Whether ``craft`` can fly the polyline ``P`` as it is: the least turn radius (None
-    where it never turns), the steepest climb and descent (per ``sample_m`` of it), the
-    lowest and highest altitude, and for each limit whether it holds (within ``tolerance``).
-    A small vehicle's turns are read over shorter chords (:data:`TURN_WINDOW_M`, at most a
-    quarter of its turn radius, sampled three times as often)."""
-    P = as_route(P)
-    window = min(TURN_WINDOW_M, craft.min_turn_radius_m / 4)  # within the arc of a 30-degree turn
-    sample_m = min(sample_m, window / 3)
+def turn_radii(P: np.ndarray, sample_m: float = SAMPLE_M, window_m: float = TURN_WINDOW_M) -> np.ndarray:
+    """The horizontal turn radius (m) at each sample every ``sample_m`` along ``P``: the
+    circle through the samples ``window_m`` before and after it (inf on a straight line)."""
     Q = resample(P, sample_m)
-    step = np.diff(Q, axis=0)
-    angle = np.degrees(np.arctan2(step[:, 2], np.hypot(step[:, 0], step[:, 1])))
-    radius = float(np.min(turn_radii(P, sample_m, window), initial=np.inf))
+    k = max(round(window_m / sample_m), 1)
+    if len(Q) < 2 * k + 1:
+        return np.full(0, np.inf)
+    return _radii(Q[: -2 * k], Q[k:-k], Q[2 * k :])
+
+
+def envelope_sampling(craft: Vehicle, sample_m: float = SAMPLE_M) -> tuple[float, float]:
+    """The envelope's sample spacing and turn window (m) for ``craft``: turns are read over
+    chords of at most a quarter of its turn radius (within the arc of a 30-degree turn),
+    sampled three times as often, and never finer than :data:`MIN_ENVELOPE_SAMPLE_M`."""
+    window = max(min(TURN_WINDOW_M, craft.min_turn_radius_m / 4), 3 * MIN_ENVELOPE_SAMPLE_M)
+    return min(sample_m, window / 3), window
+
+
+def envelope(
+    P,
+    craft: Vehicle,
+    sample_m: float = SAMPLE_M,
+    tolerance: float = ENVELOPE_TOLERANCE,
+    checkpoint: Callable[[], None] | None = None,
+) -> dict:
+    """Whether ``craft`` can fly the polyline ``P`` as it is: the least turn radius (None
+    where it never turns), the steepest climb and descent (per sample of it), the lowest
+    and highest altitude, and for each limit whether it holds (within ``tolerance``).
+    Sampled as :func:`envelope_sampling` says, :data:`CHUNK_SAMPLES` at a time
+    (``checkpoint()`` between chunks): its memory does not grow with the route's length."""
+    path = _Path(as_route(P))
+    step, window = envelope_sampling(craft, sample_m)
+    n, k = path.samples(step), max(round(window / step), 1)
+    radius, climb, descent = np.inf, 0.0, 0.0
+    low, high = np.inf, -np.inf
+    for lo in range(0, n, CHUNK_SAMPLES):
+        if checkpoint is not None:
+            checkpoint()
+        i = np.arange(lo, min(lo + CHUNK_SAMPLES, n))
+        Q = path.at(i * step)
+        low, high = min(low, float(Q[:, 2].min())), max(high, float(Q[:, 2].max()))
+        nxt = i[i + 1 < n]  # each step to the next sample
+        if len(nxt):
+            delta = path.at((nxt + 1) * step) - Q[: len(nxt)]
+            angle = np.degrees(np.arctan2(delta[:, 2], np.hypot(delta[:, 0], delta[:, 1])))
+            climb, descent = max(climb, float(angle.max())), max(descent, float(-angle.min()))
+        mid = i[(i >= k) & (i + k < n)]  # each sample with a full window on both sides
+        if len(mid):
+            radii = _radii(path.at((mid - k) * step), path.at(mid * step), path.at((mid + k) * step))
+            radius = min(radius, float(radii.min()))
     out = {
         "min_turn_radius_m": radius if np.isfinite(radius) else None,  # None: it never turns
-        "max_climb_deg": float(max(angle.max(), 0.0)),
-        "max_descent_deg": float(max(-angle.min(), 0.0)),
-        "min_alt_m": float(Q[:, 2].min()),
-        "max_alt_m": float(Q[:, 2].max()),
+        "max_climb_deg": climb,
+        "max_descent_deg": descent,
+        "min_alt_m": low,
+        "max_alt_m": high,
     }
     slack = 1.0 + tolerance
     checks = {
         "turn_ok": bool(radius * slack >= craft.min_turn_radius_m),
-        "climb_ok": bool(out["max_climb_deg"] <= craft.max_climb_deg * slack),
-        "descent_ok": bool(out["max_descent_deg"] <= craft.max_descent_deg * slack),
-        "altitude_ok": bool(
-            out["min_alt_m"] >= craft.floor_m - 1.0 and out["max_alt_m"] <= craft.ceiling_m + 1.0
-        ),
+        "climb_ok": bool(climb <= craft.max_climb_deg * slack),
+        "descent_ok": bool(descent <= craft.max_descent_deg * slack),
+        "altitude_ok": bool(low >= craft.floor_m - 1.0 and high <= craft.ceiling_m + 1.0),
     }
     return {**out, **checks, "flyable": all(checks.values())}
 
@@ -161,15 +221,34 @@ def checked(P, craft: Vehicle, times_s=None, heading_deg=None) -> tuple[np.ndarr
     north, clockwise; by default its own direction): ``ValueError`` says what is wrong."""
     P = as_route(P)
     times = times_at(P, craft.cruise_mps) if times_s is None else np.asarray(times_s, float).ravel()
-    if times.shape != (len(P),) or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+    with np.errstate(over="ignore"):
+        duration = np.diff(times)
+    if times.shape != (len(P),) or not np.all(np.isfinite(duration)) or np.any(duration <= 0):
         raise ValueError(f"times_s must be {len(P)} finite, increasing seconds, one per point")
     delta = np.diff(P, axis=0)
+    with np.errstate(over="ignore"):
+        speed = np.linalg.norm(delta, axis=1) / duration
+    fast = np.flatnonzero(~(speed <= MAX_ROUTE_SPEED_MPS))
+    if len(fast):
+        raise ValueError(
+            f"times_s: segment {int(fast[0])} is flown at {speed[fast[0]]:.4g} m/s, faster than "
+            f"{MAX_ROUTE_SPEED_MPS:g} m/s"
+        )
     if heading_deg is None:
         return P, times, np.degrees(np.arctan2(delta[:, 0], delta[:, 1])) % 360.0
     heading = np.asarray(heading_deg, float).ravel()
     if heading.shape != (len(P) - 1,) or not np.all(np.isfinite(heading)):
         raise ValueError(f"heading_deg must be {len(P) - 1} finite degrees, one per segment")
     return P, times, heading
+
+
+def samples(P: np.ndarray, craft: Vehicle, sample_m: float = SAMPLE_M) -> tuple[int, int]:
+    """What :func:`assess` of route ``P`` costs, known before any work: the samples it reads
+    on the map (one per ``sample_m`` piece of each segment) and the samples of its envelope
+    (:func:`envelope_sampling`)."""
+    length = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    on_map = int(np.maximum(np.ceil(length / sample_m), 1).sum())
+    return on_map, _Path(P).samples(envelope_sampling(craft, sample_m)[0])
 
 
 def assess(
@@ -181,6 +260,7 @@ def assess(
     times_s=None,
     heading_deg=None,
     sample_m: float = SAMPLE_M,
+    checkpoint: Callable[[], None] | None = None,
 ) -> dict:
     """The metrics of route ``P`` (n, 3, region ENU) on the map, per segment and in total.
 
@@ -197,80 +277,88 @@ def assess(
     angle between the route's heading and the mode's, degrees) and the mode's horizontal
     speed (a route flying with traffic much faster than itself has a large mismatch at no
     angle); and the envelope's verdict.
+
+    The map is read :data:`CHUNK_SAMPLES` samples at a time (``checkpoint()`` between
+    chunks), so memory stays bounded whatever the route's length (:func:`samples`).
     """
     spec = region_map.spec
     P, times_s, heading = checked(P, craft, times_s, heading_deg)
     outside = np.flatnonzero(~spec.inside(P))
     if len(outside):
         raise ValueError(f"route points {outside[:5].tolist()} are outside region {spec.name!r}")
-    if not (np.isfinite(max_std_mps) and max_std_mps > 0):
-        raise ValueError(f"max_std_mps must be positive, got {max_std_mps!r}")
+    if not (np.isfinite(max_std_mps) and MIN_TUBE_STD_MPS <= max_std_mps):
+        raise ValueError(f"max_std_mps must be at least {MIN_TUBE_STD_MPS:g} m/s, got {max_std_mps!r}")
     n_seg = len(P) - 1
     delta = np.diff(P, axis=0)
     length = np.linalg.norm(delta, axis=1)
     velocity = delta / np.diff(times_s)[:, None]
-    pieces = np.maximum(np.ceil(length / sample_m).astype(int), 1)
-    seg = np.repeat(np.arange(n_seg), pieces)
-    within = (np.arange(len(seg)) - np.repeat(np.cumsum(pieces) - pieces, pieces) + 0.5) / pieces[seg]
-    X = P[seg] + within[:, None] * delta[seg]
-    ds = length[seg] / pieces[seg]
-    sectors = spec.sectors
-    modes = region_map.predict_modes(X)
-    if sectors.classes == 1:
-        flown = np.zeros(len(X), np.int64)
-    else:
-        speed = np.hypot(velocity[seg, 0], velocity[seg, 1])
-        sector = sectors.sector_of_heading(heading[seg])
-        flown = np.where(speed < sectors.slow_mps, sectors.directions, sector)
-    rows = np.arange(len(X))
-    std = modes.std[rows, flown].max(axis=1)
-    traffic = modes.mean[rows, flown]
-    mismatch = np.linalg.norm(velocity[seg] - traffic, axis=1)
-    traffic_heading = np.degrees(np.arctan2(traffic[:, 0], traffic[:, 1]))
-    offset = np.abs((traffic_heading - heading[seg] + 180.0) % 360.0 - 180.0)
-    traffic_speed = np.hypot(traffic[:, 0], traffic[:, 1])
-    if sectors.classes == 1:
-        crossing = np.zeros(len(X))
-    else:
-        off = np.abs((sectors.centres_deg[None, :] - heading[seg, None] + 180.0) % 360.0 - 180.0)
-        crossing = (modes.share[:, : sectors.directions] * (off >= CROSSING_DEG)).sum(axis=1)
-
-    def per_segment(values):
-        return np.bincount(seg, weights=values * ds, minlength=n_seg)
-
-    def maxima(values):
-        out = np.full(n_seg, -np.inf)
-        np.maximum.at(out, seg, values)
-        return out
-
-    inside = (std <= max_std_mps).astype(float)
-    segments = {
-        "length_m": length,
-        "duration_s": np.diff(times_s),
-        "max_std_mps": maxima(std),
-        "mean_std_mps": per_segment(std) / length,
-        "in_tube_fraction": per_segment(inside) / length,
-        "integrated_risk_m": per_segment(std / max_std_mps),
-        "conflict_exposure": per_segment(crossing) / length,
-        "flow_mismatch_mps": per_segment(mismatch) / length,
-        "flow_heading_offset_deg": per_segment(offset) / length,
-        "traffic_speed_mps": per_segment(traffic_speed) / length,
-    }
+    pieces = np.maximum(np.ceil(length / sample_m).astype(np.int64), 1)
+    ends = np.cumsum(pieces)
+    sums = {key: np.zeros(n_seg) for key in _WEIGHED}
+    worst = np.full(n_seg, -np.inf)
+    for lo in range(0, int(ends[-1]), CHUNK_SAMPLES):
+        if checkpoint is not None:
+            checkpoint()
+        index = np.arange(lo, min(lo + CHUNK_SAMPLES, int(ends[-1])))
+        seg = np.searchsorted(ends, index, side="right")
+        within = (index - (ends[seg] - pieces[seg]) + 0.5) / pieces[seg]
+        values = _read(region_map, P[seg] + within[:, None] * delta[seg], velocity[seg], heading[seg])
+        values["in_tube_fraction"] = (values["std"] <= max_std_mps).astype(float)
+        values["integrated_risk_m"] = values["std"] / max_std_mps
+        ds = length[seg] / pieces[seg]
+        for key, name in _WEIGHED.items():
+            sums[key] += np.bincount(seg, weights=values[name] * ds, minlength=n_seg)
+        np.maximum.at(worst, seg, values["std"])
+    segments = {"length_m": length, "duration_s": np.diff(times_s), "max_std_mps": worst}
     total_length = float(length.sum())
     totals = {
         "length_m": total_length,
         "duration_s": float(times_s[-1] - times_s[0]),
-        "max_std_mps": float(std.max()),
-        "mean_std_mps": float((std * ds).sum() / total_length),
-        "in_tube_fraction": float((inside * ds).sum() / total_length),
-        "integrated_risk_m": float((std / max_std_mps * ds).sum()),
-        "conflict_exposure": float((crossing * ds).sum() / total_length),
-        "flow_mismatch_mps": float((mismatch * ds).sum() / total_length),
-        "flow_heading_offset_deg": float((offset * ds).sum() / total_length),
-        "traffic_speed_mps": float((traffic_speed * ds).sum() / total_length),
+        "max_std_mps": float(worst.max()),
     }
+    for key in _WEIGHED:
+        integral = key == "integrated_risk_m"  # a sum along the route; the rest are means
+        segments[key] = sums[key] if integral else sums[key] / length
+        totals[key] = float(sums[key].sum() if integral else sums[key].sum() / total_length)
     return {
         "segments": {k: v.tolist() for k, v in segments.items()},
         "total": totals,
-        "envelope": envelope(P, craft, sample_m),
+        "envelope": envelope(P, craft, sample_m, checkpoint=checkpoint),
+    }
+
+
+#: the metrics weighed by length along the route, and the sample values they weigh
+_WEIGHED = {
+    "mean_std_mps": "std",
+    "in_tube_fraction": "in_tube_fraction",
+    "integrated_risk_m": "integrated_risk_m",
+    "conflict_exposure": "crossing",
+    "flow_mismatch_mps": "mismatch",
+    "flow_heading_offset_deg": "offset",
+    "traffic_speed_mps": "traffic_speed",
+}
+
+
+def _read(region_map: RegionMap, X: np.ndarray, velocity: np.ndarray, heading: np.ndarray) -> dict:
+    """The map at route samples ``X`` flown at ``velocity`` on ``heading``: the std of the
+    mode flown, the share of crossing traffic, and the mode's mean against the route's."""
+    sectors = region_map.spec.sectors
+    modes = region_map.predict_modes(X)
+    if sectors.classes == 1:
+        flown = np.zeros(len(X), np.int64)
+        crossing = np.zeros(len(X))
+    else:
+        speed = np.hypot(velocity[:, 0], velocity[:, 1])
+        flown = np.where(speed < sectors.slow_mps, sectors.directions, sectors.sector_of_heading(heading))
+        off = np.abs((sectors.centres_deg[None, :] - heading[:, None] + 180.0) % 360.0 - 180.0)
+        crossing = (modes.share[:, : sectors.directions] * (off >= CROSSING_DEG)).sum(axis=1)
+    rows = np.arange(len(X))
+    traffic = modes.mean[rows, flown]
+    traffic_heading = np.degrees(np.arctan2(traffic[:, 0], traffic[:, 1]))
+    return {
+        "std": modes.std[rows, flown].max(axis=1),
+        "crossing": crossing,
+        "mismatch": np.linalg.norm(velocity - traffic, axis=1),
+        "offset": np.abs((traffic_heading - heading + 180.0) % 360.0 - 180.0),
+        "traffic_speed": np.hypot(traffic[:, 0], traffic[:, 1]),
     }

@@ -192,3 +192,90 @@ def test_bad_bodies_are_4xx_and_a_rejected_upload_changes_nothing(body, live_app
         assert live_app.post(at, json=probe, headers=AUTH).json() == answer
     q = live_app.post(f"{region}/query", content=content, headers={**AUTH, "Content-Type": media})
     assert q.status_code < 500, q.text
+
+
+# -- routes, tubes, slices and grids ------------------------------------------------------------
+
+EXTREMES = st.sampled_from([0, -1, 1e-310, 5e-324, 1e308, -1e308, 1e400, 2**70, 0.5, 30, 150])
+ROUTE_KEYS = [
+    "type", "features", "geometry", "coordinates", "properties", "points", "frame", "times_s",
+    "heading_deg", "max_std_mps", "vehicle", "cruise_mps", "min_turn_radius_m", "floor_m",
+]  # fmt: skip
+
+
+def route_documents():
+    """Any JSON document built of a route's words and extreme numbers, and routes inside the
+    region whose times, headings, tube bound and vehicle are extreme."""
+    leaf = st.one_of(
+        NUMBERS, EXTREMES, st.sampled_from(["LineString", "Feature", "FeatureCollection", "evtol"])
+    )
+    anything = st.recursive(
+        leaf,
+        lambda inner: (
+            st.lists(inner, max_size=4) | st.dictionaries(st.sampled_from(ROUTE_KEYS), inner, max_size=4)
+        ),
+        max_leaves=24,
+    )
+    point = st.tuples(st.floats(0, 300), st.floats(0, 200), st.floats(0, 60)).map(list)
+    vehicle = st.fixed_dictionaries(
+        {
+            k: EXTREMES
+            for k in (
+                "cruise_mps",
+                "min_turn_radius_m",
+                "max_climb_deg",
+                "max_descent_deg",
+                "floor_m",
+                "ceiling_m",
+            )
+        }
+    )
+    route = st.fixed_dictionaries(
+        {"points": st.lists(point, min_size=2, max_size=5), "max_std_mps": EXTREMES},
+        optional={
+            "times_s": st.lists(EXTREMES, min_size=2, max_size=5),
+            "heading_deg": st.lists(EXTREMES, min_size=1, max_size=4),
+            "vehicle": vehicle | st.sampled_from(["evtol", "fixed-wing", "blimp"]),
+        },
+    )
+    return st.one_of(anything, route).map(lambda d: json.dumps(d, allow_nan=True).encode())
+
+
+@seed(20261127)
+@given(
+    media=st.sampled_from(["application/json", "application/geo+json"]),
+    content=st.one_of(route_documents(), mangled(route_documents()), st.binary(max_size=200)),
+)
+@settings(max_examples=EXAMPLES * 8, deadline=None, suppress_health_check=list(HealthCheck))
+def test_any_route_document_is_answered_without_a_server_error(media, content, live_app):
+    seeded(live_app)
+    r = live_app.post(
+        f"/v1/regions/{NAME}/routes/assess", content=content, headers={**AUTH, "Content-Type": media}
+    )
+    assert r.status_code < 500, r.text
+    if r.status_code >= 400:
+        assert r.headers["content-type"] == "application/problem+json"
+
+
+PARAMETER = st.one_of(
+    EXTREMES.map(str), st.text(max_size=12), st.sampled_from(["nan", "inf", "-inf", "1e-310", ",,,", "0,0,0"])
+)
+MAP_ROUTES = {
+    "grid": ["step", "bbox", "min_version", "modes"],
+    "tubes": ["step", "bbox", "max_std_mps", "component", "heading_deg", "min_share"],
+    "slice.png": ["alt_m", "layer", "component", "max_std_mps", "bbox", "step", "min_share"],
+}
+
+
+@seed(20261127)
+@given(
+    route=st.sampled_from(sorted(MAP_ROUTES)),
+    values=st.dictionaries(st.sampled_from(sorted({p for ps in MAP_ROUTES.values() for p in ps})), PARAMETER),
+)
+@settings(max_examples=EXAMPLES * 8, deadline=None, suppress_health_check=list(HealthCheck))
+def test_any_parameters_of_a_grid_a_tube_or_a_slice_are_answered_without_a_server_error(
+    route, values, live_app
+):
+    seeded(live_app)
+    r = live_app.get(f"/v1/regions/{NAME}/{route}", params=values, headers=AUTH)
+    assert r.status_code < 500, r.text

@@ -13,6 +13,7 @@ from bdf.region.route import (
     assess,
     envelope,
     resample,
+    samples,
     turn_radii,
     vehicle,
 )
@@ -171,10 +172,43 @@ def test_times_and_headings_change_the_velocity_and_the_mode_flown(region_map):
         ({"times_s": [0.0, 0.0]}, "times_s must be 2 finite, increasing"),
         ({"times_s": [0.0]}, "times_s must be 2"),
         ({"heading_deg": [0.0, 1.0]}, "heading_deg must be 1 finite"),
-        ({"max_std_mps": 0.0}, "max_std_mps must be positive"),
+        ({"max_std_mps": 0.0}, "max_std_mps must be at least 0.001"),
+        ({"max_std_mps": 1e-310}, "max_std_mps must be at least 0.001"),
+        ({"times_s": [0.0, 1e-310]}, "segment 0 is flown at inf m/s, faster than 1000"),
+        ({"times_s": [-1.7e308, 1.7e308]}, "times_s must be 2 finite, increasing"),
     ):
         with pytest.raises(ValueError, match=message):
             assess(region_map, P, **{"max_std_mps": 1.0, "craft": CRAFT, **kwargs})
     with pytest.raises(ValueError, match=r"route points \[1\] are outside region 'small'"):
         assess(region_map, [[10.0, 10.0, 10.0], [400.0, 10.0, 10.0]], max_std_mps=1.0, craft=CRAFT)
     assert len(resample(P, 10.0)) == 29
+
+
+def test_a_route_read_in_chunks_equals_one_read_and_checks_between_them(region_map, monkeypatch):
+    """Memory bounded by a chunk: 7-sample chunks give what one chunk gives (the sums in
+    another order: 1e-12), with a checkpoint before each chunk of the map and the envelope."""
+    import bdf.region.route as route
+
+    P = np.array([[10.0, 10.0, 10.0], [140.0, 30.0, 20.0], [150.0, 180.0, 40.0], [290.0, 190.0, 50.0]])
+    whole = assess(region_map, P, max_std_mps=1.0, craft=CRAFT)
+    calls = []
+    monkeypatch.setattr(route, "CHUNK_SAMPLES", 7)
+    chunked = assess(region_map, P, max_std_mps=1.0, craft=CRAFT, checkpoint=lambda: calls.append(1))
+    on_map, on_envelope = route.samples(P, CRAFT)
+    assert len(calls) == -(-on_map // 7) + -(-on_envelope // 7)
+    assert chunked["envelope"] == whole["envelope"]
+    for part in ("segments", "total"):
+        for key, value in whole[part].items():
+            assert np.allclose(chunked[part][key], value, rtol=1e-12, atol=0), key
+
+
+def test_the_envelope_of_a_vehicle_turning_on_a_coin_is_sampled_every_metre():
+    """A turn radius of 1 cm would sample a 20 km route every 0.8 mm (24 M samples): the
+    envelope never samples finer than a metre, and judges the corner flyable."""
+    P = np.array([[0.0, 0.0, 500.0], [10_000.0, 0.0, 500.0], [10_000.0, 10_000.0, 500.0]])
+    coin = dataclasses.replace(CRAFT, min_turn_radius_m=0.01)
+    assert samples(P, coin) == (2000, 20_001)
+    got = envelope(P, coin)
+    assert got["turn_ok"] and got["min_turn_radius_m"] == pytest.approx(3 / np.sqrt(2), rel=0.01)
+    # the right angle read over 3 m chords: the circle through (-3, 0), (0, 0), (0, 3)
+    assert samples(P, CRAFT) == (2000, 2001)  # 500 m: 50 m chords, every 10 m
