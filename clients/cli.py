@@ -291,6 +291,7 @@ def _serve(args) -> int:
         os.environ.setdefault(var, "1")
     from service import server
     from service.settings import Settings
+    from service.store import redacted
 
     if args.config:
         os.environ["BDF_CONFIG"] = str(args.config)
@@ -308,7 +309,7 @@ def _serve(args) -> int:
             "for local development only",
             settings.host,
         )
-    log.info("store: %s", settings.store.split("@")[-1] if "@" in settings.store else settings.store)
+    log.info("store: %s", redacted(settings.store))
     server.run(settings)
     return 0
 

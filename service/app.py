@@ -36,7 +36,7 @@ from service import formats, problems, slices, wire
 from service.auth import PUBLIC, require
 from service.jobs import Jobs
 from service.lanes import Heavy, Lanes, Waiting
-from service.maps import RegionMaps
+from service.maps import RegionMaps, upload_digest, upload_kind
 from service.problems import Problem
 from service.settings import Settings
 from service.store import MapStore, RegionInfo, open_store
@@ -501,7 +501,8 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     search = spec.grid.size * spec.sectors.classes  # a fit's cost grows with it, whatever the rows
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
         return await svc.run(fit, heavy=True)
-    job = svc.jobs.submit(name, upload_id, fit)
+    rows = (obs.X, obs.V, obs.input_noise_std, obs.sample_weight, obs.track, obs.time)
+    job = svc.jobs.submit(name, upload_id, upload_digest(upload_kind(True), *rows), fit)
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 

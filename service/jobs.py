@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from service.lanes import Overloaded
+from service.problems import public_detail
+from service.store import UploadConflict
 
 log = logging.getLogger("bdf.service")
 #: Finished jobs kept for status queries.
@@ -29,6 +31,7 @@ class Job:
     id: str
     region: str
     upload_id: str
+    digest: str = field(repr=False)
     state: Literal["queued", "running", "succeeded", "failed"] = "queued"
     progress: float = 0.0
     result: dict | None = None
@@ -37,7 +40,9 @@ class Job:
     finished_at: float | None = None
 
     def public(self) -> dict:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        del out["digest"]
+        return out
 
 
 class Jobs:
@@ -51,16 +56,24 @@ class Jobs:
         self._by_upload: dict[tuple[str, str], str] = {}
         self._lock = threading.Lock()
 
-    def submit(self, region: str, upload_id: str, work: Callable[[Callable[[float], None]], dict]) -> Job:
+    def submit(
+        self, region: str, upload_id: str, digest: str, work: Callable[[Callable[[float], None]], dict]
+    ) -> Job:
         """Queue ``work(progress)`` unless the same (region, upload id) is already queued or
-        running, in which case that job is returned."""
+        running: then that job is returned if it holds the same rows (``digest``), else
+        :class:`UploadConflict` (as the ledger answers once it is stored)."""
         with self._lock:
             known = self._jobs.get(self._by_upload.get((region, upload_id), ""))
             if known is not None and known.state in ("queued", "running"):
+                if known.digest != digest:
+                    raise UploadConflict(
+                        f"upload id {upload_id!r} names a fit job still {known.state} with different "
+                        "data: send other data under another Idempotency-Key"
+                    )
                 return known
             if sum(j.state == "queued" for j in self._jobs.values()) >= self.max_queued:
                 raise Overloaded(f"{self.max_queued} fit jobs are queued already; retry later", 60)
-            job = Job(uuid.uuid4().hex, region, upload_id)
+            job = Job(uuid.uuid4().hex, region, upload_id, digest)
             self._jobs[job.id] = job
             self._by_upload[(region, upload_id)] = job.id
             self._forget_old()
@@ -83,9 +96,9 @@ class Jobs:
         try:
             job.result = work(progress)
             job.state, job.progress = "succeeded", 1.0
-        except Exception as exc:  # the job reports it; the store rolled back
-            log.warning("fit job %s for region %s failed: %s", job.id, job.region, exc)
-            job.state, job.error = "failed", str(exc)
+        except Exception as exc:  # the job reports what a client may read; the store rolled back
+            log.warning("fit job %s for region %s failed: %r", job.id, job.region, exc, exc_info=exc)
+            job.state, job.error = "failed", public_detail(exc)
         job.finished_at = time.time()
 
     def _forget_old(self) -> None:

@@ -197,6 +197,7 @@ class RegionMaps:
         steps between the compiled kernels), and in this process that would stall every
         request its other threads serve."""
         self.store = store
+        store.before_commit = lanes.check  # a write past its deadline rolls back: its 503 holds
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
         #: the settling pass a newer version abandons (its job number; shared with the child)
         self._abandon = multiprocessing.get_context("spawn").Value("q", 0, lock=False)
@@ -299,7 +300,7 @@ class RegionMaps:
         :class:`Unprocessable` and stores nothing.
         """
         rows = _checked(X, V, input_noise_std, sample_weight, track, time)
-        digest = payload_digest("fit" if replace else "observations", *rows)
+        digest = payload_digest(upload_kind(replace), *rows)
         first = self.store.upload_result(region, upload_id, digest)
         if first is not None:
             return first
@@ -311,7 +312,6 @@ class RegionMaps:
         if replace:
             evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
             post = self._posterior(spec, evidence, self._start(info), stored=False)
-        lanes.check()  # past the deadline the client has its 503: store nothing
         result = self.store.apply(
             region,
             info.region_id,
@@ -348,7 +348,6 @@ class RegionMaps:
         rows = _checked(X, V, input_noise_std, sample_weight, track, time)
         info = self.store.region(region)
         increments, summary = _evidence(info.spec, *rows, progress=_checkpoint(None))
-        lanes.check()
         result = self.store.retract(
             region,
             info.region_id,
@@ -853,6 +852,15 @@ def fitted(post: Posterior) -> dict | None:
         "at_bound": bool(post.at_bound),
         "plausibility": post.plausibility,
     }
+
+
+def upload_kind(replace: bool) -> str:
+    return "fit" if replace else "observations"
+
+
+def upload_digest(kind: str, X, V, input_noise_std=None, sample_weight=None, track=None, time=None) -> str:
+    """The ledger's digest of an upload (``kind``: :func:`upload_kind`) of these rows."""
+    return payload_digest(kind, *_checked(X, V, input_noise_std, sample_weight, track, time))
 
 
 def _checked(X, V, input_noise_std, sample_weight, track=None, time=None) -> tuple:

@@ -137,47 +137,64 @@ def install(app: FastAPI, patterns: dict[str, str] | None = None) -> None:
     app.add_exception_handler(HTTPException, http_error)
     on(RequestValidationError)(lambda e: (422, _describe(e.errors(), patterns), None))
     on(ValidationError)(lambda e: (422, _describe(e.errors(), patterns), None))
-    # the client's: a ValueError anywhere else is ours (500, below)
-    for exc_type, status in (
-        (Unprocessable, 422),
-        (RegionNotFound, 404),
-        (UploadNotFound, 404),
-        (RegionExists, 409),
-        (RegionChanged, 409),
-        (UploadConflict, 409),
-    ):
-        on(exc_type)(lambda e, status=status: (status, str(e), None))
-
-    @on(ClientDisconnect)
-    def _gone(exc):
-        # the client's fault, and no one reads the answer: a log line, not a traceback
-        log.info("the client closed the connection before its request arrived")
-        return 400, "the client closed the connection before the request body arrived", None
-
-    @on(StoreUnavailable)
-    def _unavailable(exc):
-        # the log names the database; the client learns what to do, not where it lives
-        log.warning("store unavailable: %s", exc)
-        if isinstance(exc, StoreFull):
-            detail = (
-                "the map store is out of disk space: nothing was stored; retry once an operator freed some"
-            )
-            return 507, detail, {"Retry-After": str(exc.retry_after_s)}
-        detail = (
-            f"the map store cannot be reached right now: nothing was stored; retry in {exc.retry_after_s} s"
-        )
-        return 503, detail, {"Retry-After": str(exc.retry_after_s)}
-
-    @on(StoreError)
-    def _store(exc):
-        log.error("store error: %s", exc)
-        return 500, f"the map store failed: {exc}", None
-
-    on(Overloaded)(lambda e: (503, str(e), {"Retry-After": str(e.retry_after_s)}))
-    on(DeadlineExceeded)(
-        lambda e: (503, str(e), {"Retry-After": str(DEADLINE_RETRY_S), "Connection": "close"})
-    )
+    for exc_type, fn in _ANSWERS.items():
+        on(exc_type)(fn)
     # any other error is ours: service.telemetry.RequestMiddleware answers it (500), once
+
+
+def _gone(exc):
+    # the client's fault, and no one reads the answer: a log line, not a traceback
+    log.info("the client closed the connection before its request arrived")
+    return 400, "the client closed the connection before the request body arrived", None
+
+
+def _unavailable(exc):
+    # the log names the database; the client learns what to do, not where it lives
+    log.warning("store unavailable: %s", exc)
+    if isinstance(exc, StoreFull):
+        detail = "the map store is out of disk space: nothing was stored; retry once an operator freed some"
+        return 507, detail, {"Retry-After": str(exc.retry_after_s)}
+    detail = f"the map store cannot be reached right now: nothing was stored; retry in {exc.retry_after_s} s"
+    return 503, detail, {"Retry-After": str(exc.retry_after_s)}
+
+
+def _store(exc):
+    log.error("store error: %s", exc)
+    return 500, "the map store failed (logged on the server)", None
+
+
+#: the answer to each kind of failure that is not ours or is the store's: exception type ->
+#: ``fn(exc) -> (status, detail, headers)`` (any other error is ours: a 500 without details)
+_ANSWERS = {
+    # the client's: a ValueError anywhere else is ours
+    **{
+        exc_type: (lambda e, status=status: (status, str(e), None))
+        for exc_type, status in (
+            (Unprocessable, 422),
+            (RegionNotFound, 404),
+            (UploadNotFound, 404),
+            (RegionExists, 409),
+            (RegionChanged, 409),
+            (UploadConflict, 409),
+        )
+    },
+    ClientDisconnect: _gone,
+    StoreUnavailable: _unavailable,
+    StoreError: _store,
+    Overloaded: lambda e: (503, str(e), {"Retry-After": str(e.retry_after_s)}),
+    DeadlineExceeded: lambda e: (503, str(e), {"Retry-After": str(DEADLINE_RETRY_S), "Connection": "close"}),
+}
+
+
+def public_detail(exc: Exception) -> str:
+    """What a client may read of ``exc`` where no HTTP answer carries it (a job's error):
+    the detail its answer would have, never a driver's message; ours: no detail."""
+    for exc_type in type(exc).__mro__:
+        if exc_type in _ANSWERS:
+            return _ANSWERS[exc_type](exc)[1]
+    if isinstance(exc, Problem):
+        return exc.detail
+    return "internal error (logged on the server)"
 
 
 #: what a client whose request ran out of time is told to wait before retrying (s)

@@ -184,6 +184,20 @@ class _StateCollector:
             yield metric
 
 
+def _outcome(scope) -> str:
+    """What a client whose request ran out of time knows of its outcome. A read stores
+    nothing. A write stops before its commit once the deadline passed (the store's
+    ``before_commit``), but one that committed just before it is answered late: its outcome
+    is not known here, and a retry under the same Idempotency-Key is applied at most once."""
+    route = scope.get("route")
+    if getattr(route, "openapi_extra", None) and route.openapi_extra.get("x-scope") == "read":
+        return f"retry in {DEADLINE_RETRY_S} s"
+    return (
+        "the write may have been stored or not; retry it with the same Idempotency-Key (an upload, "
+        "fit or retraction is applied at most once), or read the region's version to see"
+    )
+
+
 class RequestMiddleware:
     """Gives every request an id (the client's ``X-Request-ID`` when it is a plain token, else
     a new one), returned in that header and in every problem body; adds the headers every
@@ -233,9 +247,7 @@ class RequestMiddleware:
             if timer.cancelled_caught:
                 self.metrics.deadlines.inc()
                 if not started:
-                    detail = (
-                        f"no answer within the request deadline of {self.timeout_s:g} s; nothing was stored"
-                    )
+                    detail = f"no answer within the deadline of {self.timeout_s:g} s: {_outcome(scope)}"
                     headers = {"Retry-After": str(DEADLINE_RETRY_S), "Connection": "close"}
                     await problem(503, detail, scope, headers)(scope, receive, send_with_headers)
         except Exception:  # ours: logged once here (the server never sees it), answered 500

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import urllib.parse
+
 from service.store.base import (
     CorruptTile,
     MapStore,
@@ -36,7 +38,28 @@ def open_store(url: str, timeout_s: float = 5.0) -> MapStore:
         schema = options.pop("schema", "bdf")
         rest = "&".join(f"{k}={v}" for k, v in options.items())
         return PostgresStore(base + (f"?{rest}" if rest else ""), schema=schema, timeout_s=timeout_s)
-    raise ValueError(f"a store URL starts with sqlite:/// or postgresql://, got {url!r}")
+    raise ValueError(f"a store URL starts with sqlite:/// or postgresql://, got {redacted(url)!r}")
+
+
+#: query parameters of a PostgreSQL URL that hold a secret (libpq's connection parameters)
+SECRET_PARAMETERS = ("password", "sslpassword", "passfile", "sslkey")
+
+
+def redacted(url: str) -> str:
+    """``url`` as it may be logged or shown: a password before ``@`` and every secret
+    parameter of its query string (:data:`SECRET_PARAMETERS`) replaced by ``***``."""
+    if not url.startswith(("postgresql://", "postgres://")):
+        return url  # a SQLite path holds no secret
+    parts = urllib.parse.urlsplit(url)
+    netloc = parts.netloc
+    if "@" in netloc:
+        user, _, host = netloc.rpartition("@")
+        netloc = f"{user.partition(':')[0]}{':***' if ':' in user else ''}@{host}"
+    query = "&".join(
+        f"{key}=***" if key.lower() in SECRET_PARAMETERS else f"{key}={value}" if sep else key
+        for key, sep, value in (part.partition("=") for part in parts.query.split("&") if part)
+    )
+    return urllib.parse.urlunsplit(parts._replace(netloc=netloc, query=query))
 
 
 __all__ = [
@@ -55,4 +78,5 @@ __all__ = [
     "UploadNotFound",
     "open_store",
     "payload_digest",
+    "redacted",
 ]

@@ -188,6 +188,10 @@ class MapStore(ABC):
 
     #: a test hook called inside ``apply`` after each batch of tile rows (fault injection)
     after_tile_write: Callable[[TileKey], None] | None = None
+    #: called as the last step of every write transaction, its lock won and its rows
+    #: written: raising rolls it back (the service: the request's deadline, so a write that
+    #: waited past it stores nothing and its answer's "nothing was stored" holds)
+    before_commit: Callable[[], None] | None = None
 
     # -- backend primitives ------------------------------------------------------------------
     @abstractmethod
@@ -298,14 +302,16 @@ class MapStore(ABC):
             self._committed(q, created[0][0], 0)
         return self.region(spec.name)
 
-    @staticmethod
-    def _committed(q, region_id: str, version: int) -> None:
+    def _committed(self, q, region_id: str, version: int) -> None:
         """Record when ``version`` was written: at the end of its transaction (the time a
-        version's lag counts from: no refresh could read it before)."""
+        version's lag counts from: no refresh could read it before); then
+        :attr:`before_commit`."""
         q(
             "INSERT INTO versions (region_id, version, committed_at) VALUES (?, ?, ?)",
             (region_id, version, time.time()),
         )
+        if self.before_commit is not None:
+            self.before_commit()
 
     def committed_at(self, region_id: str, version: int) -> float | None:
         """When the region instance's ``version`` was committed (None if unknown: written

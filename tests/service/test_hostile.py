@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 
 import numpy as np
 import pyarrow as pa
@@ -633,3 +634,137 @@ def test_a_retraction_over_http_needs_admin_and_is_counted(client):
     metrics = client.get("/metrics").text
     assert 'bdf_observations_total{outcome="retracted"} 40.0' in metrics
     assert 'bdf_uploads_applied_total{kind="retraction"} 1.0' in metrics
+
+
+# -- 19-21: route assessment within its budget, its input a 4xx ------------------------------------
+WIDE = {
+    "name": "wide",
+    "origin": {"lat": 48.0, "lon": 2.0},
+    "bounds_m": {"min": [0, 0, 0], "max": [20_000, 20_000, 1000]},
+    "tile_size_m": [10_000, 10_000, 1000],
+    "spacing_m": [2000, 2000, 500],
+    "gamma": [1 / 2000**2, 1 / 2000**2, 1 / 500**2],
+}
+VEHICLE = {
+    "cruise_mps": 60.0,
+    "min_turn_radius_m": 800.0,
+    "max_climb_deg": 8.0,
+    "max_descent_deg": 8.0,
+    "floor_m": 0.0,
+    "ceiling_m": 1000.0,
+}
+
+
+def assess(c, body, region="wide", media="application/json"):
+    content = body if isinstance(body, bytes) else json.dumps(body).encode()
+    return c.post(
+        f"/v1/regions/{region}/routes/assess", content=content, headers={**READ, "Content-Type": media}
+    )
+
+
+@pytest.fixture
+def wide(client):
+    """The region ``town`` (version 1) and the empty 20 km region ``wide``."""
+    client.post("/v1/regions", json=WIDE, headers=ADMIN).raise_for_status()
+    return client
+
+
+def test_row_19_a_vehicle_turning_on_a_coin_is_judged_at_metre_samples(wide):
+    """Radius 0.01 m on a 20 km route sampled every 0.8 mm took 3.5 GB and 33 s: the envelope
+    is sampled every metre at the finest (20,001 samples), and the corner judged flyable."""
+    before = state(wide)
+    route = {
+        "points": [[0, 0, 500], [10_000, 0, 500], [10_000, 10_000, 500]],
+        "max_std_mps": 5,
+        "vehicle": {**VEHICLE, "min_turn_radius_m": 0.01},
+    }
+    r = assess(wide, route)
+    assert r.status_code == 200, r.text
+    verdict = r.json()["envelope"]
+    assert verdict["turn_ok"] and verdict["min_turn_radius_m"] == pytest.approx(3 / np.sqrt(2), rel=0.01)
+    assert state(wide) == before
+
+
+def test_row_20_a_route_longer_than_a_query_is_refused_before_work_and_stops_at_its_deadline(wide, app):
+    """A 5,000-vertex zig-zag across 20 km (100,000 km, 10 M samples) is a 422 before any
+    work; a route within the limit that runs past its deadline stops within a chunk."""
+    before = state(wide)
+    zigzag = [[0 if i % 2 else 20_000, 4 * i, 500] for i in range(5000)]
+    r = assess(wide, {"points": zigzag, "max_std_mps": 5, "vehicle": VEHICLE})
+    problem(r, 422, "9.998e+04 km", "10002999 samples on the map", "more than the 200000", "shorter parts")
+    assert state(wide) == before
+
+
+def test_row_20_an_assessment_past_its_deadline_stops_within_a_chunk(tmp_path, monkeypatch):
+    """50 legs of 20 km: 100,000 samples on the map, 25 chunks; each chunk held 0.2 s, the
+    deadline 1 s: the 503 comes at the deadline and the thread reads a few chunks more at
+    most, not the 25 (it held a lane's thread 58 s past its deadline)."""
+    import bdf.region.route
+
+    settings = Settings(store_url=f"sqlite:///{tmp_path / 'data'}", tokens=TOKENS, request_timeout_s=1.0)
+    app = create_app(settings)
+    chunks, read = [], bdf.region.route._read
+
+    def slow_read(*args):
+        chunks.append(1)
+        threading.Event().wait(0.2)
+        return read(*args)
+
+    monkeypatch.setattr(bdf.region.route, "_read", slow_read)
+    zigzag = [[0 if i % 2 else 20_000, 400 * i, 500] for i in range(51)]
+    with TestClient(app, raise_server_exceptions=False) as c:
+        c.post("/v1/regions", json=WIDE, headers=ADMIN).raise_for_status()
+        r = assess(c, {"points": zigzag, "max_std_mps": 5, "vehicle": VEHICLE})
+        problem(r, 503, "no answer within the deadline of 1 s", "retry in")
+        assert "stored" not in r.json()["detail"]  # a read stores nothing: it says nothing of it
+        lanes = app.state.service.lanes
+        for _ in range(100):  # until the thread has stopped
+            if lanes.light.stats.busy + lanes.heavy.stats.busy == 0:
+                break
+            threading.Event().wait(0.1)
+        assert lanes.light.stats.busy + lanes.heavy.stats.busy == 0
+    assert len(chunks) <= 8, len(chunks)  # of 25
+
+
+@pytest.mark.parametrize(
+    ("body", "media", "phrases"),
+    [
+        ({"max_std_mps": 1e-310}, None, ["max_std_mps", "greater than or equal to 0.001"]),
+        ({"times_s": [0, 1e-310]}, None, ["times_s: segment 0 is flown at inf m/s"]),
+        ({"vehicle": {**VEHICLE, "cruise_mps": 1e308}}, None, ["cruise_mps", "less than or equal to 1000"]),
+        ({"type": "FeatureCollection", "features": [1]}, "geo", ["holds one LineString, not 0"]),
+        ({"type": "FeatureCollection", "features": "ab"}, "geo", ["features are a list"]),
+        ({"type": "Feature", "geometry": [1]}, "geo", ["LineString geometry"]),
+        (
+            {
+                "type": "Feature",
+                "geometry": {"type": "LineString", "coordinates": [[2.0, 48.0, 10], [2.01, 48.01, 20]]},
+                "properties": "times_s",
+            },
+            "geo",
+            ["properties are an object"],
+        ),
+        (b"[" * 100_000 + b"]" * 100_000, None, ["not JSON", "recursion limit"]),
+        (b"[" * 100_000 + b"]" * 100_000, "geo", ["not JSON", "recursion limit"]),
+        (b'{"points": "\xff\xfe"}', None, ["not JSON", "invalid unicode"]),
+    ],
+    ids=[
+        "tube",
+        "times",
+        "cruise",
+        "features-1",
+        "features-ab",
+        "geometry",
+        "properties",
+        "deep",
+        "deep-geo",
+        "utf8",
+    ],
+)
+def test_row_21_route_values_that_overflow_and_malformed_documents_are_422(wide, body, media, phrases):
+    before = state(wide)
+    if isinstance(body, dict) and "type" not in body:
+        body = {"points": [[100, 100, 500], [5000, 100, 500]], "max_std_mps": 5, "vehicle": VEHICLE, **body}
+    r = assess(wide, body, media="application/geo+json" if media else "application/json")
+    problem(r, 422, *phrases)
+    assert state(wide) == before
