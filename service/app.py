@@ -502,7 +502,12 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
         return await svc.run(fit, heavy=True)
     rows = (obs.X, obs.V, obs.input_noise_std, obs.sample_weight, obs.track, obs.time)
-    job = svc.jobs.submit(name, upload_id, upload_digest(upload_kind(True), *rows), fit)
+    digest = upload_digest(upload_kind(True), *rows)
+    # a fit already stored under this key replays (or, with other rows, is a 409) at once
+    stored = await svc.run(lambda: svc.maps.store.upload_result(name, upload_id, digest))
+    if stored is not None:
+        return stored
+    job = svc.jobs.submit(name, upload_id, digest, fit)
     return JSONResponse(job.public(), status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 

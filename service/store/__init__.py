@@ -48,8 +48,8 @@ SECRET_PARAMETERS = ("password", "sslpassword", "passfile", "sslkey")
 def redacted(url: str) -> str:
     """``url`` as it may be logged or shown: a password before ``@`` and every secret
     parameter of its query string (:data:`SECRET_PARAMETERS`) replaced by ``***``."""
-    if not url.startswith(("postgresql://", "postgres://")):
-        return url  # a SQLite path holds no secret
+    if url.startswith("sqlite:///"):
+        return url  # a path holds no secret
     parts = urllib.parse.urlsplit(url)
     netloc = parts.netloc
     if "@" in netloc:

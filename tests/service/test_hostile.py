@@ -768,3 +768,104 @@ def test_row_21_route_values_that_overflow_and_malformed_documents_are_422(wide,
     r = assess(wide, body, media="application/geo+json" if media else "application/json")
     problem(r, 422, *phrases)
     assert state(wide) == before
+
+
+# -- 22-23: answers that tell the truth about what was stored -------------------------------------
+def test_row_22_an_upload_that_waits_past_its_deadline_for_the_write_lock_stores_nothing(tmp_path):
+    """Another writer holds SQLite's write lock for 2.5 s; the upload's deadline is 1 s. Its
+    503 says the outcome is not known and to retry under the same key; the upload, which won
+    the lock after its deadline, rolled back; the retry applies it once."""
+    import sqlite3
+
+    data_dir = tmp_path / "data"
+    settings = Settings(store_url=f"sqlite:///{data_dir}", tokens=TOKENS, request_timeout_s=1.0)
+    app = create_app(settings)
+    X, V = data(2, n=50)
+    with TestClient(app, raise_server_exceptions=False) as c:
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+        post_obs(c, rows(*data(1, n=300)), "a").raise_for_status()
+        before = state(c)
+        other = sqlite3.connect(
+            app.state.service.maps.store.path, isolation_level=None, check_same_thread=False
+        )
+        other.execute("BEGIN IMMEDIATE")
+        release = threading.Timer(2.5, other.rollback)
+        release.start()
+        r = post_obs(c, rows(X, V), "late")
+        problem(r, 503, "may have been stored or not", "same Idempotency-Key")
+        release.join()
+        lanes = app.state.service.lanes
+        for _ in range(100):  # until the upload's thread has ended
+            if lanes.light.stats.busy + lanes.heavy.stats.busy == 0:
+                break
+            threading.Event().wait(0.1)
+        assert state(c) == before
+        again = post_obs(c, rows(X, V), "late")
+        assert again.status_code == 200 and not again.json()["replayed"], again.text
+        assert state(c)["observations"] == before["observations"] + 50
+
+
+def test_row_23_a_running_fit_jobs_key_with_other_rows_is_a_409(tmp_path, monkeypatch):
+    """The job's own rows again get its id (202); other rows under its key a 409, as the
+    ledger answers once the job committed; the job applies its own rows only."""
+    settings = Settings(store_url=f"sqlite:///{tmp_path / 'data'}", tokens=TOKENS, fit_job_points=10)
+    app = create_app(settings)
+    go = threading.Event()
+    with TestClient(app, raise_server_exceptions=False) as c:
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+        maps = app.state.service.maps
+        upload = maps.upload
+
+        def held(*args, **kw):
+            go.wait(30)
+            return upload(*args, **kw)
+
+        monkeypatch.setattr(maps, "upload", held)
+        first, other = rows(*data(1, n=300)), rows(*data(2, n=300))
+        job = post_obs(c, first, "job", route="fit")
+        assert job.status_code == 202, job.text
+        assert post_obs(c, first, "job", route="fit").json()["id"] == job.json()["id"]
+        problem(post_obs(c, other, "job", route="fit"), 409, "still", "different data")
+        go.set()
+        for _ in range(300):
+            done = c.get(f"/v1/jobs/{job.json()['id']}", headers=WRITE).json()
+            if done["state"] in ("succeeded", "failed"):
+                break
+            threading.Event().wait(0.1)
+        assert done["state"] == "succeeded", done
+        problem(post_obs(c, other, "job", route="fit"), 409, "already used for different data")
+        assert state(c)["observations"] == 300
+
+
+# -- 28-29: secrets stay out of logs and answers ----------------------------------------------------
+def test_row_28_store_urls_are_logged_without_any_password():
+    from service.store import open_store, redacted
+
+    url = "postgresql://bdf:hunter2@db:5432/maps?sslmode=require&password=hunter3&sslpassword=hunter4"
+    assert redacted(url) == "postgresql://bdf:***@db:5432/maps?sslmode=require&password=***&sslpassword=***"
+    assert redacted("postgresql://db/maps?PassWord=x") == "postgresql://db/maps?PassWord=***"
+    assert redacted("sqlite:////var/lib/bdf") == "sqlite:////var/lib/bdf"
+    with pytest.raises(ValueError) as err:
+        open_store("mysql://bdf:hunter2@db/maps?password=hunter3")
+    assert "hunter" not in str(err.value)
+
+
+def test_row_29_a_job_that_failed_on_the_database_does_not_name_it(tmp_path, monkeypatch):
+    settings = Settings(store_url=f"sqlite:///{tmp_path / 'data'}", tokens=TOKENS, fit_job_points=10)
+    app = create_app(settings)
+    with TestClient(app, raise_server_exceptions=False) as c:
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+
+        def down(*args, **kw):
+            raise StoreUnavailable('connection to server at "10.0.0.7", port 5432 failed: timeout expired')
+
+        monkeypatch.setattr(app.state.service.maps.store, "apply", down)
+        job = post_obs(c, rows(*data(1, n=300)), "job", route="fit")
+        assert job.status_code == 202, job.text
+        for _ in range(300):
+            done = c.get(f"/v1/jobs/{job.json()['id']}", headers=WRITE).json()
+            if done["state"] in ("succeeded", "failed"):
+                break
+            threading.Event().wait(0.1)
+        assert done["state"] == "failed" and "cannot be reached right now" in done["error"], done
+        assert not any(s in done["error"] for s in ("10.0.0.7", "5432"))
