@@ -284,9 +284,10 @@ class MapStore(ABC):
             )
 
     def ping(self) -> None:
-        """One round trip to the database (readiness); raises if it is unreachable."""
+        """One round trip to the database and its tables (readiness); raises if either is
+        unreachable."""
         with self._read() as q:
-            q("SELECT 1")
+            q("SELECT value FROM meta WHERE key = 'schema_version'")
 
     # -- regions -------------------------------------------------------------------------------
     def create_region(self, spec: RegionSpec) -> RegionInfo:

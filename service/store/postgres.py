@@ -10,7 +10,9 @@ wait are bounded by ``timeout_s`` (the server's ``statement_timeout`` and
 ``lock_timeout``; and, for a server or network that stops answering altogether, where the
 server's own timeouts cannot fire, a watchdog that cuts a connection silent for that
 long). Each is :class:`StoreUnavailable` (503). The store opens with the database down:
-it creates its schema on the first connection that succeeds.
+it creates its schema on the first connection that succeeds, and again on the first one
+after it found its tables gone (the database dropped, or restored from an empty dump): the
+request that found them gone is a 503, never a 500, and no restart is needed.
 """
 
 from __future__ import annotations
@@ -100,6 +102,12 @@ class PostgresStore(MapStore):
                 q.many = many
                 yield q
                 watch.arm()  # the commit, at the exit of the transaction
+        except (psycopg.errors.UndefinedTable, psycopg.errors.InvalidSchemaName) as exc:
+            self._schema_ready = False  # created again by the next transaction, as at startup
+            raise StoreUnavailable(
+                f"the store's tables are gone (the database or schema {self.schema!r} was dropped, or "
+                f"restored empty: {type(exc).__name__}); they are created again on the next connection"
+            ) from exc
         except psycopg.errors.DiskFull as exc:
             raise StoreFull(f"PostgreSQL is out of disk space ({exc}); nothing was stored") from exc
         except (psycopg.errors.QueryCanceled, psycopg.errors.LockNotAvailable) as exc:

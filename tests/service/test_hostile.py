@@ -869,3 +869,37 @@ def test_row_29_a_job_that_failed_on_the_database_does_not_name_it(tmp_path, mon
             threading.Event().wait(0.1)
         assert done["state"] == "failed" and "cannot be reached right now" in done["error"], done
         assert not any(s in done["error"] for s in ("10.0.0.7", "5432"))
+
+
+# -- 24: the store comes back -----------------------------------------------------------------------
+def test_row_24_a_database_that_lost_its_tables_is_503_then_recreated_without_a_restart(store_url):
+    """The schema dropped under a running service (as a database dropped and re-created
+    empty, or restored from an empty dump): /readyz and the routes answer 503 (it was 500
+    UndefinedTable on every route until a restart), then the next connection creates the
+    tables again and the service works on the empty store."""
+    if store_url.startswith("sqlite"):
+        pytest.skip("a SQLite store is its file: no server drops its tables under the service")
+    import psycopg
+
+    base, _, query = store_url.partition("?")
+    schema = query.removeprefix("schema=")
+    app = create_app(Settings(store_url=store_url, tokens=TOKENS))
+    with TestClient(app, raise_server_exceptions=False) as c:
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+        post_obs(c, rows(*data(1, n=300)), "a").raise_for_status()
+        assert c.get("/readyz").status_code == 200
+
+        def drop():
+            with psycopg.connect(base, autocommit=True) as conn:
+                conn.execute(f"DROP SCHEMA {schema} CASCADE")
+
+        drop()
+        problem(c.get(f"/v1/regions/{NAME}", headers=READ), 503, "retry")  # not 500
+        assert c.get("/readyz").status_code == 200  # the tables were created again
+        drop()
+        problem(c.get("/readyz"), 503, "unreachable")
+        assert c.get("/readyz").status_code == 200
+        problem(c.get(f"/v1/regions/{NAME}", headers=READ), 404, NAME)
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+        post_obs(c, rows(*data(1, n=300)), "a").raise_for_status()
+        assert state(c)["observations"] == 300
