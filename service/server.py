@@ -12,7 +12,14 @@ asyncio callbacks and its documented parser callbacks) adds:
 - a connection cap (``max_connections`` per worker): one more connection drops the one that
   has waited longest on its client (for headers, or for a body still arriving), or itself
   when every other connection's request is at work. Authorised clients, which send their
-  request at once, keep being served while half-open ones come and go.
+  request at once, keep being served while half-open ones come and go;
+- header limits: a request's line and headers are counted as they arrive, before the
+  parser sees them, and past ``max_header_kb`` (or ``max_headers`` fields, counted when they
+  end) the client gets 431 and the connection closes; the parser (which joins a header's
+  pieces by copying them) never holds more, so huge headers cannot stall the event loop.
+
+A request pipelined behind another is at work once its headers are in: the header deadline
+is not armed again for it when the first answer is sent.
 
 A body that trickles in without pausing that long is bounded by the request deadline
 (:mod:`service.lanes`).
@@ -21,8 +28,10 @@ A body that trickles in without pausing that long is bounded by the request dead
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import resource
+from dataclasses import dataclass
 
 import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
@@ -34,12 +43,25 @@ log = logging.getLogger("bdf.service")
 SPARE_FDS = 256
 
 
+@dataclass(frozen=True)
+class Limits:
+    header_timeout_s: float
+    max_connections: int
+    max_header_bytes: int
+    max_headers: int
+
+
 @functools.cache
-def _limits() -> tuple[float, int]:
-    """(header_timeout_s, max_connections) of this worker's settings (a worker process
-    builds its settings from the environment, as the app does)."""
+def _limits() -> Limits:
+    """The connection limits of this worker's settings (a worker process builds its
+    settings from the environment, as the app does)."""
     settings = Settings()
-    return settings.header_timeout_s, connection_cap(settings.max_connections)
+    return Limits(
+        settings.header_timeout_s,
+        connection_cap(settings.max_connections),
+        int(settings.max_header_kb * 1024),
+        settings.max_headers,
+    )
 
 
 def connection_cap(wanted: int) -> int:
@@ -64,33 +86,76 @@ class GuardedProtocol(HttpToolsProtocol):
     _since: float | None = None  # when it began waiting for its current request
     _timer = None  # armed while it waits on its client: for headers, or for a body's next bytes
     _in_body = False  # the headers came; the body is still arriving
+    _head_bytes = 0  # of the request line and headers now arriving
+    _tail = b""  # the last bytes of them, where their end may begin
+    _refused = False  # answered 431: nothing more is read
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
         self._await_request()
-        _, cap = _limits()
-        if len(self.connections) > cap:
+        if len(self.connections) > _limits().max_connections:
             self._shed()
 
     def on_headers_complete(self) -> None:
+        if len(self.headers) > _limits().max_headers:
+            return self._refuse(f"more than {_limits().max_headers} header fields")
         super().on_headers_complete()
         self._in_body = True
         self._arm()  # a body, if any, must keep arriving
 
     def data_received(self, data: bytes) -> None:
+        if self._refused:
+            return
+        if not self._in_body and self._counted(data) > _limits().max_header_bytes:
+            return self._refuse(f"a request line and headers longer than {_limits().max_header_bytes} bytes")
         super().data_received(data)
         if self._in_body and self._timer is not None:
             self._arm()  # each read of the body restarts its clock; headers have one in all
 
+    def on_body(self, body: bytes) -> None:
+        if not self._refused:
+            super().on_body(body)
+
     def on_message_complete(self) -> None:
-        self._in_body = False
+        if self._refused:
+            return
+        self._in_body, self._head_bytes, self._tail = False, 0, b""  # the next request's head
         self._cancel()
         super().on_message_complete()
 
     def on_response_complete(self) -> None:
+        pipelined = bool(self.pipeline)  # its headers are in: it is at work, not awaited
         super().on_response_complete()
-        if not self.transport.is_closing():
+        if not (pipelined or self.transport.is_closing()):
             self._await_request()
+
+    def _counted(self, data: bytes) -> int:
+        """The bytes of the request's line and headers so far, with those of ``data`` (up to
+        the blank line that ends them, if it is in ``data``)."""
+        seen = self._tail + data
+        end = seen.find(b"\r\n\r\n")
+        self._head_bytes += len(data) if end < 0 else max(end + 4 - len(self._tail), 0)
+        self._tail = seen[-3:]
+        return self._head_bytes
+
+    def _refuse(self, what: str) -> None:
+        """431 (problem+json) and close: the request's headers are over a limit."""
+        self._refused = True
+        self._cancel()
+        body = json.dumps(
+            {
+                "type": "about:blank",
+                "title": "Request Header Fields Too Large",
+                "status": 431,
+                "detail": f"{what}: send fewer or shorter headers",
+            }
+        ).encode()
+        head = (
+            "HTTP/1.1 431 Request Header Fields Too Large\r\ncontent-type: application/problem+json\r\n"
+            f"content-length: {len(body)}\r\nconnection: close\r\n\r\n"
+        )
+        self.transport.write(head.encode() + body)
+        self.transport.close()
 
     def connection_lost(self, exc) -> None:
         self._cancel()
@@ -102,8 +167,7 @@ class GuardedProtocol(HttpToolsProtocol):
 
     def _arm(self) -> None:
         self._cancel()
-        timeout, _ = _limits()
-        self._timer = self.loop.call_later(timeout, self._late)
+        self._timer = self.loop.call_later(_limits().header_timeout_s, self._late)
 
     def _cancel(self) -> None:
         if self._timer is not None:

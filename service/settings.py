@@ -87,6 +87,10 @@ class Settings(BaseSettings):
         description="a request's line and headers must arrive within this (else the connection closes)",
     )
     keep_alive_s: float = Field(5.0, gt=0, description="an idle keep-alive connection closes after this")
+    max_header_kb: float = Field(
+        64.0, gt=0, description="a request's line and headers together (431 above, before they are parsed)"
+    )
+    max_headers: int = Field(100, ge=1, description="header fields per request (431 above)")
     cache_mb: float = Field(512.0, gt=0, description="memory for cached tile posteriors, per worker")
     tokens: dict[SecretStr, list[Scope]] = Field(default_factory=dict, description="bearer token -> scopes")
     max_body_mb: float = Field(256.0, gt=0, description="largest request body (413 above)")

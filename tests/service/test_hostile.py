@@ -2,6 +2,7 @@
 and the stored statistics, the region version and a query answer are unchanged after it."""
 
 import concurrent.futures
+import contextlib
 import io
 import json
 import socket
@@ -903,3 +904,54 @@ def test_row_24_a_database_that_lost_its_tables_is_503_then_recreated_without_a_
         c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
         post_obs(c, rows(*data(1, n=300)), "a").raise_for_status()
         assert state(c)["observations"] == 300
+
+
+# -- 26-27: headers within limits, pipelined answers kept --------------------------------------------
+def read_answers(sock) -> list[int]:
+    """The statuses of the answers on ``sock`` until the server closes it."""
+    import re
+
+    received = b""
+    with contextlib.suppress(OSError):
+        while chunk := sock.recv(65536):
+            received += chunk
+    return [int(code) for code in re.findall(rb"HTTP/1\.1 (\d{3}) ", received)]
+
+
+def test_rows_26_huge_or_many_headers_are_431_before_they_are_parsed(live_server):
+    """1-64 MB header values and 10,000 headers, no token: 431 (a 1 MB header was answered
+    401 after the parser had joined it; two 64 MB values stalled /healthz 3.3 s)."""
+    import httpx
+
+    server = live_server(env={"BDF_TOKENS": json.dumps(TOKENS)})
+    for header in (b"X-Big: " + b"a" * 1_000_000, b"X-Big: " + b"a" * 64_000_000, b"X-A: 1\r\n" * 10_000):
+        with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
+            sock.sendall(b"GET /v1/regions HTTP/1.1\r\nHost: x\r\n")
+            with contextlib.suppress(OSError):  # the server may close before all is sent
+                sock.sendall(header.rstrip(b"\r\n") + b"\r\n\r\n")
+            assert read_answers(sock) == [431]
+    with httpx.Client(base_url=server.url, timeout=30) as c:
+        assert c.get("/healthz").status_code == 200
+        assert c.get("/v1/regions", headers={**READ, "X-Fine": "a" * 8000}).status_code == 200
+
+
+def test_row_27_a_slow_request_pipelined_behind_a_fast_one_keeps_its_answer(live_server):
+    """The header deadline (here 0.05 s) is not armed for a request already at work: a query
+    waiting for the map of a fresh upload (a process to start, a map to compute), pipelined
+    behind /healthz, gets its answer (the connection was closed at the header deadline after
+    the first answer, and the second lost)."""
+    import httpx
+
+    server = live_server(env={"BDF_TOKENS": json.dumps(TOKENS), "BDF_HEADER_TIMEOUT_S": "0.05"})
+    with httpx.Client(base_url=server.url, timeout=30) as c:
+        c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
+        post_obs(c, rows(*data(1, n=300)), "a").raise_for_status()
+    body = json.dumps({"points": PROBE.tolist()}).encode()
+    slow = (
+        f"POST /v1/regions/{NAME}/query?min_version=1 HTTP/1.1\r\nHost: x\r\nConnection: close\r\n"
+        f"Authorization: {READ['Authorization']}\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\n\r\n"
+    ).encode() + body
+    with socket.create_connection(("127.0.0.1", server.port), timeout=60) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n" + slow)
+        assert read_answers(sock) == [200, 200]
