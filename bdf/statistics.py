@@ -41,6 +41,11 @@ altitude, over the grid's altitudes: :func:`altitude_bins`) and horizontal speed
 altitude flies (:func:`bdf.region.map.speed_bound`), as its length in values (int64, 0
 without it) and the values (altitude bins x speed bins, C order); a class's own blob is as
 in version 3.
+
+Version 5 stores a tile as two such blobs, its statistics and their rounding residual
+(:func:`compensated_sum`), the first after its length in bytes (int64): a tile's value is
+their sum to twice float64's precision, so an upload retracted from tiles it outweighed
+leaves the statistics of the rest to float64's precision (no cancellation error).
 """
 
 from __future__ import annotations
@@ -55,9 +60,9 @@ from bdf.kernel import Kernel
 from bdf.sectors import Sectors
 from bdf.validation import take_rows
 
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 #: Blob formats this code reads.
-READABLE_FORMATS = (2, 3, 4)
+READABLE_FORMATS = (2, 3, 4, 5)
 #: The speed histogram's bins (m/s), up to SPEED_BINS x SPEED_BIN_MPS (faster rows: the last)
 SPEED_BIN_MPS = 2.0
 SPEED_BINS = 256
@@ -196,6 +201,24 @@ class Evidence:
             gram_noisy=None if self.gram_noisy is None else self.gram_noisy * factor,
             moments=None if self.moments is None else self.moments * factor,
         )
+
+    def two_sum(self, other: Evidence) -> tuple[Evidence, Evidence]:
+        """``(s, e)``, field by field: ``s = fl(self + other)`` and ``s + e = self + other``
+        exactly (Knuth's TwoSum; a statistic absent from one is its zeros)."""
+        pairs = {}
+        for f in fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if a is None and b is None:
+                pairs[f.name] = (None, None)
+                continue
+            if (a is None or b is None) and f.name == "moments":
+                raise ValueError("cannot add evidence with local-noise moments to evidence without")
+            a = np.zeros_like(b) if a is None else np.asarray(a, float)
+            b = np.zeros_like(a) if b is None else np.asarray(b, float)
+            pairs[f.name] = _two_sum(a, b)
+        sums, errors = ({k: v[i] for k, v in pairs.items()} for i in (0, 1))
+        sums["count"], errors["count"] = float(sums["count"]), float(errors["count"])
+        return Evidence(**sums), Evidence(**errors)
 
     def gram_band(self, stencil: sparse.Stencil) -> np.ndarray:
         """``Phi^T Phi`` on the stencil, as a band (K, M): ``c(o) D(midpoint)`` per pair
@@ -359,6 +382,18 @@ class SectorEvidence:
     def __sub__(self, other: SectorEvidence) -> SectorEvidence:
         return SectorEvidence(tuple(a - b for a, b in self._zip(other)), self._speeds(other, -1.0))
 
+    def two_sum(self, other: SectorEvidence) -> tuple[SectorEvidence, SectorEvidence]:
+        """``(s, e)``: ``s = fl(self + other)`` and ``s + e = self + other`` exactly, in
+        every statistic (:meth:`Evidence.two_sum`)."""
+        pairs = [a.two_sum(b) for a, b in self._zip(other)]
+        speeds = (None, None)
+        if self.speeds is not None and other.speeds is not None:
+            speeds = _two_sum(self.speeds, other.speeds)
+        return (
+            SectorEvidence(tuple(p[0] for p in pairs), speeds[0]),
+            SectorEvidence(tuple(p[1] for p in pairs), speeds[1]),
+        )
+
     def scaled(self, factor: float) -> SectorEvidence:
         speeds = None if self.speeds is None else self.speeds * factor
         return SectorEvidence(tuple(e.scaled(factor) for e in self.classes), speeds)
@@ -427,3 +462,23 @@ class SectorEvidence:
                 f"an evidence blob has {len(blob) - at} bytes after its {sectors.classes} classes"
             )
         return cls(tuple(parts), speeds)
+
+
+def _two_sum(a, b):
+    """``(s, e)`` with ``s = fl(a + b)`` and ``s + e = a + b`` exactly (Knuth's TwoSum)."""
+    total = a + b
+    part = total - a
+    return total, (a - (total - part)) + (b - part)
+
+
+def compensated_sum(
+    total: SectorEvidence, residual: SectorEvidence | None, increment: SectorEvidence
+) -> tuple[SectorEvidence, SectorEvidence]:
+    """``total + residual + increment`` as a new ``(total, residual)``: a sum kept to about
+    twice float64's precision (double-double; ``residual`` None: zero). Adding an increment
+    and later subtracting the same one returns the statistics before it to float64's
+    precision of *them*, however much larger the increment was (a retraction)."""
+    first, error = total.two_sum(increment)
+    if residual is not None:
+        error = error + residual
+    return first.two_sum(error)

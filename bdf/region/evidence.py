@@ -84,15 +84,39 @@ def speed_histogram(grid, X: np.ndarray, V: np.ndarray) -> np.ndarray:
     return counts.reshape(count, SPEED_BINS).astype(float)
 
 
+def encode_tile(total: SectorEvidence, residual: SectorEvidence) -> bytes:
+    """A tile's stored blob: its statistics and their rounding residual
+    (:func:`bdf.statistics.compensated_sum`; format in :mod:`bdf.statistics`)."""
+    first = total.to_bytes()
+    return b"".join([np.array([len(first)], "<i8").tobytes(), first, residual.to_bytes()])
+
+
+def decode_tile_parts(
+    spec: RegionSpec, key: TileKey, blob: bytes, format_version: int = FORMAT_VERSION
+) -> tuple[SectorEvidence, SectorEvidence | None]:
+    """A tile's stored statistics and their rounding residual (None: stored before
+    residuals were kept), each :meth:`SectorEvidence.to_bytes` on its support."""
+    grid = spec.tile_grid(key)
+    stencil = sparse.stencil_on(grid, spec.kernel)
+
+    def part(data: bytes) -> SectorEvidence:
+        lattice = spec.tile_noise_lattice(key)
+        return SectorEvidence.from_bytes(data, grid, stencil, lattice, spec.sectors, format_version)
+
+    if format_version < 5:
+        return part(blob), None
+    n = int(np.frombuffer(blob[:8], "<i8")[0]) if len(blob) >= 8 else -1
+    if not 0 <= n <= len(blob) - 8:
+        raise ValueError(f"a tile blob of {len(blob)} bytes does not hold its statistics and their residual")
+    return part(blob[8 : 8 + n]), part(blob[8 + n :])
+
+
 def decode_tile(
     spec: RegionSpec, key: TileKey, blob: bytes, format_version: int = FORMAT_VERSION
 ) -> SectorEvidence:
-    """A tile's stored evidence (:meth:`SectorEvidence.to_bytes` on its support)."""
-    grid = spec.tile_grid(key)
-    stencil = sparse.stencil_on(grid, spec.kernel)
-    return SectorEvidence.from_bytes(
-        blob, grid, stencil, spec.tile_noise_lattice(key), spec.sectors, format_version
-    )
+    """A tile's stored evidence: its statistics plus their rounding residual."""
+    total, residual = decode_tile_parts(spec, key, blob, format_version)
+    return total if residual is None else total + residual
 
 
 def region_total(spec: RegionSpec, tiles: Mapping[TileKey, SectorEvidence]) -> SectorEvidence:

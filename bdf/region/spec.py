@@ -74,6 +74,10 @@ class Bounds(BaseModel):
         return self
 
 
+#: A sum of non-negative terms may round to this fraction of its largest below zero.
+ROUNDING = 1e-9
+
+
 class Envelope(BaseModel):
     """What the region's traffic can physically do (defaults: aircraft). Rows outside are
     rejected and counted by reason, like non-finite ones; the bounds also keep every
@@ -103,7 +107,8 @@ class Envelope(BaseModel):
     def problems(self, evidence: SectorEvidence, points: int) -> list[str]:
         """What in a tile's statistics of ``points`` observations no accepted rows can make:
         values that are not finite, weights or mean squared speeds beyond the envelope (a
-        store written before the envelope was checked, or damaged)."""
+        store written before the envelope was checked, or damaged), sums of non-negative
+        terms negative beyond rounding (a retraction of more than the tile held)."""
         out = []
         square = np.array(
             [self.max_horizontal_speed_mps, self.max_horizontal_speed_mps, self.max_vertical_speed_mps]
@@ -111,8 +116,19 @@ class Envelope(BaseModel):
         for c, ev in enumerate(evidence.classes):
             parts = [ev.density, ev.proj, ev.mass, ev.v_sum, ev.v_sq, np.array(ev.count)]
             parts += [a for a in (ev.gram_noisy, ev.moments) if a is not None]
+            negative = [
+                name
+                for name in ("count", "density", "mass", "v_sq")
+                if np.min(getattr(ev, name)) < -ROUNDING * np.abs(getattr(ev, name)).max()
+            ]
             if not all(np.isfinite(a).all() for a in parts):
                 out.append(f"class {c}: statistics that are not finite")
+            elif negative:
+                out.append(
+                    f"class {c}: {negative[0]} negative beyond rounding, a sum of non-negative terms (what "
+                    "a retraction of more than the tile held leaves): these statistics cannot be trusted; "
+                    "fit the region again"
+                )
             elif ev.count > points * self.max_sample_weight * (1 + 1e-9):
                 out.append(
                     f"class {c}: weights summing to {ev.count:.6g} over {points} observations "

@@ -10,13 +10,17 @@ What is stored (schema version 4; both backends, same tables):
     uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
     versions region_id, version, committed_at                                 (when each was written)
 
-``tiles.stats`` is :meth:`bdf.statistics.SectorEvidence.to_bytes` (little-endian float64, layout in
-:mod:`bdf.statistics`, ``format_version`` there). A tile row exists only once data reached the
-tile. Versions: every applied upload, fit or retraction bumps the region's version by one
-and stamps every tile it touched with the new version, so ``(region_id, key, version)``
-names one state of a tile's statistics (``region_id`` is new for every created region, so
-a deleted and re-created name never reuses cache entries); ``versions`` says when each
-version was committed (how stale a map is, :meth:`MapStore.committed_at`).
+``tiles.stats`` is :func:`bdf.region.evidence.encode_tile`: the tile's statistics and their
+rounding residual, each :meth:`bdf.statistics.SectorEvidence.to_bytes` (little-endian
+float64, layout in :mod:`bdf.statistics`, ``format_version`` there); uploads and retractions
+add to them in double-double arithmetic (:func:`bdf.statistics.compensated_sum`), so a
+retraction is exact whatever the weight ratio of what it removes to what remains. A tile row
+exists only once data reached the tile. Versions: every applied upload, fit or retraction
+bumps the region's version by one and stamps every tile it touched with the new version, so
+``(region_id, key, version)`` names one state of a tile's statistics (``region_id`` is new
+for every created region, so a deleted and re-created name never reuses cache entries);
+``versions`` says when each version was committed (how stale a map is,
+:meth:`MapStore.committed_at`).
 
 ``regions.hyper`` records the hyperparameters last found for a spec with "auto" ones:
 ``{"alpha", "beta", "log_evidence", "fitted_at": t, "evidence_version": v, "settled": s,
@@ -63,9 +67,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bdf.region.evidence import Increment, decode_tile
+from bdf.region.evidence import Increment, decode_tile, decode_tile_parts, encode_tile
 from bdf.region.spec import RegionSpec, TileKey, key_str, parse_key
-from bdf.statistics import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence
+from bdf.statistics import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence, compensated_sum
 
 SCHEMA_VERSION = 4
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
@@ -468,9 +472,11 @@ class MapStore(ABC):
                 rows = []
                 for key in keys[start : start + WRITE_CHUNK]:
                     total, points = increments[key]
+                    residual = None
                     if key in old:
-                        total, points = old[key][0] + total, old[key][1] + points
-                    rows.append(self._tile_row(region_id, key, version, total, points, now))
+                        (stored, rounding), before = old[key]
+                        (total, residual), points = compensated_sum(stored, rounding, total), before + points
+                    rows.append(self._tile_row(region_id, key, version, total, residual, points, now))
                 q.many(UPSERT_TILE, rows)
                 if self.after_tile_write is not None:
                     self.after_tile_write(keys[start + len(rows) - 1])
@@ -498,7 +504,8 @@ class MapStore(ABC):
 
     @staticmethod
     def _tiles(q, spec: RegionSpec, region_id: str, keys: list[TileKey]) -> dict:
-        """``key -> (statistics, points)`` of the stored tiles among ``keys``."""
+        """``key -> ((statistics, rounding residual), points)`` of the stored tiles among
+        ``keys``."""
         out = {}
         if keys:
             marks = ",".join("?" * len(keys))
@@ -508,12 +515,20 @@ class MapStore(ABC):
                 (region_id, *map(key_str, keys)),
             ):
                 key = parse_key(k)
-                out[key] = (_decode(spec, key, blob, fmt, stored_checksum), int(points))
+                out[key] = (_decode(spec, key, blob, fmt, stored_checksum, parts=True), int(points))
         return out
 
     @staticmethod
-    def _tile_row(region_id: str, key: TileKey, version: int, total: SectorEvidence, points: int, now: float):
-        blob = total.to_bytes()
+    def _tile_row(
+        region_id: str,
+        key: TileKey,
+        version: int,
+        total: SectorEvidence,
+        residual: SectorEvidence | None,
+        points: int,
+        now: float,
+    ):
+        blob = encode_tile(total, total.scaled(0.0) if residual is None else residual)
         return (
             region_id,
             key_str(key),
@@ -590,11 +605,13 @@ class MapStore(ABC):
             old = self._tiles(q, spec, region_id, keys)
             kept, dropped = [], []
             for key in keys:
-                total, points = old[key][0] - increments[key].evidence, old[key][1] - increments[key].points
+                (stored, rounding), before = old[key]
+                total, residual = compensated_sum(stored, rounding, increments[key].evidence.scaled(-1.0))
+                points = before - increments[key].points
                 if points <= 0:
                     dropped.append((region_id, key_str(key)))
                 else:
-                    kept.append(self._tile_row(region_id, key, version, total, points, now))
+                    kept.append(self._tile_row(region_id, key, version, total, residual, points, now))
             if dropped:
                 q.many("DELETE FROM tiles WHERE region_id = ? AND key = ?", dropped)
             for start in range(0, len(kept), WRITE_CHUNK):
@@ -621,8 +638,9 @@ class MapStore(ABC):
 
     def verify(self) -> dict[str, list[str]]:
         """Check every region's spec and every stored tile: its checksum, that it decodes,
-        that its statistics are finite and within the region's envelope; returns, per
-        region, the problems found (empty lists: the store is sound)."""
+        that its statistics are finite and within the region's envelope, and that they can
+        be trusted after retractions; returns, per region, the problems found (empty lists:
+        the store is sound)."""
         report = {}
         with self._read() as q:
             names = [r[0] for r in q("SELECT name FROM regions ORDER BY name")]
@@ -635,6 +653,9 @@ class MapStore(ABC):
                 continue
             with self._read() as q:
                 keys = [r[0] for r in q("SELECT key FROM tiles WHERE region_id = ?", (info.region_id,))]
+                retracted = bool(
+                    q("SELECT 1 FROM uploads WHERE region_id = ? AND kind = 'retracted'", (info.region_id,))
+                )
             for key in keys:  # one tile in memory at a time
                 with self._read() as q:
                     rows = q(
@@ -648,10 +669,19 @@ class MapStore(ABC):
                     except StoreError as exc:
                         problems.append(str(exc))
                         continue
-                    for problem in info.spec.envelope.problems(evidence, int(rows[0][3])):
-                        problems.append(f"tile {key} of region {name!r}: {problem}")
+                    found = info.spec.envelope.problems(evidence, int(rows[0][3]))
+                    if retracted and int(rows[0][1]) < COMPENSATED_FORMAT:
+                        found.append(
+                            f"statistics format {rows[0][1]}, stored before retractions were exact, in a "
+                            "region with retractions: an upload retracted from a tile it outweighed left "
+                            "cancellation error, so these statistics cannot be trusted: fit the region again"
+                        )
+                    problems.extend(f"tile {key} of region {name!r}: {problem}" for problem in found)
         return report
 
+
+#: The first statistics format whose tiles keep their rounding residual (exact retractions).
+COMPENSATED_FORMAT = 5
 
 UPSERT_TILE = (
     "INSERT INTO tiles"
@@ -667,8 +697,9 @@ def checksum(blob) -> str:
     return hashlib.sha256(blob).hexdigest()
 
 
-def _decode(spec: RegionSpec, key: TileKey, blob, format_version, stored_checksum) -> SectorEvidence:
-    """A tile's statistics, after checking them against their checksum."""
+def _decode(spec: RegionSpec, key: TileKey, blob, format_version, stored_checksum, parts: bool = False):
+    """A tile's statistics, after checking them against their checksum (``parts``: the
+    statistics and their rounding residual, :func:`bdf.region.evidence.decode_tile_parts`)."""
     where = f"tile {key_str(key)} of region {spec.name!r}"
     if int(format_version) not in READABLE_FORMATS:
         raise StoreError(f"{where} has statistics format {format_version}; readable: {READABLE_FORMATS}")
@@ -679,7 +710,7 @@ def _decode(spec: RegionSpec, key: TileKey, blob, format_version, stored_checksu
             "`bdf verify` lists every such tile; restore the store from a backup or fit the region again"
         )
     try:
-        return decode_tile(spec, key, blob, int(format_version))
+        return (decode_tile_parts if parts else decode_tile)(spec, key, blob, int(format_version))
     except ValueError as exc:
         raise CorruptTile(f"{where}: its stored statistics cannot be decoded ({exc})") from exc
 

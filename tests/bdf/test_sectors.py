@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
-from bdf.region.evidence import decode_tile, increments, region_total
+from bdf.region.evidence import decode_tile, encode_tile, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.spec import RegionSpec
 from bdf.sectors import Sectors, mixture_moments
@@ -191,9 +191,13 @@ def test_a_directional_region_is_one_directional_field():
     assert_close(std, ref_std, 1e-6, "region mixture std")
     # stored blobs round-trip per class
     key, inc = next(iter(tile_increments.items()))
-    back = decode_tile(spec, key, inc.evidence.to_bytes())
+    half = inc.evidence.scaled(0.5)  # a tile's statistics and residual: their sum is the tile's
+    blob = encode_tile(half, half)
+    back = decode_tile(spec, key, blob)
     for a, b in zip(back.classes, inc.evidence.classes, strict=True):
         np.testing.assert_array_equal(a.density, b.density)
         np.testing.assert_array_equal(a.mass, b.mass)
     with pytest.raises(ValueError, match=r"cut in class|ends before class"):
-        decode_tile(spec, key, inc.evidence.to_bytes()[:-80])
+        decode_tile(spec, key, blob[:-80])
+    with pytest.raises(ValueError, match=r"does not hold its statistics and their residual"):
+        decode_tile(spec, key, blob[:40])
