@@ -15,6 +15,7 @@ import os
 import socket
 import threading
 import time
+import types
 import uuid
 
 import httpx
@@ -209,12 +210,59 @@ def huge_mode_grid(http):
     return [lambda: http.get("/v1/regions/heavy/grid", params=params, headers={"Accept": NPZ})]
 
 
+def longest_routes(http):
+    """The worst accepted assessment: a vehicle turning on a coin (the envelope sampled every
+    metre) on the longest zig-zag across ``heavy`` a request may read (just under
+    ``max_query_points`` of cost), four at once."""
+    from bdf.region.route import ENVELOPE_SAMPLES_PER_POINT, Vehicle, samples
+
+    coin = {"cruise_mps": 60.0, "min_turn_radius_m": 0.01, "max_climb_deg": 8.0, "max_descent_deg": 8.0}
+    coin.update(floor_m=0.0, ceiling_m=600.0)
+    limit = Settings().max_query_points
+
+    def route(legs):
+        return np.array([[4000.0 * (i % 2), 4000.0 * i / legs, 300.0] for i in range(legs + 1)])
+
+    def cost(legs):
+        on_map, on_envelope = samples(route(legs), Vehicle(**coin))
+        return on_map + on_envelope // ENVELOPE_SAMPLES_PER_POINT
+
+    legs = max(n for n in range(1, 1000) if cost(n) <= limit)
+    body = json.dumps({"points": route(legs).tolist(), "max_std_mps": 5.0, "vehicle": coin})
+    return [
+        lambda: http.post("/v1/regions/heavy/routes/assess", content=body, headers={"Content-Type": JSON})
+    ] * 4
+
+
+def huge_headers(http):
+    """Two requests with a 64 MB header value each, no token (they stalled /healthz 3.3 s)."""
+    port = httpx.URL(str(http.base_url)).port
+
+    def send():
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+            with contextlib.suppress(OSError):  # the server answers 431 and closes before the end
+                sock.sendall(
+                    b"GET /v1/regions HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 64_000_000 + b"\r\n\r\n"
+                )
+            answer = b""
+            with contextlib.suppress(OSError):
+                while chunk := sock.recv(65536):
+                    answer += chunk
+        return types.SimpleNamespace(
+            status_code=int(answer.split(b" ", 2)[1]), headers={}, text=answer.decode()
+        )
+
+    return [send] * 2
+
+
 STRESSES = {
     "two hyperparameter fits": (hyperparameter_fits, {200, 503}),
     "two 50,000-point mode queries": (big_mode_queries, {200, 503}),
     "a query of an empty 16-sector region": (empty_region_query, {200, 503}),
     "a 50,000-point JSON query with modes": (json_mode_query, {200, 503}),
     "a 1.2 M-voxel grid with modes": (huge_mode_grid, {422}),
+    "four assessments of the longest route, a vehicle turning on a coin": (longest_routes, {200, 503}),
+    "two 64 MB header values": (huge_headers, {431}),
 }
 
 
