@@ -160,7 +160,7 @@ def _unavailable(exc):
 
 def _store(exc):
     log.error("store error: %s", exc)
-    return 500, "the map store failed (logged on the server)", None
+    return 500, f"the map store failed: {exc}", None  # ours (a damaged tile, named), never a driver's
 
 
 #: the answer to each kind of failure that is not ours or is the store's: exception type ->
