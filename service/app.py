@@ -29,7 +29,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
 
 from bdf import sectors
-from bdf.region.route import ENVELOPE_SAMPLES_PER_POINT, MAX_ROUTE_POINTS, SAMPLE_M
+from bdf.region.route import CHUNK_SAMPLES, ENVELOPE_SAMPLES_PER_POINT, MAX_ROUTE_POINTS, SAMPLE_M
 from bdf.region.route import samples as route_samples
 from bdf.region.spec import RegionSpec, key_str
 from service import formats, problems, slices, wire
@@ -613,6 +613,8 @@ async def assess_route(
             return not_modified
         route = formats.read_route(info.spec, answer.body, media, svc.limits(MAX_ROUTE_POINTS))
         cost = _route_cost(svc, route)
+        # in memory at once: a chunk of samples with every class's mode, and the answer per segment
+        _within_budget(svc, info.spec, CHUNK_SAMPLES + len(route.P), True, JSON, "route samples")
 
         def work():
             got = svc.maps.assess(name, route, info, min_version)

@@ -42,9 +42,10 @@ MIN_TUBE_STD_MPS = 1e-3
 MAX_ROUTE_SPEED_MPS = 1000.0
 #: Route samples read and judged at once: a route's memory is a chunk's, not its length's.
 CHUNK_SAMPLES = 4096
-#: An envelope sample costs about this many times less than a sample read on the map
-#: (0.15 us against 4-17 us, one class and 8 sectors: bench/RESULTS.md, "Route assessment").
-ENVELOPE_SAMPLES_PER_POINT = 32
+#: An envelope sample costs at least this many times less than a sample read on the map
+#: (0.13 us against 0.7-1.4 us with one class, 3.7-3.9 us with 8 sectors: bench/RESULTS.md,
+#: "Route assessment"): a route's cost in query points counts this many of them as one.
+ENVELOPE_SAMPLES_PER_POINT = 4
 
 
 @dataclass(frozen=True)
