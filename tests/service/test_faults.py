@@ -240,14 +240,14 @@ def damage(store_url: str, tmp_path) -> str:
             blob = conn.execute("SELECT stats FROM tiles WHERE key = ?", (key_text,)).fetchone()[0]
         raw = bytearray(path.read_bytes())
         # 64 bytes of the blob found once in the file: 8 values none of which is 0 (the
-        # speed histogram and empty cells are runs of zeros)
-        piece = next(
+        # speed histogram and empty cells are runs of zeros), not split across overflow pages
+        pieces = (
             blob[i : i + 64]
             for i in range(0, len(blob) - 64, 8)
             if np.all(np.frombuffer(blob[i : i + 64], "<f8") != 0)
         )
+        piece = next(p for p in pieces if raw.find(p) > 0 and raw.find(p, raw.find(p) + 1) < 0)
         at = raw.find(piece)
-        assert at > 0 and raw.find(piece, at + 1) < 0
         raw[at : at + 8] = bytes(b ^ 0xFF for b in raw[at : at + 8])
         path.write_bytes(bytes(raw))
     else:
