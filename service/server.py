@@ -162,7 +162,9 @@ class GuardedProtocol(HttpToolsProtocol):
         super().connection_lost(exc)
 
     def _await_request(self) -> None:
-        self._since, self._in_body = self.loop.time(), False
+        # not the end of a body: an answer sent before its request's body ended (a 413 at
+        # its length) leaves the rest of the body to arrive, and it is body, not headers
+        self._since = self.loop.time()
         self._arm()
 
     def _arm(self) -> None:
