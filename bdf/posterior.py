@@ -256,9 +256,18 @@ def _normalised(grid: HingeGrid, gamma, at: np.ndarray, X: np.ndarray) -> np.nda
 def data_weight_grid(grid: HingeGrid, gamma, cutoff, densities: np.ndarray, axes) -> np.ndarray:
     """:func:`data_weight` on the grid ``axes`` (nx, ny, nz, C); separable."""
     at = features.gather_grid(grid.midpoints(), axes, densities, 2.0 * np.asarray(gamma), cutoff=cutoff)
+    return _normalised_grid(grid, gamma, at, axes)
+
+
+def _normalised_grid(grid: HingeGrid, gamma, at: np.ndarray, axes) -> np.ndarray:
+    """:func:`_normalised` of data densities gathered on the grid ``axes`` (nx, ny, nz, C)."""
     nx, ny, nz = (_lattice_sum(grid, gamma, d, np.asarray(axes[d], float)) for d in range(3))
     norm = (nx[:, None, None] * ny[None, :, None] * nz[None, None, :])[..., None]
     return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)
+
+
+#: erf(z) is exactly 1 in float64 from here on: no need to evaluate it there.
+ERF_ONE = 6.0
 
 
 def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
@@ -270,9 +279,11 @@ def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
     h = grid.step[d] / 2.0
     lo, hi = grid.origin[d] - h / 2, grid.origin[d] + (grid.shape[d] - 1) * grid.step[d] + h / 2
     root = 2.0 * np.sqrt(g)
-    return (
-        np.sqrt(np.pi / (4.0 * g)) / h * 0.5 * (special.erf(root * (hi - x)) + special.erf(root * (x - lo)))
-    )
+    x = np.asarray(x, float)
+    out = np.full(x.shape, np.sqrt(np.pi / (4.0 * g)) / h)  # the sum inside, where both erf are 1
+    near = (root * (hi - x) < ERF_ONE) | (root * (x - lo) < ERF_ONE)  # an edge within 6 widths
+    out[near] *= 0.5 * (special.erf(root * (hi - x[near])) + special.erf(root * (x[near] - lo)))
+    return out
 
 
 def _layer_prior(evidence: Evidence, grid: HingeGrid, gamma) -> np.ndarray:
@@ -295,6 +306,16 @@ def _per_row(hyper, rows: int) -> list:
     """A hyperparameter for each of ``rows`` posteriors: "auto" for all, or the row of a
     (3,) value broadcast, or of a (rows, 3) one."""
     return [hyper] * rows if isinstance(hyper, str) else list(np.broadcast_to(hyper, (rows, 3)))
+
+
+class _MixtureTables(NamedTuple):
+    """What a :class:`Mixture`'s queries gather (:meth:`Mixture._gather_tables`)."""
+
+    weights: np.ndarray  # hinge lattice: every mode's mean weights (3 C), then the share weights (C)
+    answer: np.ndarray  # midpoint lattice: the modes' variance densities, then all the data's density
+    modes: np.ndarray  # midpoint lattice: the one-class map's variance densities, each class's data density
+    columns: np.ndarray  # (C, 3): each mode's variance column in ``answer``
+    total_columns: np.ndarray  # (3,): the map with one class's in ``modes``
 
 
 class Mixture:
@@ -437,43 +458,50 @@ class Mixture:
         return share, np.sqrt(np.maximum(base_variance, 0.0) / self.share_beta)
 
     def _gather_tables(self):
-        """Every mode's weights and the share weights side by side on the hinge lattice,
-        and every variance density on the midpoint lattice (the modes', then the map's with
-        one class, then the classes' data densities), with each one's columns: a query
-        gathers each lattice once."""
+        """Every mode's weights and the share weights side by side on the hinge lattice; on
+        the midpoint lattice, what every answer needs (each mode's variance densities, then
+        all the data's density) and what only the modes need (the map with one class's
+        variance densities, then each class's data density); with the modes' columns and
+        the map with one class's. A query gathers each table it needs once."""
         if self._tables is None:
             weights = np.concatenate([*(m.weights for m in self.modes), self.share_weights], axis=1)
             densities, columns, offset = [], [], 0
-            for post in (*self.modes, self.total):
+            for post in self.modes:
                 d, c = post.variance_table()
                 densities.append(d)
                 columns.append(offset + np.asarray(c))
                 offset += d.shape[-1]
-            self._tables = (
+            total, total_columns = self.total.variance_table()
+            self._tables = _MixtureTables(
                 weights.reshape(*self.grid.shape, -1),
-                np.concatenate([*densities, self._densities], axis=-1),
-                columns,
+                np.concatenate([*densities, self._densities.sum(axis=-1, keepdims=True)], axis=-1),
+                np.concatenate([total, self._densities], axis=-1),
+                np.array(columns),
+                np.asarray(total_columns),
             )
         return self._tables
 
-    def _gather(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every table at ``X``: the weights (n, 4 C: the modes' means, then the share
-        weights) and the variance densities (n, D)."""
-        weights, densities, _ = self._gather_tables()
-        at = features.gather(self.grid, X, weights, self.gamma, cutoff=self.cutoff)
-        var = features.gather(
-            self.grid.midpoints(), X, densities, 2.0 * self.gamma, cutoff=self.cutoff, block=MIDPOINT_BLOCK
-        )
-        return at, var
+    def _gather(self, X: np.ndarray, modes: bool = False):
+        """The tables at ``X``: the weights (n, 4 C: the modes' means, then the share
+        weights), what every answer needs (n, D + 1: the modes' variance densities, then all
+        the data's density), and with ``modes`` what the modes need too (n, E + C)."""
+        tables = self._gather_tables()
+        midpoints, k = self.grid.midpoints(), 2.0 * self.gamma
+        at = features.gather(self.grid, X, tables.weights, self.gamma, cutoff=self.cutoff)
+        var = features.gather(midpoints, X, tables.answer, k, cutoff=self.cutoff, block=MIDPOINT_BLOCK)
+        if not modes:
+            return at, var, None
+        extra = features.gather(midpoints, X, tables.modes, k, cutoff=self.cutoff, block=MIDPOINT_BLOCK)
+        return at, var, extra
 
-    def _gather_grid(self, axes) -> tuple[np.ndarray, np.ndarray]:
+    def _gather_grid(self, axes, modes: bool = False):
         """:meth:`_gather` on the grid ``axes``, the grid's shape first (separable)."""
-        weights, densities, _ = self._gather_tables()
-        at = features.gather_grid(self.grid, axes, weights, self.gamma, cutoff=self.cutoff)
-        var = features.gather_grid(
-            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
-        )
-        return at, var
+        tables = self._gather_tables()
+        midpoints, k = self.grid.midpoints(), 2.0 * self.gamma
+        at = features.gather_grid(self.grid, axes, tables.weights, self.gamma, cutoff=self.cutoff)
+        var = features.gather_grid(midpoints, axes, tables.answer, k, cutoff=self.cutoff)
+        extra = features.gather_grid(midpoints, axes, tables.modes, k, cutoff=self.cutoff) if modes else None
+        return at, var, extra
 
     def _moments(self, at, var, noise_of) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance (n, 3) from the tables gathered at n points
@@ -489,26 +517,34 @@ class Mixture:
             noise = np.stack(
                 [noise_of(m, at[:, 3 * c : 3 * c + 3]).reshape(-1, 3) for c, m in enumerate(self.modes)]
             )
-        columns = np.array(self._gather_tables()[2][:C])
+        columns = self._gather_tables().columns
         inverse_beta = 1.0 / np.stack([m.beta for m in self.modes])
         mean, variance = np.empty((len(at), 3)), np.empty((len(at), 3))
         _mixture_moments(at, var, self.prior_share, columns, inverse_beta, noise, mean, variance)
         return mean, variance
 
     def predict_modes(self, X: np.ndarray, include_noise=True) -> Modes:
-        columns = self._gather_tables()[2]
+        tables = self._gather_tables()
         C = len(self.modes)
-        at, var = self._gather(X)
+        at, var, extra = self._gather(X, modes=True)
         mean = at[:, : 3 * C].reshape(len(X), C, 3)
         std = np.empty_like(mean)
         for c, mode in enumerate(self.modes):
-            v = np.maximum(var[:, columns[c]] / mode.beta, 0.0)
+            v = np.maximum(var[:, tables.columns[c]] / mode.beta, 0.0)
             if include_noise:
                 v = v + mode.noise_variance(X, mean[:, c])
             std[:, c] = np.sqrt(v)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
-        share, share_std = self._share(at[:, 3 * C :], var[:, columns[-1][0]])
-        return Modes(share, share_std, mean, std, _normalised(self.grid, self.gamma, var[:, -C:], X))
+        share, share_std = self._share(at[:, 3 * C :], extra[:, tables.total_columns[0]])
+        return Modes(share, share_std, mean, std, _normalised(self.grid, self.gamma, extra[:, -C:], X))
+
+    def answer(self, X: np.ndarray, include_noise=True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The mixture's mean and std (n, 3) and all the data's weight (n, 1), as
+        :meth:`Posterior.answer`: without the modes' arrays, or the tables only they need."""
+        at, var, _ = self._gather(X)
+        local = (lambda m, mean: m.noise_variance(X, mean)) if include_noise else None
+        mean, variance = self._moments(at, var, local)
+        return mean, np.sqrt(variance), _normalised(self.grid, self.gamma, var[:, -1:], X)
 
     def data_weight(self, X: np.ndarray) -> np.ndarray:
         """(n, C): each class's data within the kernel's reach (:meth:`Posterior.data_weight`)."""
@@ -519,13 +555,12 @@ class Mixture:
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """The mixture's mean (n, 3), and its std if asked (moments over the modes)."""
-        local = (lambda m, mean: m.noise_variance(X, mean)) if include_noise else None
-        mean, var = self._moments(*self._gather(X), local)
-        return (mean, np.sqrt(var)) if return_std else mean
+        mean, std, _ = self.answer(X, include_noise)
+        return (mean, std) if return_std else mean
 
     def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance on the grid ``axes`` (see :meth:`Posterior.predict_grid`)."""
-        at, var = self._gather_grid(axes)
+        at, var, _ = self._gather_grid(axes)
         n = at.shape[:3]
         local = (lambda m, mean: m.noise_variance_grid(axes, mean.reshape(*n, 3))) if include_noise else None
         mean, var = self._moments(at.reshape(-1, at.shape[-1]), var.reshape(-1, var.shape[-1]), local)
@@ -534,12 +569,12 @@ class Mixture:
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """:class:`Modes` on the grid ``axes``, each array with the grid's shape first: like
         :meth:`predict_modes`, each lattice's tables gathered once for every class."""
-        columns = self._gather_tables()[2]
+        tables = self._gather_tables()
         C = len(self.modes)
-        at, var = self._gather_grid(axes)
+        at, var, extra = self._gather_grid(axes, modes=True)
         n = at.shape[:3]
         mean = at[..., : 3 * C].reshape(*n, C, 3)
-        std = var[..., np.array(columns[:C])]  # (nx, ny, nz, C, 3), then in place
+        std = var[..., tables.columns]  # (nx, ny, nz, C, 3), then in place
         std /= np.stack([m.beta for m in self.modes])
         np.maximum(std, 0.0, out=std)
         if include_noise:
@@ -547,8 +582,11 @@ class Mixture:
                 std[..., c, :] += mode.noise_variance_grid(axes, mean[..., c, :])
         np.sqrt(std, out=std)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
-        share, share_std = self._share(at[..., 3 * C :].reshape(-1, C), var[..., columns[-1][0]].ravel())
-        return Modes(share.reshape(*n, C), share_std.reshape(n), mean, std, self.data_weight_grid(axes))
+        share, share_std = self._share(
+            at[..., 3 * C :].reshape(-1, C), extra[..., tables.total_columns[0]].ravel()
+        )
+        weight = _normalised_grid(self.grid, self.gamma, extra[..., -C:], axes)
+        return Modes(share.reshape(*n, C), share_std.reshape(n), mean, std, weight)
 
     def compact(self) -> Mixture:
         self.total.compact()
@@ -562,7 +600,7 @@ class Mixture:
         held = self.share_weights.nbytes + self._densities.nbytes + self.total.nbytes
         held += sum(m.nbytes for m in self.modes)
         if self._tables is not None:
-            held += self._tables[0].nbytes + self._tables[1].nbytes
+            held += sum(a.nbytes for a in self._tables[:3])
         return held
 
 

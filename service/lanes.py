@@ -53,7 +53,7 @@ class Overloaded(Exception):
 
 
 class DeadlineExceeded(Exception):
-    """The request's deadline passed before its work ended; nothing was stored."""
+    """The request's deadline passed before its work ended (a write's before its commit)."""
 
 
 @contextlib.contextmanager
@@ -75,7 +75,10 @@ def remaining() -> float:
 def check() -> None:
     """A checkpoint of long work: :class:`DeadlineExceeded` once the deadline has passed."""
     if remaining() <= 0:
-        raise DeadlineExceeded("the request's deadline passed before its work ended; nothing was stored")
+        raise DeadlineExceeded(
+            "the request's deadline passed before its work ended, which stopped there (a write "
+            "stops before its commit: nothing was stored)"
+        )
 
 
 def wait_timeout() -> float | None:

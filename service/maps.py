@@ -22,6 +22,7 @@ from __future__ import annotations
 import concurrent.futures
 import itertools
 import logging
+import math
 import multiprocessing
 import os
 import queue
@@ -164,6 +165,11 @@ class MapPrediction:
     evidence_gap: float = 0.0  # nats its "auto" hyperparameters lack from the maximum (0: settled)
 
 
+#: A read waiting for a map answers this long before its deadline, with what it waits for
+#: (the deadline's own 503 cannot say).
+ANSWER_MARGIN_S = 0.5
+
+
 @dataclass
 class RefreshStats:
     """What the refreshes did (``/metrics``)."""
@@ -216,6 +222,8 @@ class RegionMaps:
         self._ended: dict[str, int] = {}  # region name -> refreshes ended
         self._failure: dict[str, tuple[int, Exception]] = {}  # region name -> (refresh, its error)
         self._computed: dict[str, str] = {}  # region name -> region_id of its last refresh
+        self._computing: dict[str, tuple[int, float]] = {}  # region name -> (version, since) of its refresh
+        self._took: dict[str, float] = {}  # region name -> seconds its last map took here
         self._threads: dict[str, threading.Thread] = {}
         self._evidence: OrderedDict[str, dict] = OrderedDict()  # region_id -> key -> (version, evidence)
         self._committed: OrderedDict[tuple, float] = OrderedDict()  # (region_id, version) -> time
@@ -531,11 +539,27 @@ class RegionMaps:
                         raise RegionChanged(f"region {region!r} was deleted or re-created meanwhile")
                     mine = self._begun.get(region, 0) + 1
                     self._schedule_locked(region, info.version)
-                if not self._done.wait(timeout=lanes.wait_timeout()) and lanes.remaining() <= 0:
-                    raise lanes.DeadlineExceeded(
-                        f"the deadline passed while region {region!r}'s map of version {at_least} "
-                        "was computed; it will be ready for a retry"
-                    )
+                left = lanes.remaining() - ANSWER_MARGIN_S  # answer before the deadline does
+                timeout = None if left == math.inf else max(left, 0.0)
+                if not self._done.wait(timeout=timeout) and left <= 0:
+                    raise self._not_ready(region, at_least)
+
+    def _not_ready(self, region: str, version: int) -> lanes.Overloaded:
+        """503 for a read whose map is not ready: which version is computed, since when, how
+        long the last took, and when to come back (its Retry-After)."""
+        computing, took = self._computing.get(region), self._took.get(region)
+        if computing is None:
+            what = f"the map of region {region!r} at version {version} waits for its refresh"
+            elapsed = 0.0
+        else:
+            at, since = computing
+            elapsed = time.time() - since
+            started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(since))
+            what = f"the map of region {region!r} at version {at} is computed since {started}"
+            what += f" ({elapsed:.0f} s)"
+        last = "" if took is None else f"; the last took {took:.1f} s"
+        retry = max(1, math.ceil((took or 5.0) - elapsed))
+        return lanes.Overloaded(f"{what}{last}: retry in {retry} s", retry)
 
     def _compute(self, region: str, at_least: int, settle: bool = False, yields: bool = False) -> MapState:
         """A map of the region at version ``at_least`` or newer: one computed meanwhile (a
@@ -559,8 +583,9 @@ class RegionMaps:
                 return newest
             started = time.perf_counter()
             job = next(self._jobs) if yields else 0
-            if yields:
-                with self._lock:
+            with self._lock:
+                self._computing[region] = (info.version, time.time())
+                if yields:
                     self._settling[region] = (job, info.version)
             try:
                 snap, evidence = self._snapshot_evidence(region, info.region_id)
@@ -573,13 +598,15 @@ class RegionMaps:
                 log.info("region %s: settling version %d abandoned for a newer version", region, info.version)
                 return newest
             finally:
-                if yields:
-                    with self._lock:
+                with self._lock:
+                    self._computing.pop(region, None)
+                    if yields:
                         self._settling.pop(region, None)
             state = MapState(spec, snap.region.region_id, snap.region.version, post)
             self._publish(state)
             seconds = time.perf_counter() - started
             with self._lock:
+                self._took[region] = seconds
                 self.stats.count += 1
                 self.stats.seconds += seconds
                 self.stats.last_s = seconds

@@ -178,8 +178,8 @@ class RegionMap:
         X = self.spec.inside_points(X)
         if heading_deg is not None:
             heading_deg = as_headings(heading_deg, len(X))
-        if modes is None and self.spec.directions == 1:
-            mean, std, weight = self.posterior.answer(X)
+        if modes is None and (heading_deg is None or self.spec.directions == 1):
+            mean, std, weight = self.posterior.answer(X)  # without the modes' arrays
         else:
             modes = self.posterior.predict_modes(X) if modes is None else modes
             mean, std = modes.answer(self.spec.sectors, heading_deg)

@@ -732,3 +732,42 @@ def test_arrow_body_is_what_pyarrow_writes():
             writer.write_table(table)
         assert bytes(arrow_body(columns, metadata)) == sink.getvalue().to_pybytes()
         assert arrow_bytes(columns, metadata) == sink.getvalue().to_pybytes()
+
+
+def test_a_read_whose_map_is_not_ready_is_told_which_version_since_when_and_when_to_retry(
+    tmp_path, monkeypatch
+):
+    """A map taking 3 s against a 2 s deadline: the read answers 503 before its deadline,
+    naming the version being computed, since when and how long the last one took, with a
+    Retry-After; never "nothing was stored". The retry, once the map is ready, gets it."""
+    from fastapi.testclient import TestClient
+
+    app = create_app(Settings(store_url=f"sqlite:///{tmp_path}", request_timeout_s=2.0))
+    with TestClient(app, raise_server_exceptions=False) as c:
+        c.post("/v1/regions", json=SPEC).raise_for_status()
+        X, V = data(1, n=200)
+        body = {"points": X.tolist(), "velocities": V.tolist()}
+        c.post(
+            f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "a"}
+        ).raise_for_status()
+        c.post(f"/v1/regions/{NAME}/query?min_version=1", json={"points": X[:2].tolist()}).raise_for_status()
+        maps = app.state.service.maps
+        compute = maps._posterior
+
+        def slow(*args, **kw):
+            threading.Event().wait(3.0)
+            return compute(*args, **kw)
+
+        monkeypatch.setattr(maps, "_posterior", slow)
+        c.post(
+            f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "b"}
+        ).raise_for_status()
+        r = c.post(f"/v1/regions/{NAME}/query?min_version=2", json={"points": X[:2].tolist()})
+        assert r.status_code == 503, r.text
+        detail = r.json()["detail"]
+        assert f"the map of region '{NAME}' at version 2 is computed since" in detail, detail
+        assert "the last took" in detail and "stored" not in detail
+        assert 1 <= int(r.headers["retry-after"]) <= 5
+        time.sleep(int(r.headers["retry-after"]) + 1.5)
+        again = c.post(f"/v1/regions/{NAME}/query?min_version=2", json={"points": X[:2].tolist()})
+        assert again.status_code == 200 and again.json()["region_version"] == 2, again.text
