@@ -6,8 +6,8 @@ import logging
 
 import numpy as np
 
-from bdf import metrics, noise
-from bdf.grid import HingeGrid
+from bdf import metrics
+from bdf.grid import HingeGrid, noise_lattice
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Posterior
 from bdf.sectors import Sectors
@@ -73,7 +73,7 @@ def cross_validate(
     weight = np.ones(len(X)) if sample_weight is None else as_sample_weight(sample_weight, len(X))
     if n_splits < 2:
         raise ValueError(f"n_splits must be at least 2, got {n_splits}")
-    lattice = None if noise_spacing is None else noise.noise_lattice(lower, upper, noise_spacing)
+    lattice = None if noise_spacing is None else noise_lattice(lower, upper, noise_spacing)
     sectors = Sectors(int(directions))
     noise_prior = as_positive(noise_prior, "noise_prior")
     rng = np.random.default_rng(seed)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from bdf import noise, sparse
-from bdf.grid import HingeGrid
+from bdf.grid import HingeGrid, noise_lattice
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Modes, Posterior
 from bdf.sectors import Sectors
@@ -135,7 +135,7 @@ class BayesianDynamicField:
             raise ValueError(f"half_life must be positive or None, got {self.half_life!r}")
         lattice = None
         if self.noise_spacing is not None:
-            lattice = noise.noise_lattice(self.lower, self.upper, self.noise_spacing)
+            lattice = noise_lattice(self.lower, self.upper, self.noise_spacing)
             as_positive(self.noise_prior, "noise_prior")
         return grid, Kernel(tuple(gamma), float(self.cutoff)), alpha, beta, lattice
 

@@ -11,6 +11,8 @@ from bdf.validation import as_vector3
 #: Largest hinge count a field accepts: its sparse factor grows about as M^(4/3) on a 3-D
 #: lattice (``bench/bench_tiles.py`` measures it).
 MAX_HINGES = 250_000
+#: Largest noise lattice (:mod:`bdf.noise`: 7 float64 channels per point, 56 bytes each).
+MAX_NOISE_CELLS = 2_000_000
 
 
 def axis_counts(lower, upper, step) -> np.ndarray:
@@ -75,3 +77,14 @@ class HingeGrid(Lattice):
 
     def midpoints(self) -> Lattice:
         return Lattice(self.origin, self.step / 2.0, tuple(2 * n - 1 for n in self.shape))
+
+
+def noise_lattice(lower, upper, spacing) -> Lattice:
+    """The local-noise lattice (:mod:`bdf.noise`): ``lower + i * spacing`` per axis covering
+    ``[lower, upper]``."""
+    lower, upper = as_vector3(lower, "lower"), as_vector3(upper, "upper")
+    step = as_vector3(spacing, "noise_spacing", positive=True)
+    counts = bounded_counts(
+        lower, upper, step, MAX_NOISE_CELLS, "the noise lattice", "points", "increase noise_spacing"
+    )
+    return Lattice(lower, step, tuple(int(n) for n in counts))

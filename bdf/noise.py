@@ -29,29 +29,13 @@ from __future__ import annotations
 import numpy as np
 
 from bdf import features
-from bdf.grid import Lattice, bounded_counts
-from bdf.validation import as_vector3
+from bdf.grid import Lattice
+from bdf.kernel import NOISE_CUTOFF
 
-#: Largest noise lattice (7 float64 channels per point: 56 bytes each).
-MAX_NOISE_CELLS = 2_000_000
-#: Kernel cutoff of the moments: they feed a smoothed estimate, not the exact posterior,
-#: and terms below 1e-6 of the largest change it by about that fraction (at a third of
-#: the cost of the exact features' 1e-12).
-NOISE_CUTOFF = 1e-6
 #: Channels of the moments: weight, weighted velocity (3), weighted squared velocity (3).
 CHANNELS = 7
 #: ``sum_g`` of two unit-spacing Gaussians of unit width: the smoother's peak (per 3 axes).
 _PEAK = (np.pi / 2.0) ** 1.5
-
-
-def noise_lattice(lower, upper, spacing) -> Lattice:
-    """The lattice ``lower + i * spacing`` per axis covering ``[lower, upper]``."""
-    lower, upper = as_vector3(lower, "lower"), as_vector3(upper, "upper")
-    step = as_vector3(spacing, "noise_spacing", positive=True)
-    counts = bounded_counts(
-        lower, upper, step, MAX_NOISE_CELLS, "the noise lattice", "points", "increase noise_spacing"
-    )
-    return Lattice(lower, step, tuple(int(n) for n in counts))
 
 
 def moments(lattice: Lattice, X, V, weight) -> np.ndarray:

@@ -62,7 +62,7 @@ from bench_service import arrow_points
 
 from bdf import ingest, metrics, sparse
 from bdf.region.evidence import region_total
-from bdf.region.map import RegionMap
+from bdf.region.map import RegionMap, region_field
 from clients import samples
 from clients.local import LocalService
 from clients.samples import PARIS_SPACING_M
@@ -107,7 +107,7 @@ def held_out(spec, post, train, test) -> dict:
 def calibration(directions, counts, train, weight, test, lower, upper, tmp) -> tuple[list[dict], dict]:
     spec = samples.paris_demo_region(lower, upper, directions=directions)
     t0 = time.perf_counter()
-    single = spec.field().fit(train.X, train.V, sample_weight=weight).posterior_
+    single = region_field(spec).fit(train.X, train.V, sample_weight=weight).posterior_
     single_s = time.perf_counter() - t0
     climate = np.sqrt((train.V**2).mean(0))
     probe = np.random.default_rng(2).uniform(spec.lower, spec.upper, (20_000, 3))
@@ -211,7 +211,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
         post = state.posterior
         evidence = region_total(spec, store.snapshot(spec.name).evidence)
         t0 = time.perf_counter()
-        spec.field(post.alpha, post.beta).set_evidence(evidence).posterior_.compact()
+        region_field(spec, post.alpha, post.beta).set_evidence(evidence).posterior_.compact()
         fixed.append(time.perf_counter() - t0)
     maps.close()
     store.close()

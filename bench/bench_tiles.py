@@ -51,6 +51,7 @@ from sksparse.cholmod import analyze
 from bdf import ingest, sparse
 from bdf.kernel import DEFAULT_CUTOFF
 from bdf.region.evidence import region_total
+from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
 from clients import samples
 from service.maps import RegionMaps
@@ -94,7 +95,7 @@ def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
     exact = paris(spacing, DEFAULT_CUTOFF)
     weight = train.track_weights(exact.gamma)
     climate = np.sqrt(np.average(train.V**2, axis=0, weights=weight))
-    ref = exact.field().fit(train.X, train.V, sample_weight=weight)
+    ref = region_field(exact).fit(train.X, train.V, sample_weight=weight)
     Q = np.random.default_rng(1).uniform(exact.lower, exact.upper, (20_000, 3))
     ref_mean, ref_std = ref.predict(Q, return_std=True)
     lines = [
@@ -106,7 +107,7 @@ def cutoff_errors(spacing, cutoffs, obs, test) -> list[str]:
     ]
     for cutoff in [*cutoffs, DEFAULT_CUTOFF]:
         spec = paris(spacing, cutoff)
-        field = spec.field(ref.alpha_, ref.beta_).fit(train.X, train.V, sample_weight=weight)
+        field = region_field(spec, ref.alpha_, ref.beta_).fit(train.X, train.V, sample_weight=weight)
         mean, std = field.predict(Q, return_std=True)
         band = field.evidence_.total().gram_band(spec.stencil)
         t0 = time.perf_counter()
@@ -138,7 +139,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         alpha, beta = info.hyperparameters()
         pred = maps.predict(spec.name, obs.X[test])
         row |= {f"served {k}": v for k, v in accuracy(obs.V[test], train.V, pred.mean, pred.std).items()}
-        field = spec.field(alpha, beta).fit(train.X, train.V, sample_weight=weight)
+        field = region_field(spec, alpha, beta).fit(train.X, train.V, sample_weight=weight)
         mean, std = field.predict(obs.X[test], return_std=True)
         row |= {f"field {k}": v for k, v in accuracy(obs.V[test], train.V, mean, std).items()}
         row["largest mean difference, served vs field [m/s]"] = float(np.abs(pred.mean - mean).max())

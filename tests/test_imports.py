@@ -119,6 +119,14 @@ def test_importing_the_sdk_loads_neither_numba_nor_scipy():
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
+def test_the_region_schema_loads_neither_numba_nor_scipy():
+    """``RegionSpec`` is a schema with its geometry: a client, a planner or a validation of a
+    request's spec does not load the numerics (the model factory is ``bdf.region.map``'s)."""
+    code = "import sys, bdf.region.spec; print(sorted(m for m in ('numba', 'scipy') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
 def test_the_library_wings_import_one_way():
     """bdf.sparse is the algebra under the model: it imports only the lattice and the kernel
     besides itself. bdf.region is the top of the library: no other bdf module imports it."""

@@ -1,6 +1,6 @@
 """A region's evidence: points to per-tile, per-class increments, and their sum.
 
-Each observation belongs to the tile whose core holds it (:meth:`RegionSpec.home_tiles`);
+Each observation belongs to the tile whose core holds it (:func:`home_tiles`);
 the tile's increment is what its core's points add to the region's evidence over the
 tile's support (:func:`increments`, by :meth:`bdf.statistics.SectorEvidence.from_points`: the
 one function everything that learns calls). Stored increments are decoded on the tile's
@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from bdf import sparse
+from bdf import features, sparse
 from bdf.region.spec import RegionSpec, TileKey
 from bdf.statistics import (
     ALT_BIN_M,
@@ -59,7 +59,7 @@ def increments(
     input_noise = as_noise_std(input_noise_std, len(X))
     weight = as_sample_weight(sample_weight, len(X))
     out = {}
-    groups = spec.home_tiles(X)
+    groups = home_tiles(spec, X)
     for done, (key, idx) in enumerate(groups.items(), start=1):
         grid = spec.tile_grid(key)
         rows = take_rows((X, V, input_noise, weight), idx)
@@ -82,6 +82,20 @@ def speed_histogram(grid, X: np.ndarray, V: np.ndarray) -> np.ndarray:
     speed = np.minimum(np.hypot(V[:, 0], V[:, 1]) // SPEED_BIN_MPS, SPEED_BINS - 1).astype(np.int64)
     counts = np.bincount(alt * SPEED_BINS + speed, minlength=count * SPEED_BINS)
     return counts.reshape(count, SPEED_BINS).astype(float)
+
+
+def home_tiles(spec: RegionSpec, X) -> dict[TileKey, np.ndarray]:
+    """Row indices of ``X`` per tile of ``spec`` whose core holds them (each row in one tile)."""
+    X = spec.inside_points(X)
+    if not len(X):
+        return {}
+    n = np.array(spec.tile_counts)
+    flat = features.sort_key(features.cell_keys(X, spec.lower, np.array(spec.tile_size_m), n))
+    order = np.argsort(flat, kind="stable")
+    flat = flat[order]
+    bounds = [0, *(np.flatnonzero(flat[1:] != flat[:-1]) + 1).tolist(), len(flat)]
+    keys = np.stack(np.unravel_index(flat[bounds[:-1]], tuple(n)), axis=1).tolist()
+    return {tuple(k): order[a:b] for a, b, k in zip(bounds[:-1], bounds[1:], keys, strict=True)}
 
 
 def encode_tile(total: SectorEvidence, residual: SectorEvidence) -> bytes:
@@ -141,7 +155,7 @@ def region_total(spec: RegionSpec, tiles: Mapping[TileKey, SectorEvidence]) -> S
 def _class_total(spec: RegionSpec, tiles: Mapping[TileKey, Evidence]) -> Evidence:
     """One class's :func:`region_total`."""
     total = Evidence.zeros(spec.grid, spec.noise_lattice)
-    region_stencil = spec.stencil
+    region_stencil = sparse.stencil_on(spec.grid, spec.kernel)
     for key, ev in tiles.items():
         grid = spec.tile_grid(key)
         i0 = np.round((grid.origin - spec.grid.origin) / spec.grid.step).astype(int)

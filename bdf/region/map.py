@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bdf.field import BayesianDynamicField
 from bdf.posterior import Mixture, Modes, Posterior, known
 from bdf.region.spec import RegionSpec
 from bdf.sparse import NotPositiveDefinite
@@ -73,7 +74,7 @@ def compute_posterior(
 def _posterior(spec: RegionSpec, evidence: SectorEvidence, start, stored: bool, settle: bool):
     """:func:`compute_posterior` but its judgement."""
     try:
-        return spec.field().set_evidence(evidence, start=start, settle=settle).posterior_.compact()
+        return region_field(spec).set_evidence(evidence, start=start, settle=settle).posterior_.compact()
     except NotPositiveDefinite:
         if spec.alpha == "auto" or not stored:
             raise
@@ -81,7 +82,7 @@ def _posterior(spec: RegionSpec, evidence: SectorEvidence, start, stored: bool, 
     # be served: at the least alpha ten times larger, a hundred, ... that does
     for power in range(1, 13):
         try:
-            field = spec.field(np.asarray(spec.alpha, float) * 10.0**power)
+            field = region_field(spec, np.asarray(spec.alpha, float) * 10.0**power)
             post = field.set_evidence(evidence, start=start, settle=settle).posterior_.compact()
         except NotPositiveDefinite:
             continue
@@ -158,6 +159,24 @@ def plausibility(rmap: RegionMap) -> dict:
         "implausible_share": float(np.mean(ratio > 1.0)),
         "grid_step_m": step.tolist(),
     }
+
+
+def region_field(spec: RegionSpec, alpha=None, beta=None) -> BayesianDynamicField:
+    """An (unfitted) field over the region's lattice with its model settings (``alpha``,
+    ``beta``: other values than the spec's): the model a region's map is the posterior of."""
+    return BayesianDynamicField(
+        spec.lower,
+        spec.upper,
+        spec.spacing_m,
+        spec.gamma,
+        spec.alpha if alpha is None else alpha,
+        spec.beta if beta is None else beta,
+        noise_spacing=spec.noise_spacing_m,
+        noise_prior=spec.noise_prior,
+        cutoff=spec.cutoff,
+        directions=spec.directions,
+        slow_mps=spec.slow_mps,
+    )
 
 
 @dataclass(frozen=True)

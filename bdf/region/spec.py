@@ -18,19 +18,19 @@ from __future__ import annotations
 
 import functools
 import logging
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from bdf import features, noise, sparse
-from bdf.field import BayesianDynamicField
 from bdf.frames import ENUFrame
-from bdf.grid import HingeGrid, Lattice, bounded_counts
-from bdf.kernel import DEFAULT_CUTOFF, Kernel
+from bdf.grid import HingeGrid, Lattice, bounded_counts, noise_lattice
+from bdf.kernel import DEFAULT_CUTOFF, NOISE_CUTOFF, Kernel
 from bdf.sectors import MAX_DIRECTIONS, Sectors
-from bdf.statistics import SectorEvidence
 from bdf.validation import as_points, bad_rows, rows_all
+
+if TYPE_CHECKING:  # the schema loads no numerics (numba, scipy): a client or planner may use it
+    from bdf.statistics import SectorEvidence
 
 log = logging.getLogger(__name__)
 TileKey = tuple[int, int, int]
@@ -205,16 +205,21 @@ class RegionSpec(BaseModel):
             )
         if self.couplings > MAX_COUPLINGS:
             raise ValueError(
-                f"{self.grid.size} hinges x {len(self.stencil.offsets)} coupled offsets x "
+                f"{self.grid.size} hinges x {self.coupled_offsets} coupled offsets x "
                 f"{self.sectors.classes} traffic classes is {self.couplings:.3g} couplings, more than "
                 f"{MAX_COUPLINGS:g}: raise the spacing or gamma, or take fewer directions"
             )
         return self
 
     @property
+    def coupled_offsets(self) -> int:
+        """The hinge offsets each hinge couples to in the precision (its stencil's half)."""
+        return len(self.kernel.couplings(self.grid.step, self.grid.shape)[0])
+
+    @property
     def couplings(self) -> int:
         """Hinges x the stencil's offsets x traffic classes: what a map's memory grows with."""
-        return self.grid.size * len(self.stencil.offsets) * self.sectors.classes
+        return self.grid.size * self.coupled_offsets * self.sectors.classes
 
     @property
     def map_bytes(self) -> float:
@@ -273,10 +278,6 @@ class RegionSpec(BaseModel):
     def sectors(self) -> Sectors:
         return Sectors(self.directions, self.slow_mps)
 
-    @property
-    def stencil(self) -> sparse.Stencil:
-        return sparse.stencil_on(self.grid, self.kernel)
-
     def frame(self) -> ENUFrame:
         return _frame(self.origin.lat, self.origin.lon, self.origin.alt_m)
 
@@ -305,25 +306,8 @@ class RegionSpec(BaseModel):
         """The part of the region's noise lattice the tile's points reach, or None."""
         if self.noise_lattice is None:
             return None
-        reach = np.sqrt(np.log(1.0 / noise.NOISE_CUTOFF)) * self.noise_lattice.step
+        reach = np.sqrt(np.log(1.0 / NOISE_CUTOFF)) * self.noise_lattice.step
         return self._support(key, self.noise_lattice, reach)
-
-    def field(self, alpha=None, beta=None) -> BayesianDynamicField:
-        """An (unfitted) field over the region's lattice with its model settings (``alpha``,
-        ``beta``: other values than the spec's)."""
-        return BayesianDynamicField(
-            self.lower,
-            self.upper,
-            self.spacing_m,
-            self.gamma,
-            self.alpha if alpha is None else alpha,
-            self.beta if beta is None else beta,
-            noise_spacing=self.noise_spacing_m,
-            noise_prior=self.noise_prior,
-            cutoff=self.cutoff,
-            directions=self.directions,
-            slow_mps=self.slow_mps,
-        )
 
     def inside(self, X: np.ndarray) -> np.ndarray:
         """Rows of ``X`` (n, 3) inside the region's box (closed)."""
@@ -332,19 +316,6 @@ class RegionSpec(BaseModel):
     def _in_box(self, X: np.ndarray) -> np.ndarray:
         """(n, 3): each coordinate within the region's bounds (closed; never for NaN)."""
         return (X >= self.lower) & (X <= self.upper)
-
-    def home_tiles(self, X) -> dict[TileKey, np.ndarray]:
-        """Row indices of ``X`` per tile whose core holds them (each row in one tile)."""
-        X = self.inside_points(X)
-        if not len(X):
-            return {}
-        n = np.array(self.tile_counts)
-        flat = features.sort_key(features.cell_keys(X, self.lower, np.array(self.tile_size_m), n))
-        order = np.argsort(flat, kind="stable")
-        flat = flat[order]
-        bounds = [0, *(np.flatnonzero(flat[1:] != flat[:-1]) + 1).tolist(), len(flat)]
-        keys = np.stack(np.unravel_index(flat[bounds[:-1]], tuple(n)), axis=1).tolist()
-        return {tuple(k): order[a:b] for a, b, k in zip(bounds[:-1], bounds[1:], keys, strict=True)}
 
     def inside_points(self, X) -> np.ndarray:
         """``X`` as validated points (n, 3), all inside the region (``ValueError`` names the
@@ -390,7 +361,7 @@ def _grid(lower, upper, spacing) -> HingeGrid:
 
 @functools.lru_cache(maxsize=64)
 def _noise_lattice(lower, upper, spacing) -> Lattice:
-    return noise.noise_lattice(lower, upper, spacing)
+    return noise_lattice(lower, upper, spacing)
 
 
 @functools.lru_cache(maxsize=64)

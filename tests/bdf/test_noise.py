@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
-from bdf.noise import NOISE_CUTOFF
+from bdf.kernel import NOISE_CUTOFF
 from bdf.sectors import Sectors
 from bdf.statistics import SectorEvidence
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER

@@ -5,7 +5,7 @@ import pytest
 
 from bdf import BayesianDynamicField
 from bdf.region.evidence import decode_tile, encode_tile, increments, region_total
-from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.map import RegionMap, compute_posterior, region_field
 from bdf.region.spec import RegionSpec
 from bdf.sectors import Sectors, mixture_moments
 from tests.bdf.conftest import GAMMA, LOWER, SPACING, UPPER, dense_features
@@ -183,7 +183,7 @@ def test_a_directional_region_is_one_directional_field():
     tile_increments = increments(spec, X, V)
     evidence = region_total(spec, {k: i.evidence for k, i in tile_increments.items()})
     post = compute_posterior(spec, evidence)
-    ref = spec.field(post.alpha, post.beta).fit(X, V)
+    ref = region_field(spec, post.alpha, post.beta).fit(X, V)
     Q = rng.uniform(spec.lower, spec.upper, (500, 3))
     mean, std, _ = RegionMap(spec, post).predict(Q)
     ref_mean, ref_std = ref.predict(Q, return_std=True)

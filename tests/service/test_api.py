@@ -13,6 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from bdf.posterior import known
+from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
 from service.app import create_app
 from service.formats import arrow_body, arrow_bytes, npz_bytes
@@ -28,7 +29,7 @@ NAME = SPEC["name"]
 def library(spec: RegionSpec, X, V, Xq, **fit):
     """One field over the region's lattice fitted on all the data at once ("auto": its
     evidence maximum): mean, std and known."""
-    field = spec.field().fit(X, V, **fit)
+    field = region_field(spec).fit(X, V, **fit)
     mean, std = field.predict(Xq, return_std=True)
     return mean, std, known(field.posterior_.data_weight(Xq))
 
@@ -229,10 +230,10 @@ def test_directional_regions_serve_the_mixture_of_the_library(client):
     mean, std, _ = library(spec, X, V, Xq)
     np.testing.assert_allclose(got["mean"], mean, rtol=0, atol=1e-6)
     np.testing.assert_allclose(got["std"], std, rtol=1e-6)
-    one = spec.model_copy(update={"directions": 1}).field().fit(X, V)
+    one = region_field(spec.model_copy(update={"directions": 1})).fit(X, V)
     assert np.abs(np.asarray(got["std"]) / one.predict(Xq, return_std=True)[1] - 1).max() > 0.1
     # the modes and the mode of a heading, in JSON and Arrow
-    field = spec.field().fit(X, V)
+    field = region_field(spec).fit(X, V)
     ref = field.predict_modes(Xq)
     heading = np.linspace(0, 350, len(Xq))
     got = client.post(

@@ -14,6 +14,7 @@ import psutil
 import pytest
 
 from bdf.region.evidence import encode_tile, increments
+from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
 from service.lanes import Lane
 from service.maps import REJECTED, UNTRACKED_WARNING, PosteriorCache, RegionMaps
@@ -181,7 +182,7 @@ def assert_map_is_the_field(maps, spec, X, V, version):
     """The served map at ``version``, settled, equals one field over the region's lattice
     fitted on (X, V) at once ("auto": its evidence maximum), everywhere (empty places
     included)."""
-    field = spec.field().fit(X, V)
+    field = region_field(spec).fit(X, V)
     Q = np.random.default_rng(9).uniform([0, 0, 0], [300, 200, 60], (400, 3))
     assert maps.refresh("town").version == version
     got = maps.predict("town", Q, min_version=version)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from bdf.hyperparameters import LOG_TOLERANCE
+from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
 from service.maps import RegionMaps
 from tests.service.test_store import SPEC
@@ -46,7 +47,7 @@ def test_a_map_built_by_many_uploads_is_the_single_fit(store, directions):
     1e-6)."""
     X, V, w = lanes(3000)
     one = RegionSpec.model_validate({**SPEC, "directions": directions})
-    field = one.field().fit(X, V, sample_weight=w)
+    field = region_field(one).fit(X, V, sample_weight=w)
     Q = np.random.default_rng(7).uniform([0, 0, 0], [300, 200, 60], (500, 3))
     want = field.predict_modes(Q)
     climate = np.sqrt((V**2).mean(0))
@@ -160,7 +161,7 @@ def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_versio
     assert calls == [False, True]
     assert settled.version == 2 and settled.evidence_gap == 0
     assert info.hyper["settled"] and info.hyper["evidence_version"] == 2 and info.hyper["evidence_gap"] == 0
-    single = spec.field().fit(X, V, sample_weight=w)
+    single = region_field(spec).fit(X, V, sample_weight=w)
     np.testing.assert_allclose(info.hyper["alpha"], single.alpha_, rtol=1e-6)
     np.testing.assert_allclose(settled.mean, single.predict(X[:5]), rtol=0, atol=1e-6 * np.abs(V).max())
     assert maps.stats.settled == 1
@@ -223,6 +224,6 @@ def test_a_version_waits_only_for_the_refresh_under_way_and_abandons_a_settling_
     assert ended == ["computed", "computed", "Abandoned", "computed", "computed"]
     assert maps.stats.abandoned == 1
     assert settled.version == 4 and settled.evidence_gap == 0 and info.hyper["evidence_version"] == 4
-    single = spec.field().fit(X, V, sample_weight=w)
+    single = region_field(spec).fit(X, V, sample_weight=w)
     np.testing.assert_allclose(info.hyper["alpha"], single.alpha_, rtol=1e-6)
     np.testing.assert_allclose(settled.mean, single.predict(X[:5]), rtol=0, atol=1e-6 * np.abs(V).max())

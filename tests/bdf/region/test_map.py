@@ -3,7 +3,7 @@ import pytest
 
 from bdf.posterior import KNOWN_WEIGHT
 from bdf.region.evidence import increments, region_total
-from bdf.region.map import RegionMap, compute_posterior
+from bdf.region.map import RegionMap, compute_posterior, region_field
 from bdf.region.spec import RegionSpec
 from tests.bdf.conftest import dense_weight
 from tests.bdf.region.conftest import LOCAL, SMALL
@@ -16,7 +16,7 @@ def test_the_region_is_one_field_everywhere_empty_places_included(small, local, 
     _, X, V = small
     tile_increments = increments(spec, X, V)
     post = compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tile_increments.items()}))
-    field = spec.field(post.alpha, post.beta).fit(X, V)
+    field = region_field(spec, post.alpha, post.beta).fit(X, V)
     Q = np.random.default_rng(2).uniform(spec.lower, spec.upper, (2000, 3))
     mean, std, known = RegionMap(spec, post).predict(Q)
     ref_mean, ref_std = field.predict(Q, return_std=True)
@@ -80,7 +80,7 @@ def test_noisy_inputs_in_tiles_equal_the_field(small):
     tile_increments = increments(spec, X, V, input_noise_std=noise)
     spec = spec.model_copy(update={"alpha": 1.0, "beta": 5.0})
     post = compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tile_increments.items()}))
-    field = spec.field().fit(X, V, input_noise_std=noise)
+    field = region_field(spec).fit(X, V, input_noise_std=noise)
     Q = np.random.default_rng(4).uniform(spec.lower, spec.upper, (500, 3))
     mean, std, _ = RegionMap(spec, post).predict(Q)
     ref_mean, ref_std = field.predict(Q, return_std=True)
