@@ -52,6 +52,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numba
 import numpy as np
 
 from bdf import features, noise, sparse
@@ -202,23 +203,23 @@ class Evidence:
             moments=None if self.moments is None else self.moments * factor,
         )
 
-    def two_sum(self, other: Evidence) -> tuple[Evidence, Evidence]:
-        """``(s, e)``, field by field: ``s = fl(self + other)`` and ``s + e = self + other``
-        exactly (Knuth's TwoSum; a statistic absent from one is its zeros)."""
-        pairs = {}
+    def accumulated(self, residual: Evidence, increment: Evidence) -> tuple[Evidence, Evidence]:
+        """``self + residual + increment`` as a new (sum, residual), statistic by statistic
+        (:func:`compensated_sum`; a statistic absent from some is their zeros)."""
+        sums, residuals = {}, {}
         for f in fields(self):
-            a, b = getattr(self, f.name), getattr(other, f.name)
-            if a is None and b is None:
-                pairs[f.name] = (None, None)
+            parts = [getattr(e, f.name) for e in (self, residual, increment)]
+            present = [np.asarray(a, float) for a in parts if a is not None]
+            if not present:
+                sums[f.name] = residuals[f.name] = None
                 continue
-            if (a is None or b is None) and f.name == "moments":
+            if f.name == "moments" and len(present) != 3:
                 raise ValueError("cannot add evidence with local-noise moments to evidence without")
-            a = np.zeros_like(b) if a is None else np.asarray(a, float)
-            b = np.zeros_like(a) if b is None else np.asarray(b, float)
-            pairs[f.name] = _two_sum(a, b)
-        sums, errors = ({k: v[i] for k, v in pairs.items()} for i in (0, 1))
-        sums["count"], errors["count"] = float(sums["count"]), float(errors["count"])
-        return Evidence(**sums), Evidence(**errors)
+            hi, lo, inc = (np.zeros_like(present[0]) if a is None else np.asarray(a, float) for a in parts)
+            sums[f.name], residuals[f.name] = _accumulated(hi, lo, inc)
+        for out in (sums, residuals):
+            out["count"] = float(out["count"])
+        return Evidence(**sums), Evidence(**residuals)
 
     def gram_band(self, stencil: sparse.Stencil) -> np.ndarray:
         """``Phi^T Phi`` on the stencil, as a band (K, M): ``c(o) D(midpoint)`` per pair
@@ -382,13 +383,20 @@ class SectorEvidence:
     def __sub__(self, other: SectorEvidence) -> SectorEvidence:
         return SectorEvidence(tuple(a - b for a, b in self._zip(other)), self._speeds(other, -1.0))
 
-    def two_sum(self, other: SectorEvidence) -> tuple[SectorEvidence, SectorEvidence]:
-        """``(s, e)``: ``s = fl(self + other)`` and ``s + e = self + other`` exactly, in
-        every statistic (:meth:`Evidence.two_sum`)."""
-        pairs = [a.two_sum(b) for a, b in self._zip(other)]
+    def accumulated(
+        self, residual: SectorEvidence, increment: SectorEvidence
+    ) -> tuple[SectorEvidence, SectorEvidence]:
+        """``self + residual + increment`` as a new (sum, residual) (:func:`compensated_sum`)."""
+        if not len(self.classes) == len(residual.classes) == len(increment.classes):
+            raise ValueError(
+                f"cannot add evidence of {len(self.classes)} and {len(increment.classes)} classes"
+            )
+        classes = zip(self.classes, residual.classes, increment.classes, strict=True)
+        pairs = [a.accumulated(r, b) for a, r, b in classes]
         speeds = (None, None)
-        if self.speeds is not None and other.speeds is not None:
-            speeds = _two_sum(self.speeds, other.speeds)
+        if self.speeds is not None and increment.speeds is not None:
+            lo = np.zeros_like(self.speeds) if residual.speeds is None else residual.speeds
+            speeds = _accumulated(self.speeds, lo, increment.speeds)
         return (
             SectorEvidence(tuple(p[0] for p in pairs), speeds[0]),
             SectorEvidence(tuple(p[1] for p in pairs), speeds[1]),
@@ -464,11 +472,28 @@ class SectorEvidence:
         return cls(tuple(parts), speeds)
 
 
-def _two_sum(a, b):
-    """``(s, e)`` with ``s = fl(a + b)`` and ``s + e = a + b`` exactly (Knuth's TwoSum)."""
-    total = a + b
-    part = total - a
-    return total, (a - (total - part)) + (b - part)
+def _accumulated(hi, lo, inc) -> tuple[np.ndarray, np.ndarray]:
+    """``hi + lo + inc`` (same shapes) as a new ``(hi, lo)``: one compiled pass."""
+    shape = np.shape(hi)
+    flat = [np.ascontiguousarray(a, dtype=float).reshape(-1) for a in (hi, lo, inc)]
+    out_hi, out_lo = np.empty_like(flat[0]), np.empty_like(flat[0])
+    _accumulate(*flat, out_hi, out_lo)
+    return out_hi.reshape(shape), out_lo.reshape(shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _accumulate(hi, lo, inc, out_hi, out_lo):  # pragma: no cover (compiled)
+    """Per value: ``s + e = hi + inc`` exactly (Knuth's TwoSum), ``e += lo``, then ``s + e``
+    renormalised the same way (strict IEEE: numba does not reassociate without fastmath)."""
+    for i in range(hi.shape[0]):
+        a, b = hi[i], inc[i]
+        s = a + b
+        v = s - a
+        e = (a - (s - v)) + (b - v) + lo[i]
+        t = s + e
+        w = t - s
+        out_lo[i] = (s - (t - w)) + (e - w)
+        out_hi[i] = t
 
 
 def compensated_sum(
@@ -478,7 +503,4 @@ def compensated_sum(
     twice float64's precision (double-double; ``residual`` None: zero). Adding an increment
     and later subtracting the same one returns the statistics before it to float64's
     precision of *them*, however much larger the increment was (a retraction)."""
-    first, error = total.two_sum(increment)
-    if residual is not None:
-        error = error + residual
-    return first.two_sum(error)
+    return total.accumulated(total.scaled(0.0) if residual is None else residual, increment)

@@ -130,7 +130,7 @@ def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
     X, V, _ = make_city.sample(1_000_000, np.random.default_rng(0))
     tile_increments = increments(spec, X, V)
     evidence = region_total(spec, {k: i.evidence for k, i in tile_increments.items()}).classes[klass]
-    grid, gamma, stencil = spec.grid, np.array(spec.gamma), spec.stencil
+    grid, gamma, stencil = spec.grid, np.array(spec.gamma), sparse.stencil_on(spec.grid, spec.kernel)
     band = evidence.gram_band(stencil)
     # the statistics the search sees, with the mode's prior mean (bdf.posterior.Posterior)
     w0 = _layer_prior(evidence, grid, gamma)

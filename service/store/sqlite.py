@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import sqlite3
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -27,6 +28,9 @@ class SqliteStore(MapStore):
             path = path / FILE_NAME
         self.path = path.absolute()
         self._timeout = busy_timeout_s
+        # this process's writers queue here, woken as the lock frees, not in SQLite's busy
+        # handler, whose sleeps let a stream of writers starve one past the timeout
+        self._writer = threading.Lock()
         self._init_connections()
         if self._current():
             return  # nothing to write: a store on read-only media opens, and serves reads
@@ -85,8 +89,15 @@ class SqliteStore(MapStore):
                 raise
             raise mapped from exc
 
+    @contextmanager
     def _write(self):
-        return self._transaction("BEGIN IMMEDIATE")
+        if not self._writer.acquire(timeout=self._timeout):
+            raise StoreUnavailable(f"other writes held the store for {self._timeout:g} s")
+        try:
+            with self._transaction("BEGIN IMMEDIATE") as q:
+                yield q
+        finally:
+            self._writer.release()
 
     def _read(self):
         return self._transaction("BEGIN")

@@ -602,7 +602,7 @@ def test_every_accepted_spec_takes_an_upload_and_answers_a_query_a_grid_and_a_sl
         assume(False)  # refused with a reason (the 422s above); accepted ones must be served
     # small maps here (a second each); the largest a spec may have is bounded by
     # MAX_COUPLINGS, and what it costs is the isolation issue's memory budget
-    assume(spec.grid.size * len(spec.stencil.offsets) * spec.sectors.classes <= 1e7)
+    assume(spec.couplings <= 1e7)
     assume(np.prod(spec.tile_counts) <= 1000)
     with tempfile.TemporaryDirectory() as tmp:
         store = open_store(f"sqlite:///{tmp}")
