@@ -498,3 +498,27 @@ def test_a_retraction_needs_the_uploads_own_rows_and_an_upload_still_in_the_map(
     after = store.snapshot("town")
     assert after.region.version == before.region.version + 1 == 2  # only the fit changed it
     assert after.region.observations == 30
+
+
+def test_tiles_checksummed_before_crc32_still_read_and_damage_still_shows(store, spec):
+    """Tiles written with a sha256 checksum (before CRC-32) are read as they were; a flipped
+    byte fails either kind."""
+    import hashlib
+
+    from service.store.base import checks_out, checksum
+
+    RegionMaps(store).upload("town", "a", *data(1, n=100))
+    blob = b"\x00\x01statistics" * 100
+    assert checks_out(blob, checksum(blob)) and checksum(blob).startswith("crc32:")
+    assert checks_out(blob, hashlib.sha256(blob).hexdigest())
+    damaged = blob[:-1] + b"\x00"
+    assert not checks_out(damaged, checksum(blob)) and not checks_out(
+        damaged, hashlib.sha256(blob).hexdigest()
+    )
+    before = store.snapshot("town").evidence
+    info = store.region("town")
+    with store._write() as q:
+        for key, stats in q("SELECT key, stats FROM tiles WHERE region_id = ?", (info.region_id,)):
+            sha = hashlib.sha256(bytes(stats)).hexdigest()
+            q("UPDATE tiles SET checksum = ? WHERE region_id = ? AND key = ?", (sha, info.region_id, key))
+    assert_evidence_equal(store.snapshot("town").evidence, before, rtol=0)
