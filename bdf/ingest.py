@@ -84,14 +84,32 @@ def read_table(path) -> dict[str, np.ndarray]:
 
 
 def float_column(table, name, path) -> np.ndarray:
+    """Column ``name`` of ``table`` as floats (missing values NaN); ``ValueError`` names the
+    column and the first row that is not a number."""
     if name not in table:
         raise ValueError(f"{path}: missing column {name!r} (have {sorted(table)})")
     col = table[name]
-    return (
-        np.array([np.nan if v is None else v for v in col], dtype=float)
-        if col.dtype == object
-        else np.asarray(col, dtype=float)
-    )
+    try:
+        return (
+            np.array([np.nan if v is None else v for v in col], dtype=float)
+            if col.dtype == object
+            else np.asarray(col, dtype=float)
+        )
+    except (TypeError, ValueError):
+        row = next(i for i, v in enumerate(col) if not _is_number(v))
+        raise ValueError(
+            f"{path}: column {name!r}, data row {row + 1}: {str(col[row])!r} is not a number"
+        ) from None
+
+
+def _is_number(value) -> bool:
+    if value is None:
+        return True
+    try:
+        float(value)
+    except (TypeError, ValueError):
+        return False
+    return True
 
 
 #: ADS-B state-vector schemas, by the columns that name them: latitude, longitude, altitude,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
 import json
 import logging
 import os
@@ -20,6 +21,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pydantic
 
 NO_ROUTE = 3
 #: exit status of ``bdf assess`` when the vehicle cannot fly the route
@@ -71,8 +73,24 @@ def _region_list(args) -> int:
 def _region_show(args) -> int:
     with _client(args) as bdf:
         r = bdf.region(args.name)
-    _print_json(r.__dict__)
+    _print_json(_iso_times(r.__dict__))
     return 0
+
+
+def _iso_times(value):
+    """``value`` with every time (``*_at``: epoch seconds) as ISO 8601 UTC."""
+    if isinstance(value, dict):
+        return {
+            k: _iso(v) if k.endswith("_at") and isinstance(v, int | float) else _iso_times(v)
+            for k, v in value.items()
+        }
+    return [_iso_times(v) for v in value] if isinstance(value, list) else value
+
+
+def _iso(seconds: float) -> str:
+    import datetime
+
+    return datetime.datetime.fromtimestamp(seconds, datetime.UTC).isoformat(timespec="seconds")
 
 
 def _region_delete(args) -> int:
@@ -111,9 +129,13 @@ def _send_observations(args, kind: str) -> int:
             kw["chunk_size"] = args.chunk_size
         result = getattr(bdf, kind)(args.name, obs.X, obs.V, **kw)
     done = {"upload": "uploaded", "fit": "fitted", "retract": "retracted"}[kind]
+    # a retraction's "rejected" are the rows its upload had rejected: never in the map
+    rejected = "never applied" if kind == "retract" else "rejected"
+    reasons = ", ".join(f"{n} {why}" for why, n in result.rejected.items() if n)
     print(
         f"{done} {result.accepted} observations {'from' if kind == 'retract' else 'to'} {args.name!r} "
-        f"(rejected {result.rejected}, {result.chunks} request(s), {result.replayed_chunks} replayed); "
+        f"({rejected} {sum(result.rejected.values())}{f': {reasons}' if reasons else ''}, "
+        f"{result.chunks} request(s), {result.replayed_chunks} replayed); "
         f"region version {result.region_version}"
     )
     for warning in result.warnings:
@@ -640,8 +662,52 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: options whose value may start with a minus (a negative coordinate first)
+NUMERIC_OPTIONS = ("--start", "--goal", "--points", "--bbox")
+
+
+def _glued(argv: list[str]) -> list[str]:
+    """``--start -16604,29825,1750`` as ``--start=-16604,...``: argparse would take a value
+    starting with a minus for an option (and say "expected one argument")."""
+    out, rest = [], list(argv)
+    while rest:
+        arg = rest.pop(0)
+        negative = bool(rest) and rest[0][:1] == "-" and (rest[0][1:2].isdigit() or rest[0][1:2] == ".")
+        if arg in NUMERIC_OPTIONS and negative:
+            arg = f"{arg}={rest.pop(0)}"
+        out.append(arg)
+    return out
+
+
+def _validation_messages(exc: pydantic.ValidationError) -> str:
+    """What is wrong, by field, without the values given."""
+    parts = []
+    for error in exc.errors():
+        where = ".".join(map(str, error["loc"]))
+        parts.append(f"{where}: {error['msg']}" if where else error["msg"])
+    return "; ".join(parts)
+
+
+def _parser_of(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:
+    """The (sub)command's own parser of ``args``: its usage and options, for its errors."""
+    while True:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        name = getattr(args, subs[0].dest, None) if subs else None
+        if name not in (subs[0].choices if subs else {}):
+            return parser
+        parser = subs[0].choices[name]
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(_glued(sys.argv[1:] if argv is None else list(argv)))
+    if extra:  # told by the command that got them, with its own usage, and the likely option
+        own = _parser_of(parser, args)
+        options = [o for action in own._actions for o in action.option_strings]
+        near = difflib.get_close_matches(extra[0].split("=")[0], options, n=1)
+        own.error(
+            f"unrecognized arguments: {' '.join(extra)}" + (f" (did you mean {near[0]}?)" if near else "")
+        )
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
@@ -650,8 +716,15 @@ def main(argv=None) -> int:
     try:
         return args.run(args)
     except BDFError as exc:
-        print(f"bdf: error: {exc}", file=sys.stderr)
+        hint = " (give the service's token: --token or BDF_TOKEN)" if exc.status in (401, 403) else ""
+        print(f"bdf: error: {exc}{hint}", file=sys.stderr)
         return 2 if 400 <= exc.status < 500 else 1
+    except FileNotFoundError as exc:
+        print(f"bdf: error: no such file: {exc.filename or exc}", file=sys.stderr)
+        return 2
+    except pydantic.ValidationError as exc:  # its messages only: the input may hold secrets (tokens)
+        print(f"bdf: error: {_validation_messages(exc)}", file=sys.stderr)
+        return 2
     except ValueError as exc:
         print(f"bdf: error: {exc}", file=sys.stderr)
         return 2

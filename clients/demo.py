@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -79,11 +81,22 @@ def run(
         print(f"  wrote {path}")
     if svc is not None:
         print(
-            f"\nto browse the map: bdf serve --data-dir {out / 'bdf-data'}, then open "
+            f"\nto browse the map: {_command()} serve --data-dir {out / 'bdf-data'}, then open "
             "http://127.0.0.1:8000/viewer"
         )
     report["route"] = plan
     return report
+
+
+def _command() -> str:
+    """How to run ``bdf`` from here: itself where it is on PATH, else the path of the one
+    beside this interpreter (``make demo`` installs it in .venv, which is not activated)."""
+    here = Path(sys.executable).with_name("bdf")
+    if here.exists() and shutil.which("bdf") != str(here):
+        with contextlib.suppress(ValueError):
+            return str(here.relative_to(Path.cwd()))
+        return str(here)
+    return "bdf"
 
 
 def _build(bdf: BDFClient, spec, obs, test, report: dict) -> None:

@@ -31,7 +31,7 @@ from pydantic import BaseModel, Field
 from bdf import sectors
 from bdf.region.route import CHUNK_SAMPLES, ENVELOPE_SAMPLES_PER_POINT, MAX_ROUTE_POINTS, SAMPLE_M
 from bdf.region.route import samples as route_samples
-from bdf.region.spec import RegionSpec, key_str
+from bdf.region.spec import REGION_NAME, REGION_NAME_RULE, RegionSpec, key_str
 from service import formats, problems, slices, wire
 from service.auth import PUBLIC, require
 from service.jobs import Jobs
@@ -45,14 +45,13 @@ from service.wire import ARROW, GEOJSON, JSON, NPZ, PARQUET, PNG
 
 log = logging.getLogger("bdf.service")
 VIEWER_HTML = (pathlib.Path(__file__).parent / "viewer.html").read_text()
-NAME = r"^[a-z0-9][a-z0-9_-]{0,62}$"
 #: the viewer runs its own inline script and style and draws PNGs fetched from this origin
 #: as blob: URLs; nothing else loads, and no other page may frame it
 VIEWER_POLICY = (
     "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src blob:; "
     "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
 )
-RegionName = Annotated[str, Path(pattern=NAME, description="region name")]
+RegionName = Annotated[str, Path(pattern=REGION_NAME, description=f"region name: {REGION_NAME_RULE}")]
 
 
 #: what an Arrow or Parquet body of observations holds
@@ -282,6 +281,7 @@ BOX2 = rf"^{NUMBER}(?:,{NUMBER}){{3}}$"
 STEP = rf"^{POSITIVE}(?:,{POSITIVE},{POSITIVE})?$"
 #: what the patterns mean, in a 422
 PATTERNS = {
+    REGION_NAME: REGION_NAME_RULE,
     BOX3: "6 comma-separated numbers",
     BOX2: "4 comma-separated numbers",
     STEP: "1 or 3 comma-separated positive numbers",

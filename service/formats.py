@@ -794,15 +794,16 @@ def encode_tube(
             geo.tolist(), X.tolist(), mean.tolist(), std.tolist(), strict=True
         )
     ]
-    content = {
-        "type": "FeatureCollection",
-        "features": features,
-        "properties": {
-            "max_std_mps": tube.max_std_mps,
-            "component": component,
-            "region_version": pred.version,
-        },
-    }
+    properties = {"max_std_mps": tube.max_std_mps, "component": component, "region_version": pred.version}
+    if not features:  # say why, and what bound would hold some
+        worst = bounded.max(axis=-1)[wide]
+        properties["note"] = (
+            f"no voxel is inside the tube: the least std among the grid's known voxels is "
+            f"{worst.min():.3g} m/s; raise max_std_mps above it"
+            if worst.size
+            else "no voxel of the grid is known (data within the kernel's reach) for this tube"
+        )
+    content = {"type": "FeatureCollection", "features": features, "properties": properties}
     return JSONResponse(content, media_type=GEOJSON, headers=headers)
 
 

@@ -74,6 +74,9 @@ class Bounds(BaseModel):
         return self
 
 
+#: A region's name (its URL path segment), and the rule it states in words
+REGION_NAME = r"^[a-z0-9][a-z0-9_-]{0,62}$"
+REGION_NAME_RULE = "1 to 63 lowercase letters, digits, _ and -, starting with a letter or digit"
 #: A sum of non-negative terms may round to this fraction of its largest below zero.
 ROUNDING = 1e-9
 
@@ -147,7 +150,7 @@ class RegionSpec(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    name: Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9_-]{0,62}$")]
+    name: Annotated[str, Field(pattern=REGION_NAME, description=REGION_NAME_RULE)]
     origin: Origin
     bounds_m: Bounds
     tile_size_m: PositiveVec3

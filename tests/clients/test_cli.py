@@ -2,6 +2,7 @@
 one-line errors with meaningful exit codes."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -98,6 +99,37 @@ def test_errors_are_one_line_with_meaningful_exit_codes(server, tmp_path):
             client.create_region(SPEC)
     run = bdf("upload", NAME, str(bad), "--url", server.url)
     assert run.returncode == 2 and "need the columns" in run.stderr
+    words = tmp_path / "words.csv"
+    words.write_text("x,y,z,ve,vn,vu\n1,2,3,4,5,6\nabc,2,3,4,5,6\n")
+    run = bdf("upload", NAME, str(words), "--url", server.url)
+    assert run.returncode == 2 and "column 'x', data row 2: 'abc' is not a number" in run.stderr, run.stderr
+    run = bdf("upload", NAME, str(tmp_path / "nosuch.parquet"), "--url", server.url)
+    assert run.returncode == 2 and "no such file: " in run.stderr and "nosuch.parquet" in run.stderr
+    # a negative first coordinate is a value, not an option (argparse said "expected one argument")
+    run = bdf("query", NAME, "--points", "-5,10,20", "--url", server.url)
+    assert run.returncode == 2 and "outside" in run.stderr, run.stderr
+
+
+def test_usage_errors_come_from_the_command_and_secrets_are_not_echoed(tmp_path):
+    """A typo is told by the command that got it, with its usage and the likely option
+    (the top-level usage came); a short token at startup is refused without echoing it."""
+    run = bdf("region", "list", "--urll", "x")
+    assert run.returncode == 2 and "usage: bdf region list" in run.stderr
+    assert "unrecognized arguments: --urll x (did you mean --url?)" in run.stderr
+    env = {**os.environ, "BDF_TOKENS": json.dumps({"sekrit-tok": ["read"]}), "BDF_DATA_DIR": str(tmp_path)}
+    run = subprocess.run(
+        [sys.executable, "-m", "clients.cli", "serve", "--port", "1"], capture_output=True, text=True, env=env
+    )
+    assert run.returncode == 2 and "shorter than 16 characters" in run.stderr and "sekrit" not in run.stderr
+
+
+def test_region_show_prints_times_as_iso_8601(server):
+    with BDFClient(server.url) as client:
+        if NAME not in [r.spec["name"] for r in client.regions()]:
+            client.create_region(SPEC)
+    run = bdf("region", "show", NAME, "--url", server.url)
+    shown = json.loads(run.stdout)
+    assert run.returncode == 0 and shown["created_at"].endswith("+00:00") and "T" in shown["created_at"]
 
 
 def test_slice_plot_greys_the_mean_where_no_tile_has_data(tmp_path):
@@ -141,6 +173,7 @@ def test_retract_undoes_an_upload_of_the_same_file(server, tmp_path):
     run = bdf("retract", "undo", str(files[1]), "--chunk-size", "200", *url)
     assert run.returncode == 0, run.stderr
     assert "retracted 300 observations from 'undo'" in run.stdout and "2 request(s)" in run.stdout
+    assert "(never applied 0, 2 request(s)" in run.stdout and "rejected" not in run.stdout
     with BDFClient(server.url) as client:
         assert client.region("undo").observations == 300
     run = bdf("retract", "undo", str(files[1]), "--chunk-size", "100", *url)  # other chunks: other keys

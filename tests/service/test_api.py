@@ -163,6 +163,13 @@ def test_chunked_uploads_in_three_formats_replay_and_query_equal_the_library(cli
     assert len(features) == expected.sum()
     lat, lon, alt = spec.frame().to_geodetic(mesh[expected][:1])[0]
     np.testing.assert_allclose(features[0]["geometry"]["coordinates"], [lon, lat, alt], rtol=1e-12)
+    # an empty tube says why, and the least bound that holds a voxel
+    least = float(g_std.max(1).min())
+    r = client.get(f"/v1/regions/{NAME}/tubes", params={**params, "max_std_mps": least / 2})
+    assert (
+        r.json()["features"] == []
+        and f"least std among the grid's known voxels is {least:.3g}" in (r.json()["properties"]["note"])
+    )
     # one named component: a superset of the all-component tube
     r = client.get(f"/v1/regions/{NAME}/tubes", params={**params, "component": "u"}, headers={"Accept": NPZ})
     np.testing.assert_array_equal(np.load(io.BytesIO(r.content))["mask"].ravel(), g_std[:, 2] < bound)
@@ -535,7 +542,8 @@ def test_limits_and_errors_are_problem_json(live_server):
                 422,
                 "max_std_mps",
             ),
-            (c.get("/v1/regions/Bad%20Name"), 422, "pattern"),
+            (c.get("/v1/regions/Bad%20Name"), 422, "must be 1 to 63 lowercase letters, digits, _ and -"),
+            (c.post("/v1/regions", json={**SPEC, "name": "Paris"}), 422, "name: must be 1 to 63 lowercase"),
             (
                 c.post("/v1/regions", json={**SPEC, "tile_size_m": [1, 1, 1]}),
                 422,
