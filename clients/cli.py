@@ -269,7 +269,7 @@ def _vehicle(text: str):
 
 def _assess(args) -> int:
     """``bdf assess``: a GeoJSON route's metrics on the map and the vehicle's verdict."""
-    doc = json.loads(Path(args.route).read_text())
+    doc = _one_route(json.loads(Path(args.route).read_text()), args.route_name)
     with _client(args) as bdf:
         vehicle = None if args.vehicle is None else _vehicle(args.vehicle)
         got = bdf.assess_route(args.name, doc, max_std_mps=args.max_std_mps, vehicle=vehicle)
@@ -285,6 +285,28 @@ def _assess(args) -> int:
     )
     print(f"envelope: {'flyable' if not failed else 'not flyable: ' + ', '.join(failed)} ({limits})")
     return 0 if not failed else NOT_FLYABLE
+
+
+def _one_route(doc, name: str | None):
+    """The route of a GeoJSON document: itself, its one LineString, or the one named ``name``
+    (``properties.name``: ``bdf plan --out`` writes two)."""
+    if not (isinstance(doc, dict) and doc.get("type") == "FeatureCollection"):
+        return doc
+    lines = [
+        f
+        for f in doc.get("features") or []
+        if isinstance(f, dict) and (f.get("geometry") or {}).get("type") == "LineString"
+    ]
+    names = [str((f.get("properties") or {}).get("name", i)) for i, f in enumerate(lines)]
+    if name is not None:
+        if name not in names:
+            raise ValueError(f"the collection holds no route named {name!r} (it holds {', '.join(names)})")
+        return lines[names.index(name)]
+    if len(lines) != 1:
+        raise ValueError(
+            f"the collection holds {len(lines)} routes ({', '.join(names)}): pick one with --route"
+        )
+    return lines[0]
 
 
 def _data_fetch(args) -> int:
@@ -658,6 +680,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--max-std-mps", type=float, help="tube bound (default: the file's max_std_mps property)")
     p.add_argument("--vehicle", help="evtol, fixed-wing or a JSON object (default: the file's, else evtol)")
+    p.add_argument(
+        "--route",
+        dest="route_name",
+        help="the route of a collection to assess, by its name (bdf plan writes two)",
+    )
     p.set_defaults(run=_assess)
     return parser
 

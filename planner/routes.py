@@ -148,9 +148,11 @@ class RoutePlan:
     status: str
 
     def geojson(self) -> dict:
-        """Both routes as GeoJSON LineStrings ([lon, lat, alt_m]) with their metrics, the
+        """Both routes as GeoJSON LineStrings ([lon, lat, alt_m]) with their ``metrics``, the
         time at each point (``times_s``, seconds from departure, the convention of
-        ``coordTimes`` in seconds) and the envelope's verdict."""
+        ``coordTimes`` in seconds), the plan's tube bound (``max_std_mps``: what
+        ``routes/assess`` reads, so assessing a route of the file gives the plan's own
+        figures) and the envelope's verdict."""
         features = []
         for r in (self.route, self.baseline):
             if r is None:
@@ -159,7 +161,8 @@ class RoutePlan:
             properties = {
                 "name": r.name,
                 "region": self.region.name,
-                **r.metrics,
+                "metrics": r.metrics,
+                "max_std_mps": self.costmap.weights.max_std_mps,
                 "times_s": r.times_s.tolist(),
             }
             if r.envelope is not None:

@@ -107,7 +107,24 @@ def test_cli_plans_from_wgs84_writes_geojson_and_png_and_fails_in_one_line(servi
     assert run.returncode == 0, run.stderr
     assert "risk-aware" in run.stdout and "integrated_risk_m" in run.stdout
     features = json.loads(out.read_text())["features"]
-    assert features[0]["properties"]["in_tube_fraction"] == pytest.approx(1.0, abs=1e-12)  # flown, all of it
+    assert features[0]["properties"]["metrics"]["in_tube_fraction"] == pytest.approx(1.0, abs=1e-12)  # flown
+    # each route of the file, assessed, gives the plan's own figures (its tube bound, times)
+    for feature in features:
+        name = feature["properties"]["name"]
+        judged = bdf_cli(
+            "assess", "corridor", str(out), "--route", name, "--url", service.url, "--vehicle", "evtol"
+        )
+        assert judged.returncode in (0, 4), judged.stderr
+        risk = float(
+            next(
+                line.split()[1] for line in judged.stdout.splitlines() if line.startswith("integrated_risk_m")
+            )
+        )
+        assert risk == pytest.approx(feature["properties"]["metrics"]["integrated_risk_m"], rel=1e-3), name
+    both = bdf_cli("assess", "corridor", str(out), "--url", service.url)
+    assert (
+        both.returncode == 2 and "holds 2 routes (risk-aware, shortest): pick one with --route" in both.stderr
+    )
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
     bad = bdf_cli(*common, "--start", "150,60,30", "--goal", "280,100,30")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "outside the tube" in bad.stderr
