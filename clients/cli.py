@@ -152,6 +152,7 @@ def _query(args) -> int:
     else:
         frame, P = read_points(args.file)
     with _client(args) as bdf:
+        frame = _frame(bdf, args.name, P, frame)
         pred = bdf.query(args.name, P, frame=frame)
     lines = ["p0,p1,p2,ve,vn,vu,std_e,std_n,std_u,known"]
     for p, m, sd, k in zip(P, pred.mean, pred.std, pred.known, strict=True):
@@ -163,6 +164,22 @@ def _query(args) -> int:
     else:
         sys.stdout.write(text)
     return 0
+
+
+def _frame(bdf, region: str, P: np.ndarray, frame: str | None) -> str:
+    """The frame of points ``P`` given with ``frame`` (None: not said, ENU metres): points
+    that read as latitude and longitude within a degree of the region's origin, given
+    without a frame, are refused (as ENU metres they would be answered for the origin)."""
+    if frame is not None:
+        return frame
+    origin = bdf.region(region).spec["origin"]
+    near = (np.abs(P[:, 0] - origin["lat"]) < 1.0) & (np.abs(P[:, 1] - origin["lon"]) < 1.0)
+    if near.all():
+        raise ValueError(
+            f"{P[0, :2].tolist()} look like latitude and longitude near region {region!r}'s origin "
+            f"({origin['lat']}, {origin['lon']}): add --frame wgs84 (or --frame enu for metres)"
+        )
+    return "enu"
 
 
 def _grid_args(args) -> dict:
@@ -228,14 +245,15 @@ def _plan(args) -> int:
 
     weights = CostWeights(max_std_mps=args.max_std_mps, risk=args.w_risk, flow=args.w_flow, tube=args.tube)
     no_fly = tuple(Box(tuple(b[:3]), tuple(b[3:])) for b in (_floats(t, 6, "--no-fly") for t in args.no_fly))
+    start, goal = _floats(args.start, 3, "--start"), _floats(args.goal, 3, "--goal")
     with _client(args) as bdf:
         plan = plan_route(
             bdf,
             args.region,
-            _floats(args.start, 3, "--start"),
-            _floats(args.goal, 3, "--goal"),
+            start,
+            goal,
             weights=weights,
-            frame=args.frame,
+            frame=_frame(bdf, args.region, np.array([start, goal]), args.frame),
             altitude_m=None
             if args.altitude_m is None
             else tuple(_floats(args.altitude_m, 2, "--altitude-m")),
@@ -602,7 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--points", help="'x,y,z;x,y,z;...' (or lat,lon,alt_m with --frame wgs84)")
     src.add_argument("--file", type=Path, help="CSV/Parquet/JSON with x,y,z or lat,lon,alt_m columns")
-    p.add_argument("--frame", choices=["enu", "wgs84"], default="enu", help="frame of --points")
+    p.add_argument("--frame", choices=["enu", "wgs84"], help="frame of --points (default enu: metres)")
     p.add_argument("--out", help="CSV file (default: stdout)")
     p.set_defaults(run=_query)
 
@@ -641,7 +659,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--region", required=True, help="region name")
     p.add_argument("--start", required=True, help="x,y,z ENU metres (or lat,lon,alt_m with --frame wgs84)")
     p.add_argument("--goal", required=True, help="as --start")
-    p.add_argument("--frame", choices=["enu", "wgs84"], default="enu", help="frame of --start/--goal")
+    p.add_argument("--frame", choices=["enu", "wgs84"], help="frame of --start/--goal (default enu: metres)")
     p.add_argument("--max-std-mps", type=float, required=True, help="tube bound on the largest std (m/s)")
     p.add_argument(
         "--tube",

@@ -105,6 +105,13 @@ def test_errors_are_one_line_with_meaningful_exit_codes(server, tmp_path):
     assert run.returncode == 2 and "column 'x', data row 2: 'abc' is not a number" in run.stderr, run.stderr
     run = bdf("upload", NAME, str(tmp_path / "nosuch.parquet"), "--url", server.url)
     assert run.returncode == 2 and "no such file: " in run.stderr and "nosuch.parquet" in run.stderr
+    # latitude and longitude given without a frame are not read as metres at the origin
+    run = bdf("query", NAME, "--points", "48.0005,2.0005,10", "--url", server.url)
+    assert run.returncode == 2 and "look like latitude and longitude" in run.stderr, run.stderr
+    assert (
+        bdf("query", NAME, "--points", "48.0005,2.0005,10", "--frame", "enu", "--url", server.url).returncode
+        == 0
+    )
     # a negative first coordinate is a value, not an option (argparse said "expected one argument")
     run = bdf("query", NAME, "--points", "-5,10,20", "--url", server.url)
     assert run.returncode == 2 and "outside" in run.stderr, run.stderr
