@@ -337,12 +337,15 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, cr
             f"no path from {start.tolist()} to {goal.tolist()} avoids the no-fly boxes "
             f"within {run['time_s']} s ({short.status})"
         )
-    route = None
+    route, status = None, solution.status
     measure = (client, region, spec, costmap, craft)
     if solution.exact:
         route = _route("risk-aware", solution.waypoints, solution, *measure, kept_in_tube=risk.hard_tube)
+    elif straight:  # the budget ran out, but the straight line is a route (in the tube, if hard)
+        route = _route("risk-aware", np.array([start, goal]), None, *measure, kept_in_tube=risk.hard_tube)
+        status = f"{solution.status}: the straight line, valid for the plan, is the route"
     baseline = _route("shortest", baseline_path, short, *measure)
-    return RoutePlan(spec, costmap, route, baseline, solution.status)
+    return RoutePlan(spec, costmap, route, baseline, status)
 
 
 def _route(name, planned, solution, client, region, spec, costmap, craft, kept_in_tube=False) -> Route:

@@ -67,6 +67,30 @@ def test_hard_tube_route_stays_below_the_bound_where_the_straight_line_does_not(
     np.testing.assert_allclose(plan.region.frame().to_enu([lat], [lon], [alt])[0], START, atol=1e-6)
 
 
+def test_a_straight_line_in_the_tube_is_the_route_when_the_planner_runs_out_of_budget(service, monkeypatch):
+    """Along the arch's north leg the straight line stays in the tube. When the planner
+    ends its budget without a path (its result replaced by a timeout here), the plan's
+    route is that line (it was "no risk-aware route", exit 3)."""
+    import planner.routes
+    from planner.search import PlanResult
+
+    solve = planner.routes.solve_in_workers
+
+    def timed_out(problems):
+        found = solve(problems)
+        return [PlanResult(np.zeros((0, 3)), "Timeout", False, np.inf, 5.0, None, {}, 0), *found[1:]]
+
+    monkeypatch.setattr(planner.routes, "solve_in_workers", timed_out)
+    start, goal = (40.0, 185.0, 30.0), (260.0, 185.0, 30.0)
+    with BDFClient(service.url) as bdf:
+        plan = plan_route(bdf, "corridor", start, goal, weights=CostWeights(max_std_mps=BOUND))
+        along = bdf.query("corridor", densify(np.array([start, goal]), 10.0)).std.max(axis=1)
+    assert along.max() <= BOUND  # the straight line is valid
+    assert plan.route is not None and plan.status.startswith("Timeout: the straight line"), plan.status
+    np.testing.assert_allclose(plan.route.enu, [start, goal], atol=1e-9)
+    assert plan.route.metrics["in_tube_fraction"] == pytest.approx(1.0)
+
+
 def bdf_cli(*args):
     return subprocess.run(
         [sys.executable, "-m", "clients.cli", *args], capture_output=True, text=True, timeout=120
