@@ -104,7 +104,7 @@ def test_auto_hyperparameters_are_calibrated():
     np.testing.assert_allclose(1 / np.sqrt(field.beta_), 0.2, rtol=0.1)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25, deadline=None, derandomize=True)  # seeded: the same examples every run
 @given(
     cuts=st.lists(st.integers(1, 299), min_size=1, max_size=5, unique=True),
     seed=st.integers(0, 2**16),
