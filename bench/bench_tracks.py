@@ -34,7 +34,7 @@ import numpy as np
 from bench_core import publish, rows_table  # bench/ is on the path when run as a script
 
 from bdf import ingest, metrics
-from bdf.region.evidence import region_total
+from bdf.region.evidence import accepted_increments, region_total
 from bdf.region.map import (
     FASTEST_QUANTILE,
     MODE_SHARE,
@@ -47,7 +47,6 @@ from bdf.region.spec import RegionSpec
 from clients import samples
 from clients.local import LocalService
 from clients.sdk import BDFClient
-from service.maps import observations_evidence
 
 #: the bound's definition, the service's (:mod:`bdf.region.map`), computed here from the rows
 #: themselves at each altitude exactly: an independent check of the service's histogram
@@ -117,7 +116,7 @@ def held_out(spec: RegionSpec, rmap: RegionMap, train, test) -> dict:
 def library_map(spec: RegionSpec, train, tracks: bool) -> RegionMap:
     """The map of the rows through the library's own path (no tiles kept, no HTTP)."""
     kw = {"track": train.flight, "time": train.time} if tracks else {}
-    increments, _ = observations_evidence(spec, train.X, train.V, **kw)
+    increments, _ = accepted_increments(spec, train.X, train.V, **kw)
     evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
     return RegionMap(spec, compute_posterior(spec, evidence))
 
@@ -181,7 +180,7 @@ def additivity(train, test, lower, upper, counts=(10, 100)) -> list[dict]:
             for k in np.random.default_rng(count).permutation(count):
                 part = chunks[k]
                 kw = {"track": train.flight[part], "time": train.time[part]}
-                increments, _ = observations_evidence(spec, train.X[part], train.V[part], **kw)
+                increments, _ = accepted_increments(spec, train.X[part], train.V[part], **kw)
                 for key, inc in increments.items():
                     total[key] = inc.evidence if key not in total else total[key] + inc.evidence
             rmap = RegionMap(spec, compute_posterior(spec, region_total(spec, total)))

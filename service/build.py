@@ -3,7 +3,7 @@
 The client plans **slices** from the files' metadata: runs of Parquet row groups, row
 ranges of an Arrow IPC file or stream, byte ranges of a CSV file (cut at line ends), a
 gzipped CSV whole. One task per slice reads it in batches of at most ``batch_rows``
-rows, turns each batch into tile increments (:func:`observations_evidence`, the same
+rows, turns each batch into tile increments (:func:`accepted_increments`, the same
 function uploads use) and sums them, so a worker's memory is set by the batch and the
 region, never by the file. The slices' sums are added pairwise in a tree on the workers
 (statistics are additive, so the sum is the batch's) and one ``store.apply`` commits the
@@ -43,11 +43,11 @@ from distributed.comm import CommClosedError
 from tqdm import tqdm
 
 from bdf import ingest
-from bdf.region.evidence import Increment, region_total
+from bdf.region.evidence import REJECTED, UNTRACKED_WARNING, Increment, accepted_increments, region_total
 from bdf.region.map import compute_posterior
 from bdf.region.spec import RegionSpec, TileKey
 from service import formats, wire
-from service.maps import REJECTED, UNTRACKED_WARNING, fitted, observations_evidence, require_accepted
+from service.maps import fitted, require_accepted
 from service.problems import Problem
 from service.store import MapStore
 
@@ -235,13 +235,13 @@ def batch_evidence(spec: RegionSpec, batch: pa.RecordBatch | pa.Table) -> Part:
         }
         X, V, keep, dropped = ingest.adsb_state(table, spec.frame())
         track, time = ingest.adsb_tracks(table)
-        increments, summary = observations_evidence(spec, X, V, track=track[keep], time=time[keep])
+        increments, summary = accepted_increments(spec, X, V, track=track[keep], time=time[keep])
         summary["rejected"]["non_finite"] += dropped["incomplete"]
         summary["rejected"]["on_ground"] = dropped["on_ground"]
         return Part(increments, summary)
     obs = formats.table_observations(spec, batch)
     return Part(
-        *observations_evidence(
+        *accepted_increments(
             spec, obs.X, obs.V, obs.input_noise_std, obs.sample_weight, track=obs.track, time=obs.time
         )
     )

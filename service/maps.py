@@ -36,13 +36,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bdf import hyperparameters, ingest
+from bdf import hyperparameters
 from bdf.posterior import Mixture, Modes, Posterior
-from bdf.region.evidence import Increment, increments, region_total
+from bdf.region.evidence import accepted_rows_increments, checked_rows, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.route import assess as assess_route
-from bdf.region.spec import RegionSpec, TileKey
-from bdf.validation import noise_std_rows, rows_all
+from bdf.region.spec import RegionSpec
 from service import lanes
 from service.store import (
     MapStore,
@@ -54,14 +53,6 @@ from service.store import (
 )
 
 log = logging.getLogger(__name__)
-#: why a row is not learned from: every upload's ``rejected`` counts each, in this order
-REJECTED = ("non_finite", "outside_region", "implausible_speed", "implausible_noise", "implausible_weight")
-#: what an answer says of its accepted rows without a track id (their count: ``untracked``)
-UNTRACKED_WARNING = (
-    "rows without a track id (untracked) were counted as independent observations: samples of one "
-    "track a second apart are not, and the map then trusts them far too much; send the columns "
-    "track and t"
-)
 
 
 class Unprocessable(ValueError):
@@ -307,14 +298,14 @@ class RegionMaps:
         ``progress(fraction)`` follows the per-tile work. With no row accepted it raises
         :class:`Unprocessable` and stores nothing.
         """
-        rows = _checked(X, V, input_noise_std, sample_weight, track, time)
+        rows = checked_rows(X, V, input_noise_std, sample_weight, track, time)
         digest = payload_digest(upload_kind(replace), *rows)
         first = self.store.upload_result(region, upload_id, digest)
         if first is not None:
             return first
         info = self.store.region(region)
         spec = info.spec
-        increments, summary = _evidence(spec, *rows, progress=_checkpoint(progress))
+        increments, summary = _accepted(spec, rows, _checkpoint(progress))
         require_accepted(summary, "fit" if replace else "upload")
         post = None
         if replace:
@@ -353,9 +344,9 @@ class RegionMaps:
         """Retract the applied upload ``upload_id``, given its rows again (as sent to
         :meth:`upload`): the region's map becomes the map without it (the store's
         ``retract``); once per upload id, a retry replays the result."""
-        rows = _checked(X, V, input_noise_std, sample_weight, track, time)
+        rows = checked_rows(X, V, input_noise_std, sample_weight, track, time)
         info = self.store.region(region)
-        increments, summary = _evidence(info.spec, *rows, progress=_checkpoint(None))
+        increments, summary = _accepted(info.spec, rows, _checkpoint(None))
         result = self.store.retract(
             region,
             info.region_id,
@@ -887,94 +878,15 @@ def upload_kind(replace: bool) -> str:
 
 def upload_digest(kind: str, X, V, input_noise_std=None, sample_weight=None, track=None, time=None) -> str:
     """The ledger's digest of an upload (``kind``: :func:`upload_kind`) of these rows."""
-    return payload_digest(kind, *_checked(X, V, input_noise_std, sample_weight, track, time))
+    return payload_digest(kind, *checked_rows(X, V, input_noise_std, sample_weight, track, time))
 
 
-def _checked(X, V, input_noise_std, sample_weight, track=None, time=None) -> tuple:
-    """The rows as arrays of checked shapes: ``(X, V, noise, weight)``, and ``(track, time)``
-    after them when given (so an upload without tracks keeps its digest)."""
-    X, V = np.asarray(X, float), np.asarray(V, float)
-    if X.ndim != 2 or X.shape[1] != 3 or V.shape != X.shape:
-        raise ValueError(f"points and velocities must both be (n, 3), got {X.shape} and {V.shape}")
-    noise = None if input_noise_std is None else noise_std_rows(input_noise_std, len(X))
-    weight = None if sample_weight is None else np.asarray(sample_weight, float)
-    if weight is not None and weight.shape != (len(X),):
-        raise ValueError(f"sample_weight must have shape ({len(X)},), got {weight.shape}")
-    if track is None and time is None:
-        return X, V, noise, weight
-    if track is None or time is None:
-        raise ValueError("track and time go together: a track's rows are weighed by their times")
-    track, time = np.asarray(track), np.asarray(time, float)
-    if track.shape != (len(X),) or track.dtype.kind not in "iu" or time.shape != (len(X),):
-        raise ValueError(
-            f"track must be ({len(X)},) integer codes (bdf.ingest.track_codes) and time ({len(X)},) "
-            f"seconds, got {track.dtype} {track.shape} and {time.shape}"
-        )
-    return X, V, noise, weight, track.astype(np.int64), time
-
-
-def observations_evidence(
-    spec: RegionSpec, X, V, input_noise_std=None, sample_weight=None, track=None, time=None, progress=None
-) -> tuple[dict[TileKey, Increment], dict]:
-    """The tile increments of observations, and the summary the ledger keeps: rows with a
-    non-finite value, outside the region or outside its physical envelope (speeds, input
-    noise, weights: :class:`bdf.region.spec.Envelope`) are rejected and counted by reason
-    (:data:`REJECTED`), the rest accepted; the accepted rows of each track (``track`` codes
-    >= 0, with ``time``) weighed by :func:`bdf.ingest.track_weights` (times their
-    ``sample_weight``), the others counted as independent (``untracked``). Uploads, fits and
-    Dask builds all learn through this."""
-    rows = _checked(X, V, input_noise_std, sample_weight, track, time)
-    return _evidence(spec, *rows, progress=progress)
-
-
-def _evidence(spec: RegionSpec, X, V, noise, weight, track=None, time=None, *, progress=None):
-    """:func:`observations_evidence` of arrays :func:`_checked` has passed."""
-    finite = rows_all(np.isfinite(X)) & rows_all(np.isfinite(V))
-    if noise is not None:
-        finite &= rows_all(np.isfinite(noise))
-    if weight is not None:
-        finite &= np.isfinite(weight)
-    tracked = np.zeros(len(X), bool)
-    if track is not None:
-        tracked = track >= 0
-        finite &= ~tracked | np.isfinite(time)  # a track's row needs its time
-    inside = finite & spec.inside(X)  # spec.inside is never true for a row that is not finite
-    envelope = spec.envelope
-    with np.errstate(invalid="ignore", over="ignore"):  # rows already rejected may hold NaN
-        speed = inside & envelope.speed_ok(V)
-        noise_ok = speed if noise is None else speed & envelope.noise_ok(noise)
-        keep = noise_ok if weight is None else noise_ok & envelope.weight_ok(weight)
-    if tracked.any():  # the kept rows of each track weigh what they carry
-        on = np.where(keep, track, -1)  # rejected rows are no neighbours
-        carried = ingest.track_weights(on, time, V, spec.gamma, max_interval_s=spec.track_interval_s)
-        weight = carried if weight is None else weight * carried
-    every = keep.all()
-
-    def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
-        return a if a is None or every else np.compress(keep, a, axis=0)
-
-    tile_increments = (
-        {}
-        if not keep.any()
-        else increments(
-            spec,
-            kept(X),
-            kept(V),
-            input_noise_std=kept(noise),
-            sample_weight=kept(weight),
-            progress=None if progress is None else (lambda f: progress(0.9 * f)),
-        )
-    )
-    counts = (~finite, finite & ~inside, inside & ~speed, speed & ~noise_ok, noise_ok & ~keep)
-    untracked = int((keep & ~tracked).sum())
-    summary = {
-        "accepted": int(keep.sum()),
-        "rejected": {reason: int(c.sum()) for reason, c in zip(REJECTED, counts, strict=True)},
-        "untracked": untracked,
-    }
-    if untracked:
-        summary["warnings"] = [UNTRACKED_WARNING]
-        log.warning("%s: %d %s", spec.name, untracked, summary["warnings"][0])
+def _accepted(spec: RegionSpec, rows: tuple, progress) -> tuple[dict, dict]:
+    """:func:`bdf.region.evidence.accepted_increments` of checked rows, and the log line for
+    rows without a track id (an answer carries the warning too)."""
+    tile_increments, summary = accepted_rows_increments(spec, *rows, progress=progress)
+    for warning in summary.get("warnings", []):
+        log.warning("%s: %d %s", spec.name, summary["untracked"], warning)
     return tile_increments, summary
 
 

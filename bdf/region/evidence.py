@@ -20,7 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from bdf import features, sparse
+from bdf import features, ingest, sparse
 from bdf.region.spec import RegionSpec, TileKey
 from bdf.statistics import (
     ALT_BIN_M,
@@ -31,7 +31,23 @@ from bdf.statistics import (
     SectorEvidence,
     altitude_bins,
 )
-from bdf.validation import as_noise_std, as_observations, as_sample_weight, take_rows
+from bdf.validation import (
+    as_noise_std,
+    as_observations,
+    as_sample_weight,
+    noise_std_rows,
+    rows_all,
+    take_rows,
+)
+
+#: why a row is not learned from: every upload's ``rejected`` counts each, in this order
+REJECTED = ("non_finite", "outside_region", "implausible_speed", "implausible_noise", "implausible_weight")
+#: what an answer says of its accepted rows without a track id (their count: ``untracked``)
+UNTRACKED_WARNING = (
+    "rows without a track id (untracked) were counted as independent observations: samples of one "
+    "track a second apart are not, and the map then trusts them far too much; send the columns "
+    "track and t"
+)
 
 
 class Increment(NamedTuple):
@@ -182,3 +198,90 @@ def _class_total(spec: RegionSpec, tiles: Mapping[TileKey, Evidence]) -> Evidenc
                 band = total.gram_noisy[rows[tuple(o)]].reshape(spec.grid.shape)
                 band[hinges] += ev.gram_noisy[k].reshape(grid.shape)
     return total
+
+
+def checked_rows(X, V, input_noise_std=None, sample_weight=None, track=None, time=None) -> tuple:
+    """The rows as arrays of checked shapes: ``(X, V, noise, weight)``, and ``(track, time)``
+    after them when given (so an upload without tracks keeps its digest)."""
+    X, V = np.asarray(X, float), np.asarray(V, float)
+    if X.ndim != 2 or X.shape[1] != 3 or V.shape != X.shape:
+        raise ValueError(f"points and velocities must both be (n, 3), got {X.shape} and {V.shape}")
+    noise = None if input_noise_std is None else noise_std_rows(input_noise_std, len(X))
+    weight = None if sample_weight is None else np.asarray(sample_weight, float)
+    if weight is not None and weight.shape != (len(X),):
+        raise ValueError(f"sample_weight must have shape ({len(X)},), got {weight.shape}")
+    if track is None and time is None:
+        return X, V, noise, weight
+    if track is None or time is None:
+        raise ValueError("track and time go together: a track's rows are weighed by their times")
+    track, time = np.asarray(track), np.asarray(time, float)
+    if track.shape != (len(X),) or track.dtype.kind not in "iu" or time.shape != (len(X),):
+        raise ValueError(
+            f"track must be ({len(X)},) integer codes (bdf.ingest.track_codes) and time ({len(X)},) "
+            f"seconds, got {track.dtype} {track.shape} and {time.shape}"
+        )
+    return X, V, noise, weight, track.astype(np.int64), time
+
+
+def accepted_increments(
+    spec: RegionSpec, X, V, input_noise_std=None, sample_weight=None, track=None, time=None, progress=None
+) -> tuple[dict[TileKey, Increment], dict]:
+    """The tile increments of observations, and the summary the ledger keeps: rows with a
+    non-finite value, outside the region or outside its physical envelope (speeds, input
+    noise, weights: :class:`bdf.region.spec.Envelope`) are rejected and counted by reason
+    (:data:`REJECTED`), the rest accepted; the accepted rows of each track (``track`` codes
+    >= 0, with ``time``) weighed by :func:`bdf.ingest.track_weights` (times their
+    ``sample_weight``), the others counted as independent (``untracked``). Uploads, fits and
+    Dask builds all learn through this."""
+    rows = checked_rows(X, V, input_noise_std, sample_weight, track, time)
+    return accepted_rows_increments(spec, *rows, progress=progress)
+
+
+def accepted_rows_increments(spec: RegionSpec, X, V, noise, weight, track=None, time=None, *, progress=None):
+    """:func:`accepted_increments` of arrays :func:`checked_rows` has passed."""
+    finite = rows_all(np.isfinite(X)) & rows_all(np.isfinite(V))
+    if noise is not None:
+        finite &= rows_all(np.isfinite(noise))
+    if weight is not None:
+        finite &= np.isfinite(weight)
+    tracked = np.zeros(len(X), bool)
+    if track is not None:
+        tracked = track >= 0
+        finite &= ~tracked | np.isfinite(time)  # a track's row needs its time
+    inside = finite & spec.inside(X)  # spec.inside is never true for a row that is not finite
+    envelope = spec.envelope
+    with np.errstate(invalid="ignore", over="ignore"):  # rows already rejected may hold NaN
+        speed = inside & envelope.speed_ok(V)
+        noise_ok = speed if noise is None else speed & envelope.noise_ok(noise)
+        keep = noise_ok if weight is None else noise_ok & envelope.weight_ok(weight)
+    if tracked.any():  # the kept rows of each track weigh what they carry
+        on = np.where(keep, track, -1)  # rejected rows are no neighbours
+        carried = ingest.track_weights(on, time, V, spec.gamma, max_interval_s=spec.track_interval_s)
+        weight = carried if weight is None else weight * carried
+    every = keep.all()
+
+    def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
+        return a if a is None or every else np.compress(keep, a, axis=0)
+
+    tile_increments = (
+        {}
+        if not keep.any()
+        else increments(
+            spec,
+            kept(X),
+            kept(V),
+            input_noise_std=kept(noise),
+            sample_weight=kept(weight),
+            progress=None if progress is None else (lambda f: progress(0.9 * f)),
+        )
+    )
+    counts = (~finite, finite & ~inside, inside & ~speed, speed & ~noise_ok, noise_ok & ~keep)
+    untracked = int((keep & ~tracked).sum())
+    summary = {
+        "accepted": int(keep.sum()),
+        "rejected": {reason: int(c.sum()) for reason, c in zip(REJECTED, counts, strict=True)},
+        "untracked": untracked,
+    }
+    if untracked:
+        summary["warnings"] = [UNTRACKED_WARNING]
+    return tile_increments, summary

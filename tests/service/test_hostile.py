@@ -233,7 +233,7 @@ def test_rows_05_06_a_request_with_no_accepted_row_changes_nothing(client, route
 # -- 7: a region deleted and re-created while a write runs --------------------------------------
 @pytest.mark.parametrize("spacing", [[25, 25, 20], [30, 30, 20]])
 def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, monkeypatch, spacing):
-    evidence = service.maps._evidence
+    evidence = service.maps._accepted
     new_spec = {**SPEC, "spacing_m": spacing}
 
     def recreate_then(*args, **kw):
@@ -242,10 +242,10 @@ def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, mo
         app.state.service.maps.store.create_region(RegionSpec.model_validate(new_spec))
         return out
 
-    monkeypatch.setattr(service.maps, "_evidence", recreate_then)
+    monkeypatch.setattr(service.maps, "_accepted", recreate_then)
     X, V = data(4, n=50)
     problem(post_obs(client, rows(X, V), "racing"), 409, "re-created", "nothing was stored")
-    monkeypatch.setattr(service.maps, "_evidence", evidence)
+    monkeypatch.setattr(service.maps, "_accepted", evidence)
     view = client.get(f"/v1/regions/{NAME}", headers=READ).json()
     assert view["version"] == 0 and view["observations"] == 0 and view["tiles"] == 0
     assert app.state.service.maps.store.verify() == {NAME: []}

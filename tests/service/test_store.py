@@ -13,11 +13,11 @@ import numpy as np
 import psutil
 import pytest
 
-from bdf.region.evidence import encode_tile, increments
+from bdf.region.evidence import REJECTED, UNTRACKED_WARNING, encode_tile, increments
 from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
 from service.lanes import Lane
-from service.maps import REJECTED, UNTRACKED_WARNING, PosteriorCache, RegionMaps
+from service.maps import PosteriorCache, RegionMaps
 from service.store import (
     RegionExists,
     RegionNotFound,

@@ -9,10 +9,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from bdf import ingest
-from bdf.region.evidence import region_total
+from bdf.region.evidence import UNTRACKED_WARNING, accepted_increments, region_total
 from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.spec import RegionSpec
-from service.maps import UNTRACKED_WARNING, observations_evidence
 
 # 1 km x 400 m x 200 m, hinges every 50 m (kernel width 50 m horizontally, 40 m vertically)
 LINE = {
@@ -35,7 +34,7 @@ def flight(hz: float, y: float = 200.0, speed: float = 20.0, t0: float = 0.0):
 
 
 def region_map(spec, X, V, track=None, time=None, weight=None) -> RegionMap:
-    increments, _ = observations_evidence(spec, X, V, sample_weight=weight, track=track, time=time)
+    increments, _ = accepted_increments(spec, X, V, sample_weight=weight, track=track, time=time)
     evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
     return RegionMap(spec, compute_posterior(spec, evidence))
 
@@ -133,14 +132,14 @@ def test_untracked_rows_are_counted_and_sample_weight_multiplies_the_track_weigh
     X, V, t = flight(1)
     track = np.zeros(len(t), np.int64)
     track[:5] = -1  # five rows without a track
-    _, summary = observations_evidence(spec, X, V, track=track, time=t)
+    _, summary = accepted_increments(spec, X, V, track=track, time=t)
     assert summary["untracked"] == 5 and summary["warnings"] == [UNTRACKED_WARNING]
-    _, summary = observations_evidence(spec, X, V, track=np.zeros(len(t), np.int64), time=t)
+    _, summary = accepted_increments(spec, X, V, track=np.zeros(len(t), np.int64), time=t)
     assert summary["untracked"] == 0 and "warnings" not in summary
     # a row of a track without its time is not finite
     t_bad = t.copy()
     t_bad[3] = np.nan
-    _, summary = observations_evidence(spec, X, V, track=np.zeros(len(t), np.int64), time=t_bad)
+    _, summary = accepted_increments(spec, X, V, track=np.zeros(len(t), np.int64), time=t_bad)
     assert summary["rejected"]["non_finite"] == 1
     halves = region_map(spec, X, V, np.zeros(len(t), np.int64), t, np.full(len(t), 0.5))
     weights = 0.5 * ingest.track_weights(np.zeros(len(t), int), t, V, spec.gamma)
