@@ -600,7 +600,8 @@ class Mixture:
         held = self.share_weights.nbytes + self._densities.nbytes + self.total.nbytes
         held += sum(m.nbytes for m in self.modes)
         if self._tables is not None:
-            held += sum(a.nbytes for a in self._tables[:3])
+            tables = self._tables
+            held += tables.weights.nbytes + tables.answer.nbytes + tables.modes.nbytes
         return held
 
 

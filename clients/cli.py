@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import datetime
 import difflib
 import json
 import logging
@@ -88,8 +89,6 @@ def _iso_times(value):
 
 
 def _iso(seconds: float) -> str:
-    import datetime
-
     return datetime.datetime.fromtimestamp(seconds, datetime.UTC).isoformat(timespec="seconds")
 
 
@@ -287,10 +286,12 @@ def _vehicle(text: str):
 
 def _assess(args) -> int:
     """``bdf assess``: a GeoJSON route's metrics on the map and the vehicle's verdict."""
-    doc = _one_route(json.loads(Path(args.route).read_text()), args.route_name)
+    doc = json.loads(Path(args.route).read_text())
     with _client(args) as bdf:
         vehicle = None if args.vehicle is None else _vehicle(args.vehicle)
-        got = bdf.assess_route(args.name, doc, max_std_mps=args.max_std_mps, vehicle=vehicle)
+        got = bdf.assess_route(
+            args.name, doc, max_std_mps=args.max_std_mps, vehicle=vehicle, route_name=args.route_name
+        )
     width = max(len(k) for k in got["total"])
     for key, value in got["total"].items():
         print(f"{key:<{width}}  {value:12.4g}")
@@ -303,28 +304,6 @@ def _assess(args) -> int:
     )
     print(f"envelope: {'flyable' if not failed else 'not flyable: ' + ', '.join(failed)} ({limits})")
     return 0 if not failed else NOT_FLYABLE
-
-
-def _one_route(doc, name: str | None):
-    """The route of a GeoJSON document: itself, its one LineString, or the one named ``name``
-    (``properties.name``: ``bdf plan --out`` writes two)."""
-    if not (isinstance(doc, dict) and doc.get("type") == "FeatureCollection"):
-        return doc
-    lines = [
-        f
-        for f in doc.get("features") or []
-        if isinstance(f, dict) and (f.get("geometry") or {}).get("type") == "LineString"
-    ]
-    names = [str((f.get("properties") or {}).get("name", i)) for i, f in enumerate(lines)]
-    if name is not None:
-        if name not in names:
-            raise ValueError(f"the collection holds no route named {name!r} (it holds {', '.join(names)})")
-        return lines[names.index(name)]
-    if len(lines) != 1:
-        raise ValueError(
-            f"the collection holds {len(lines)} routes ({', '.join(names)}): pick one with --route"
-        )
-    return lines[0]
 
 
 def _data_fetch(args) -> int:

@@ -550,21 +550,16 @@ class _Endpoints:
         frame: Frame = "enu",
         times_s=None,
         heading_deg=None,
+        route_name: str | None = None,
     ) -> dict:
         """A route's metrics on the map, per segment and in total, and whether ``vehicle``
         ("evtol", "fixed-wing" or its fields) can fly it. ``route``: points (n, 3) in
         ``frame``, or a GeoJSON LineString Feature or FeatureCollection (such as
-        :meth:`planner.routes.RoutePlan.geojson`'s; its properties may hold the other
-        arguments, which the keywords override)."""
+        :meth:`planner.routes.RoutePlan.geojson`'s, which holds two: ``route_name`` picks one
+        by its ``name`` property; its properties may hold the other arguments, which the
+        keywords override)."""
         if isinstance(route, dict):
-            feature = route
-            if route.get("type") == "FeatureCollection":
-                lines = [f for f in route.get("features", []) if f["geometry"]["type"] == "LineString"]
-                if len(lines) != 1:
-                    raise ValueError(
-                        f"a route to assess is one LineString, the collection holds {len(lines)}"
-                    )
-                feature = lines[0]
+            feature = _one_route(route, route_name)
             given = {
                 "max_std_mps": max_std_mps,
                 "vehicle": vehicle,
@@ -861,3 +856,26 @@ def _build(http: httpx.Client | httpx.AsyncClient, request: _Request) -> httpx.R
         content=request.content,
         headers=request.headers(),
     )
+
+
+def _one_route(doc: dict, name: str | None) -> dict:
+    """The route of a GeoJSON document to assess: itself, the one LineString of a
+    collection, or the one named ``name`` (``properties.name``)."""
+    if doc.get("type") != "FeatureCollection":
+        return doc
+    lines = [
+        f
+        for f in doc.get("features") or []
+        if isinstance(f, dict) and (f.get("geometry") or {}).get("type") == "LineString"
+    ]
+    names = [str((f.get("properties") or {}).get("name", i)) for i, f in enumerate(lines)]
+    if name is not None:
+        if name not in names:
+            raise ValueError(f"the collection holds no route named {name!r} (it holds {', '.join(names)})")
+        return lines[names.index(name)]
+    if len(lines) != 1:
+        raise ValueError(
+            f"the collection holds {len(lines)} routes ({', '.join(names)}): pick one with --route "
+            "(route_name in the SDK)"
+        )
+    return lines[0]

@@ -194,7 +194,7 @@ class RegionMaps:
         steps between the compiled kernels), and in this process that would stall every
         request its other threads serve."""
         self.store = store
-        store.before_commit = lanes.check  # a write past its deadline rolls back: its 503 holds
+        store.before_commit = lanes.check  # a write past its deadline rolls back
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
         #: the settling pass a newer version abandons (its job number; shared with the child)
         self._abandon = multiprocessing.get_context("spawn").Value("q", 0, lock=False)

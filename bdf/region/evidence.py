@@ -126,11 +126,10 @@ def decode_tile_parts(
 ) -> tuple[SectorEvidence, SectorEvidence | None]:
     """A tile's stored statistics and their rounding residual (None: stored before
     residuals were kept), each :meth:`SectorEvidence.to_bytes` on its support."""
-    grid = spec.tile_grid(key)
+    grid, lattice = spec.tile_grid(key), spec.tile_noise_lattice(key)
     stencil = sparse.stencil_on(grid, spec.kernel)
 
     def part(data: bytes) -> SectorEvidence:
-        lattice = spec.tile_noise_lattice(key)
         return SectorEvidence.from_bytes(data, grid, stencil, lattice, spec.sectors, format_version)
 
     if format_version < 5:

@@ -195,7 +195,7 @@ class MapStore(ABC):
     after_tile_write: Callable[[TileKey], None] | None = None
     #: called as the last step of every write transaction, its lock won and its rows
     #: written: raising rolls it back (the service: the request's deadline, so a write that
-    #: waited past it stores nothing and its answer's "nothing was stored" holds)
+    #: waited past it stores nothing)
     before_commit: Callable[[], None] | None = None
 
     # -- backend primitives ------------------------------------------------------------------

@@ -3,6 +3,7 @@ as the schema says), and hypothesis over the body decoders (every bad body a 4xx
 rejected upload changes nothing). Bounded and seeded; ``BDF_FUZZ_EXAMPLES`` raises the
 examples per route for a longer run (bench/RESULTS.md, "Fuzzing")."""
 
+import dataclasses
 import io
 import json
 import os
@@ -27,6 +28,7 @@ from schemathesis.specs.openapi.checks import (
     unsupported_method,
 )
 
+from bdf.region.route import Vehicle
 from service.app import create_app
 from service.settings import Settings
 from service.wire import ARROW, PARQUET
@@ -217,19 +219,7 @@ def route_documents():
         max_leaves=24,
     )
     point = st.tuples(st.floats(0, 300), st.floats(0, 200), st.floats(0, 60)).map(list)
-    vehicle = st.fixed_dictionaries(
-        {
-            k: EXTREMES
-            for k in (
-                "cruise_mps",
-                "min_turn_radius_m",
-                "max_climb_deg",
-                "max_descent_deg",
-                "floor_m",
-                "ceiling_m",
-            )
-        }
-    )
+    vehicle = st.fixed_dictionaries({f.name: EXTREMES for f in dataclasses.fields(Vehicle)})
     route = st.fixed_dictionaries(
         {"points": st.lists(point, min_size=2, max_size=5), "max_std_mps": EXTREMES},
         optional={
