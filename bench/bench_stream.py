@@ -177,7 +177,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
     for _ in range(rounds):
         sparse.lattice_stencil.cache_clear()  # a new process: no analysis, no decoded tiles, no optimum
         maps = RegionMaps(store, cache_mb=2048)
-        maps._start = lambda *a: None  # nor the store's record of the optimum
+        maps.refresher.start = lambda *a: None  # nor the store's record of the optimum
         t0 = time.perf_counter()
         state = maps.refresh(spec.name)
         cold.append(time.perf_counter() - t0)
@@ -185,7 +185,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
         maps.close()
     maps = RegionMaps(store, cache_mb=2048)
     maps.refresh(spec.name)
-    maps._schedule = lambda region: None  # each refresh is timed here, not in the background
+    maps.refresher.schedule = lambda region: None  # each refresh is timed here, not in the background
     quick, quick_f, gaps, settle, settle_f, upload, fixed = [], [], [], [], [], [], []
     search = logging.getLogger("bdf.hyperparameters")
     for r in range(rounds):
@@ -196,7 +196,7 @@ def refreshes(directions, train, weight, lower, upper, tmp, rounds=3) -> dict:
         search.setLevel(logging.DEBUG)
         search.addHandler(points := _SearchPoints())  # the map with one class's search
         t0 = time.perf_counter()  # what the background refresh computes first: within a nat
-        state = maps._compute(spec.name, store.region(spec.name).version)
+        state = maps.refresher.compute(spec.name, store.region(spec.name).version)
         quick.append(time.perf_counter() - t0)
         quick_f.append(state.posterior.factorisations)
         gaps.append(state.posterior.evidence_gap)

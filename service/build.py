@@ -47,8 +47,9 @@ from bdf.region.evidence import REJECTED, UNTRACKED_WARNING, Increment, accepted
 from bdf.region.map import compute_posterior
 from bdf.region.spec import RegionSpec, TileKey
 from service import formats, wire
-from service.maps import fitted, require_accepted
+from service.maps import require_accepted
 from service.problems import Problem
+from service.refresh import fitted
 from service.store import MapStore
 
 SUFFIXES = (".parquet", ".arrow", ".csv", ".csv.gz")

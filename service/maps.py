@@ -1,56 +1,32 @@
 """The map layer the routes call: uploads into tiles, queries of the region's one field.
 
-The store holds the truth (tile statistics, versions, ledger); a region's map is derived
-data: the posterior of the sum of its tiles' evidence at the spec's hyperparameters
-("auto": the evidence maximum of that version's data, whatever uploads brought it), per
-``(region_id, version)``, kept in a memory-bounded LRU.
-
-Refreshes: a write answers at once and schedules its region's refresh. One refresh per
-region runs at a time, always of the newest version (versions written meanwhile are
-skipped, not queued: the next refresh starts from the newest), warm from the last (the
-tiles' decoded evidence whose version has not changed, the previous optimum as the
-search's start, the symbolic analysis of an unchanged support in the posterior process).
-Until it is ready, queries answer from the newest map this process has, and each answer
-says which version it is and how far behind (:class:`MapPrediction`); a query that asks for
-at least a version (``min_version``: read your own writes) waits for the refresh, until
-its deadline (:mod:`service.lanes`). Only refreshes compute a version's map, so a reader
-that gives up wastes nothing: the map it waited for is ready for the next.
+Writes go to the store (:mod:`service.store`, the truth) and schedule their region's
+refresh; reads answer from the maps the refreshes compute once for every process
+(:mod:`service.refresh`). Each answer says which version it is and how far behind the
+region it is (:class:`MapPrediction`): until a version's map is ready, queries answer from
+the newest map there is, and a query that asks for at least a version (``min_version``:
+read your own writes) waits for it, until its deadline (:mod:`service.lanes`).
 """
 
 from __future__ import annotations
 
-import concurrent.futures
-import itertools
 import logging
-import math
-import multiprocessing
-import os
-import queue
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from time import perf_counter  # upload has a parameter named time
 
 import numpy as np
 
-from bdf import hyperparameters
-from bdf.posterior import Mixture, Modes, Posterior
+from bdf.posterior import Modes
 from bdf.region.evidence import accepted_rows_increments, checked_rows, region_total
-from bdf.region.map import RegionMap, compute_posterior
 from bdf.region.route import assess as assess_route
 from bdf.region.spec import RegionSpec
 from service import lanes
-from service.store import (
-    MapStore,
-    RegionChanged,
-    RegionInfo,
-    RegionNotFound,
-    StoreUnavailable,
-    payload_digest,
-)
+from service.refresh import MapState, Refresher, _serves, fitted
+from service.store import MapStore, RegionChanged, RegionInfo, payload_digest
 
 log = logging.getLogger(__name__)
 
@@ -58,25 +34,6 @@ log = logging.getLogger(__name__)
 class Unprocessable(ValueError):
     """A well-formed request this region cannot apply (no row accepted, nothing to fit):
     the client's to change (422); nothing was stored."""
-
-
-@dataclass(frozen=True)
-class MapState:
-    """The map of one region version: the posterior of its field."""
-
-    spec: RegionSpec
-    region_id: str
-    version: int
-    posterior: Posterior | Mixture
-
-    @property
-    def nbytes(self) -> int:
-        return self.posterior.nbytes
-
-    @property
-    def map(self) -> RegionMap:
-        """What queries read: the posterior with the spec that checks their points."""
-        return RegionMap(self.spec, self.posterior)
 
 
 @dataclass(frozen=True)
@@ -92,56 +49,6 @@ class MapAssessment:
     evidence_gap: float
 
 
-class PosteriorCache:
-    """Least-recently-used map states, bounded by their memory (``max_mb``)."""
-
-    def __init__(self, max_mb: float = 512.0):
-        self.max_bytes = int(max_mb * 2**20)
-        self._items: OrderedDict[tuple, MapState] = OrderedDict()
-        self._bytes = 0
-        self._lock = threading.Lock()
-        self.hits = self.misses = 0
-
-    def get(self, key: tuple) -> MapState | None:
-        with self._lock:
-            state = self._items.get(key)
-            if state is None:
-                self.misses += 1
-                return None
-            self._items.move_to_end(key)
-            self.hits += 1
-            return state
-
-    def peek(self, key: tuple) -> MapState | None:
-        """:meth:`get` that counts no hit or miss (a look, not a use)."""
-        with self._lock:
-            return self._items.get(key)
-
-    def put(self, key: tuple, state: MapState) -> None:
-        """Hold ``state`` (replacing the one held of its version: a settled map replaces
-        the one before)."""
-        with self._lock:
-            old = self._items.pop(key, None)
-            if old is not None:
-                self._bytes -= old.nbytes
-            self._items[key] = state
-            self._bytes += state.nbytes
-            while self._bytes > self.max_bytes and len(self._items) > 1:
-                _, old = self._items.popitem(last=False)
-                self._bytes -= old.nbytes
-
-    @property
-    def nbytes(self) -> int:
-        return self._bytes
-
-    def __contains__(self, key: tuple) -> bool:
-        """Held, without counting a hit or a miss (a look before the query that counts)."""
-        return key in self._items
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-
 @dataclass
 class MapPrediction:
     mean: np.ndarray  # (n, 3) m/s
@@ -152,123 +59,30 @@ class MapPrediction:
     modes: Modes | None = None  # per traffic class, when asked
     behind: int = 0  # versions written that the answer's map does not hold yet
     behind_s: float = 0.0  # since when (s): the age of the first of them
-    refreshes_behind: int = 0  # maps finished here since then (at most 1: each refresh is of the newest)
+    refreshes_behind: int = 0  # maps finished since then (at most 1: each refresh is of the newest)
     evidence_gap: float = 0.0  # nats its "auto" hyperparameters lack from the maximum (0: settled)
-
-
-#: A read waiting for a map answers this long before its deadline, with what it waits for
-#: (the deadline's own 503 cannot say).
-ANSWER_MARGIN_S = 0.5
-
-
-@dataclass
-class RefreshStats:
-    """What the refreshes did (``/metrics``)."""
-
-    count: int = 0  # maps computed
-    seconds: float = 0.0  # their total time
-    skipped: int = 0  # versions never computed: a newer one was written first
-    factorisations: int = 0  # of their hyperparameter searches (and fixed values)
-    last_s: float = 0.0
-    failed: int = 0  # refreshes that raised (the previous map kept answering)
-    settled: int = 0  # of the maps computed, those computed again to settle their "auto" hyperparameters
-    settling_seconds: float = 0.0  # their total time
-    abandoned: int = 0  # settling passes given up for a newer version (its refresh runs at once)
-    last_gap: float = 0.0  # nats the last map's hyperparameters lack from its evidence maximum
 
 
 class RegionMaps:
     """Region maps over a :class:`MapStore`: exactly-once uploads, queries of the region's
     field, maps refreshed in the background (module doc)."""
 
-    #: Regions whose decoded tile evidence is kept for the next refresh (most recent).
-    EVIDENCE_REGIONS = 8
     #: Commit times of versions kept for the answers' lag (most recent).
     COMMITTED_TIMES = 256
     #: Points (or grid slabs of about as many voxels) computed between deadline checks.
     CHUNK = 4096
 
-    def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False):
-        """``isolate``: compute posteriors in a child process (the service does). A
-        posterior takes seconds of CPU on a city's lattice, part of it under the GIL (the
-        steps between the compiled kernels), and in this process that would stall every
-        request its other threads serve."""
+    def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False, **refresh):
+        """``isolate``: compute posteriors in a child process (:class:`service.refresh.Refresher`,
+        which ``refresh`` keywords configure)."""
         self.store = store
         store.before_commit = lanes.check  # a write past its deadline rolls back
-        self._isolate, self._pool = isolate, None  # the child starts with the first posterior
-        #: the settling pass a newer version abandons (its job number; shared with the child)
-        self._abandon = multiprocessing.get_context("spawn").Value("q", 0, lock=False)
-        self._jobs = itertools.count(1)
-        self._spawner = _Spawner(self._abandon) if isolate else None
-        self.cache = PosteriorCache(cache_mb)
-        self.stats = RefreshStats()
-        self._newest: dict[str, MapState] = {}  # region_id -> newest state computed here
-        self._lock = threading.Lock()
-        self._building: dict[str, threading.Lock] = {}  # region name -> one computation at a time
-        self._refreshing: dict[str, bool] = {}  # region name -> written again since it started
-        self._settling: dict[str, tuple[int, int]] = {}  # region name -> (job, version) settling now
-        self._finished: dict[str, deque] = {}  # region_id -> (time, version) of its last maps published here
-        self._done = threading.Condition(self._lock)  # a refresh ended (waiters look again)
-        self._begun: dict[str, int] = {}  # region name -> refreshes begun (they run in order)
-        self._ended: dict[str, int] = {}  # region name -> refreshes ended
-        self._failure: dict[str, tuple[int, Exception]] = {}  # region name -> (refresh, its error)
-        self._computed: dict[str, str] = {}  # region name -> region_id of its last refresh
-        self._computing: dict[str, tuple[int, float]] = {}  # region name -> (version, since) of its refresh
-        self._took: dict[str, float] = {}  # region name -> seconds its last map took here
-        self._threads: dict[str, threading.Thread] = {}
-        self._evidence: OrderedDict[str, dict] = OrderedDict()  # region_id -> key -> (version, evidence)
+        self.refresher = Refresher(store, cache_mb, isolate, **refresh)
+        self.cache, self.stats = self.refresher.cache, self.refresher.stats
+        self.open, self.close = self.refresher.open, self.refresher.close
         self._committed: OrderedDict[tuple, float] = OrderedDict()  # (region_id, version) -> time
-        self._closed = False
-        store.on_close(self.close)
-
-    def open(self) -> None:
-        """Refresh again after :meth:`close` (an app started again after its shutdown)."""
-        with self._lock:
-            self._closed = False
-            if self._isolate and not (self._spawner and self._spawner.alive):
-                self._spawner = _Spawner(self._abandon)  # posterior processes run at this thread's priority
-
-    def close(self) -> None:
-        """Stop the background refreshes (after the ones under way): the store closes next."""
-        with self._done:
-            self._closed, threads = True, list(self._threads.values())
-            self._done.notify_all()
-        for thread in threads:
-            thread.join(timeout=120)
-        with self._lock:
-            pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-        if self._spawner is not None:
-            self._spawner.stop()
-
-    def _posterior(
-        self, spec: RegionSpec, evidence, start=None, stored=True, settle=True, job=0
-    ) -> Posterior | Mixture:
-        """``compute_posterior(spec, evidence, start, stored=..., settle=...)``, in the child
-        process if isolated; a settling pass ``job`` (> 0) raises
-        :class:`bdf.hyperparameters.Abandoned` once a newer version abandons it."""
-        if not self._isolate:
-            return _compute_posterior(spec, evidence, start, stored, settle, job, self._abandon)
-        for attempt in range(2):
-            with self._lock:
-                if self._pool is None:
-                    self._pool = self._spawner.start()
-                pool = self._pool
-            try:
-                future = pool.submit(_compute_posterior, spec, evidence, start, stored, settle, job)
-                return future.result(timeout=lanes.wait_timeout())
-            except concurrent.futures.TimeoutError:
-                raise lanes.DeadlineExceeded(
-                    "the request's deadline passed while its map was computed; nothing was stored"
-                ) from None
-            except BrokenProcessPool:  # the child died (killed, out of memory): start another
-                if attempt:
-                    raise
-                log.warning("the posterior process died; starting another")
-                with self._lock:
-                    if self._pool is pool:
-                        self._pool = None
+        self._lock = threading.Lock()  # of _committed
+        store.on_close(self.refresher.close)
 
     def upload(
         self,
@@ -310,7 +124,9 @@ class RegionMaps:
         post = None
         if replace:
             evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
-            post = self._posterior(spec, evidence, self._start(info), stored=False)
+            started = perf_counter()
+            post = self.refresher.posterior(spec, evidence, self.refresher.start(info), stored=False)
+            seconds = perf_counter() - started
         result = self.store.apply(
             region,
             info.region_id,
@@ -324,9 +140,10 @@ class RegionMaps:
         )
         if post is not None and not result["replayed"]:  # the map of exactly this version
             state = MapState(spec, info.region_id, result["region_version"], post)
-            self._publish(state)
+            self.refresher.publish(state)
+            self.refresher.store_map(state, seconds)
         else:
-            self._schedule(region, result["region_version"])
+            self.refresher.schedule(region, result["region_version"])
         return result
 
     def retract(
@@ -355,7 +172,7 @@ class RegionMaps:
             increments,
             observations=summary["accepted"],
         )
-        self._schedule(region, result["region_version"])
+        self.refresher.schedule(region, result["region_version"])
         return result
 
     def fit_hyperparameters(self, region: str) -> RegionInfo:
@@ -368,7 +185,7 @@ class RegionMaps:
             raise Unprocessable(f"region {region!r} fixes alpha and beta in its spec: nothing to fit")
         if not info.tiles:
             raise Unprocessable(f"region {region!r} has no data to fit its hyperparameters on")
-        self._wait(region, info, info.version, settled=True)
+        self.refresher.wait(info, info.version, settled=True)
         now = self.store.region(region)
         if now.region_id != info.region_id:
             raise RegionChanged(f"region {region!r} was deleted or re-created while its map was computed")
@@ -447,21 +264,19 @@ class RegionMaps:
     def refresh(self, region: str) -> MapState:
         """The settled map state of the region's current version, computed now if need be
         (in the caller's thread: builds and tests; the service's readers wait for refreshes)."""
-        return self._compute(region, self.store.region(region).version, settle=True)
+        return self.refresher.compute(region, self.store.region(region).version, settle=True)
 
     def wait_for(self, info: RegionInfo, min_version: int = 0) -> MapState:
         """Wait (until the deadline) for the map a query of ``info`` with ``min_version``
         needs: after it, :meth:`ready` is true."""
-        return self._wait(info.spec.name, info, max(min_version, 1 if info.version else 0))
+        return self.refresher.wait(info, max(min_version, 1 if info.version else 0))
 
     def ready(self, info: RegionInfo, min_version: int = 0) -> bool:
         """A query of the region as read (``info``) would be answered without waiting for
         a map to be computed."""
         if (info.region_id, info.version) in self.cache:
             return True
-        with self._lock:
-            newest = self._newest.get(info.region_id)
-        return _serves(newest, info.spec, min_version, False)
+        return _serves(self.refresher.newest(info), info, min_version, False)
 
     def settled(self, info: RegionInfo) -> bool:
         """The map of ``info``'s version is computed here and its hyperparameters settled."""
@@ -489,8 +304,8 @@ class RegionMaps:
                     self._committed[key] = since
                     while len(self._committed) > self.COMMITTED_TIMES:
                         self._committed.popitem(last=False)
-        with self._lock:  # maps without the version after the answer's, finished since it was written
-            finished = list(self._finished.get(state.region_id, ()))
+        # maps without the version after the answer's, finished since it was written
+        finished = self.refresher.finished(info)
         refreshes = sum(t > since and version <= state.version for t, version in finished)
         return behind, max(time.time() - since, 0.0), refreshes, gap
 
@@ -500,254 +315,11 @@ class RegionMaps:
         state = self.cache.get((info.region_id, info.version))
         if state is not None:
             return state
-        with self._lock:
-            newest = self._newest.get(info.region_id)
-        if _serves(newest, info.spec, min_version, False):
-            self._schedule(region, info.version)
+        newest = self.refresher.newest(info)
+        if _serves(newest, info, min_version, False):
+            self.refresher.schedule(region, info.version)
             return newest
         return self.wait_for(info, min_version)
-
-    def _wait(self, region: str, info: RegionInfo, at_least: int, settled: bool = False) -> MapState:
-        """A map of the region instance ``info`` at version ``at_least`` or newer (at most
-        the version read: no later one is known to exist; ``settled``: its hyperparameters
-        settled), waiting for the refreshes to compute it (one is scheduled), until the
-        deadline. A refresh that fails raises its error here."""
-        at_least = min(at_least, info.version)
-        with self._done:
-            mine = self._begun.get(region, 0) + 1  # the first refresh to read the store from now
-            self._schedule_locked(region, info.version)
-            while True:
-                newest = self._newest.get(info.region_id)
-                if _serves(newest, info.spec, at_least, settled):
-                    return newest
-                if self._closed:
-                    raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
-                if self._ended.get(region, 0) >= mine:  # it ended short of the version
-                    failed, error = self._failure.get(region, (0, None))
-                    if failed >= mine:
-                        raise error
-                    if self._computed.get(region) != info.region_id:
-                        raise RegionChanged(f"region {region!r} was deleted or re-created meanwhile")
-                    mine = self._begun.get(region, 0) + 1
-                    self._schedule_locked(region, info.version)
-                left = lanes.remaining() - ANSWER_MARGIN_S  # answer before the deadline does
-                timeout = None if left == math.inf else max(left, 0.0)
-                if not self._done.wait(timeout=timeout) and left <= 0:
-                    raise self._not_ready(region, at_least)
-
-    def _not_ready(self, region: str, version: int) -> lanes.Overloaded:
-        """503 for a read whose map is not ready: which version is computed, since when, how
-        long the last took, and when to come back (its Retry-After)."""
-        computing, took = self._computing.get(region), self._took.get(region)
-        if computing is None:
-            what = f"the map of region {region!r} at version {version} waits for its refresh"
-            elapsed = 0.0
-        else:
-            at, since = computing
-            elapsed = time.time() - since
-            started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(since))
-            what = f"the map of region {region!r} at version {at} is computed since {started}"
-            what += f" ({elapsed:.0f} s)"
-        last = "" if took is None else f"; the last took {took:.1f} s"
-        retry = max(1, math.ceil((took or 5.0) - elapsed))
-        return lanes.Overloaded(f"{what}{last}: retry in {retry} s", retry)
-
-    def _compute(self, region: str, at_least: int, settle: bool = False, yields: bool = False) -> MapState:
-        """A map of the region at version ``at_least`` or newer: one computed meanwhile (a
-        caller waiting here shares the refresh under way), else the current version's,
-        computed now. One computation per region at a time. "auto" hyperparameters start at
-        the newest map's; without ``settle`` they may stop within a nat of the evidence
-        maximum (a refresh in the background: the map is fresh sooner), with it they are at
-        the maximum (a map within a nat of it is computed again). ``yields`` (the
-        background's settling pass): a newer version written meanwhile abandons it, and the
-        newest map is returned as it was: the newer version's refresh starts at once."""
-        with self._lock:
-            lock = self._building.setdefault(region, threading.Lock())
-        with lock:
-            info = self.store.region(region)
-            state = self.cache.get((info.region_id, info.version))
-            if state is not None and (state.posterior.settled or not settle):
-                return state
-            with self._lock:
-                newest = self._newest.get(info.region_id)
-            if _serves(newest, info.spec, at_least, settle):
-                return newest
-            started = time.perf_counter()
-            job = next(self._jobs) if yields else 0
-            with self._lock:
-                self._computing[region] = (info.version, time.time())
-                if yields:
-                    self._settling[region] = (job, info.version)
-            try:
-                snap, evidence = self._snapshot_evidence(region, info.region_id)
-                spec = snap.region.spec
-                start = self._start(snap.region, newest)
-                post = self._posterior(spec, region_total(spec, evidence), start, settle=settle, job=job)
-            except hyperparameters.Abandoned:
-                with self._lock:
-                    self.stats.abandoned += 1
-                log.info("region %s: settling version %d abandoned for a newer version", region, info.version)
-                return newest
-            finally:
-                with self._lock:
-                    self._computing.pop(region, None)
-                    if yields:
-                        self._settling.pop(region, None)
-            state = MapState(spec, snap.region.region_id, snap.region.version, post)
-            self._publish(state)
-            seconds = time.perf_counter() - started
-            with self._lock:
-                self._took[region] = seconds
-                self.stats.count += 1
-                self.stats.seconds += seconds
-                self.stats.last_s = seconds
-                self.stats.factorisations += post.factorisations
-                self.stats.last_gap = post.evidence_gap
-                if newest is not None and newest.region_id == state.region_id:
-                    self.stats.skipped += max(state.version - newest.version - 1, 0)
-                    again = newest.version == state.version
-                    self.stats.settled += again
-                    self.stats.settling_seconds += seconds * again
-            log.info(
-                "region %s version %d: map ready in %.2f s (%d factorisations, %s)",
-                region,
-                state.version,
-                seconds,
-                post.factorisations,
-                "settled" if post.settled else f"{post.evidence_gap:.2g} nats from the evidence maximum",
-            )
-            if spec.auto and post.fitted:
-                self._record(region, state)
-            return state
-
-    def _snapshot_evidence(self, region: str, region_id: str):
-        """The region's snapshot and every tile's evidence, decoding only the tiles whose
-        version changed since the last refresh here (of the instance ``region_id``)."""
-        with self._lock:
-            kept = self._evidence.pop(region_id, {})
-        snap = self.store.snapshot(
-            region, need=lambda rid, key, version: kept.get(key, (None,))[0] != version
-        )
-        if snap.region.region_id != region_id:  # re-created meanwhile
-            kept = {}
-            snap = self.store.snapshot(region)
-        tiles = {
-            key: (info.version, snap.evidence[key] if key in snap.evidence else kept[key][1])
-            for key, info in snap.tiles.items()
-        }
-        with self._lock:
-            self._evidence[snap.region.region_id] = tiles
-            while len(self._evidence) > self.EVIDENCE_REGIONS:
-                self._evidence.popitem(last=False)
-        return snap, {key: evidence for key, (_, evidence) in tiles.items()}
-
-    def _start(self, info: RegionInfo, newest: MapState | None = None):
-        """Where the "auto" search of ``info``'s region starts: the optimum of its newest map
-        here, or the one the store records (another process's, or before a restart)."""
-        if not info.spec.auto:
-            return None
-        if newest is not None and newest.spec == info.spec and newest.posterior.fitted:
-            return newest.posterior.next_start
-        hyper = info.hyper or {}
-        rows = info.spec.posteriors
-        try:
-            start = np.asarray(hyper["alpha"], float) / np.asarray(hyper["beta"], float)
-        except (KeyError, TypeError, ValueError):
-            return None
-        if start.shape != ((3,) if rows == 1 else (rows, 3)) or not np.all(np.isfinite(start) & (start > 0)):
-            return None
-        return start
-
-    def _record(self, region: str, state: MapState) -> None:
-        """Record the hyperparameters the map of ``state`` found (the region view shows
-        them; a new process starts its search there). A store that cannot be written now
-        costs only the record."""
-        try:
-            self.store.record_hyperparameters(region, state.region_id, fitted(state.posterior), state.version)
-        except (StoreUnavailable, RegionChanged, RegionNotFound) as exc:
-            log.warning(
-                "region %s: hyperparameters of version %d not recorded: %s", region, state.version, exc
-            )
-
-    def _publish(self, state: MapState) -> None:
-        self.cache.put((state.region_id, state.version), state)
-        with self._lock:
-            newest = self._newest.get(state.region_id)
-            if newest is None or (newest.version, newest.posterior.settled) < (state.version, True):
-                self._newest[state.region_id] = state
-            self._finished.setdefault(state.region_id, deque(maxlen=8)).append((time.time(), state.version))
-
-    def _schedule(self, region: str, version: int = 0) -> None:
-        """Refresh the region's map in the background: one refresh per region at a time; a
-        write during one makes it run once more, for the newest version then. ``version``:
-        the newest known to the caller; a settling pass of an older one is abandoned."""
-        with self._lock:
-            self._schedule_locked(region, version)
-
-    def _schedule_locked(self, region: str, version: int = 0) -> None:
-        """:meth:`_schedule`, holding ``self._lock``."""
-        if self._closed:
-            return
-        settling = self._settling.get(region)
-        if settling is not None and version > settling[1]:
-            self._abandon.value = settling[0]
-        if region in self._refreshing:
-            self._refreshing[region] = True
-            return
-        self._refreshing[region] = False
-        thread = threading.Thread(
-            target=self._refresh_loop, args=(region,), name=f"refresh-{region}", daemon=True
-        )
-        self._threads[region] = thread
-        thread.start()
-
-    def _refresh_loop(self, region: str) -> None:
-        while True:
-            error = computed = None
-            with self._lock:
-                self._begun[region] = self._begun.get(region, 0) + 1
-            try:
-                state = self._compute(region, self.store.region(region).version)
-                with self._lock:
-                    quiet = not self._refreshing.get(region)
-                if quiet and not state.posterior.settled:  # no newer version waits: settle this one
-                    state = self._compute(region, state.version, settle=True, yields=True)
-                computed = state.region_id
-            except RegionNotFound as exc:
-                error = exc
-            except Exception as exc:  # the previous version keeps answering
-                error = exc
-                log.error(
-                    "refreshing region %s failed (%s: %s); its previous version keeps answering",
-                    region,
-                    type(exc).__name__,
-                    exc,
-                    exc_info=not isinstance(exc, StoreUnavailable),
-                )
-            with self._done:
-                ended = self._ended[region] = self._ended.get(region, 0) + 1
-                self._computed[region] = computed
-                if error is not None:
-                    self._failure[region] = (ended, error)
-                    self.stats.failed += not isinstance(error, RegionNotFound)
-                self._done.notify_all()
-                if self._refreshing.get(region) and not self._closed:
-                    self._refreshing[region] = False
-                    continue
-                self._refreshing.pop(region, None)
-                self._threads.pop(region, None)
-                return
-
-
-def _serves(state: MapState | None, spec: RegionSpec, at_least: int, settled: bool) -> bool:
-    """``state`` answers a query of a region of ``spec`` that needs version ``at_least``
-    (and ``settled`` hyperparameters)."""
-    return (
-        state is not None
-        and state.version >= at_least
-        and state.spec == spec
-        and (state.posterior.settled or not settled)
-    )
 
 
 def _checkpoint(progress: Callable[[float], None] | None) -> Callable[[float], None]:
@@ -770,106 +342,6 @@ def _joined(parts: list[tuple], axis: int) -> tuple:
     if modes is not None:
         modes = Modes(*(np.concatenate([p[3][i] for p in parts], axis=axis) for i in range(len(modes))))
     return mean, std, known, modes
-
-
-def _compute_posterior(spec: RegionSpec, evidence, start, stored, settle, job=0, abandon=None):
-    """:func:`bdf.region.map.compute_posterior` (a module function: what the posterior process
-    runs), given up (:class:`bdf.hyperparameters.Abandoned`) once ``abandon`` (the posterior
-    process's: :data:`_ABANDON`) holds the number of this settling pass, ``job``."""
-    abandon = abandon if abandon is not None else _ABANDON
-    with hyperparameters.abandon_when(lambda: job > 0 and abandon.value == job):
-        return compute_posterior(spec, evidence, start, stored=stored, settle=settle)
-
-
-#: In the posterior process: the number of the settling pass its parent abandons.
-_ABANDON = None
-
-
-#: How often the posterior process checks that the process that started it lives (s).
-PARENT_CHECK_S = 1.0
-
-
-def _posterior_process(abandon) -> ProcessPoolExecutor:
-    """One child process for posteriors (spawned: this process runs threads), sharing
-    ``abandon`` (:data:`_ABANDON`). It leaves when this process dies: killed, a pool cannot
-    tell its child, which would wait for work forever, holding its memory (a quarter of a GB
-    on the demo's map)."""
-    return ProcessPoolExecutor(
-        1,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_posterior_child,
-        initargs=(os.getpid(), abandon),
-    )
-
-
-class _Spawner:
-    """Starts posterior processes from a thread of this process's own priority: a process
-    inherits the priority of the thread that starts it, and the lanes' threads run at a
-    lower one (:data:`service.lanes.NICE`) so that maps are computed first."""
-
-    def __init__(self, abandon):
-        self._abandon = abandon
-        self._asked: queue.SimpleQueue = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name="posterior-spawner", daemon=True)
-        self._thread.start()
-
-    @property
-    def alive(self) -> bool:
-        return self._thread.is_alive()
-
-    def start(self) -> ProcessPoolExecutor:
-        if not self.alive:
-            raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
-        started: concurrent.futures.Future = concurrent.futures.Future()
-        self._asked.put(started)
-        return started.result()
-
-    def stop(self) -> None:
-        self._asked.put(None)
-        self._thread.join(timeout=10)
-
-    def _run(self) -> None:
-        while True:
-            started = self._asked.get()
-            if started is None:
-                return
-            try:
-                pool = _posterior_process(self._abandon)
-                pool.submit(os.getpid)  # the child is spawned now, by this thread
-                started.set_result(pool)
-            except Exception as exc:
-                started.set_exception(exc)
-
-
-def _posterior_child(parent: int, abandon) -> None:
-    """In the posterior process: keep ``abandon`` (:data:`_ABANDON`); exit once ``parent``
-    is no longer its parent."""
-    global _ABANDON
-    _ABANDON = abandon
-
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(PARENT_CHECK_S)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="leave-with-parent", daemon=True).start()
-
-
-def fitted(post: Posterior) -> dict | None:
-    """The record of hyperparameters fitted by evidence maximisation (store module doc);
-    None when the spec fixes both (nothing was fitted)."""
-    if not post.fitted:
-        return None
-    return {
-        "alpha": post.alpha.tolist(),
-        "beta": post.beta.tolist(),
-        "log_evidence": post.log_evidence.tolist(),
-        "fitted_at": time.time(),
-        "settled": bool(post.settled),
-        "evidence_gap": float(post.evidence_gap),
-        "at_bound": bool(post.at_bound),
-        "plausibility": post.plausibility,
-    }
 
 
 def upload_kind(replace: bool) -> str:

@@ -19,11 +19,16 @@ no mean, and no mode with a share of at least :data:`MODE_SHARE`, should fly fas
 horizontally than :data:`PLAUSIBLE_FACTOR` times the fastest traffic near its altitude
 (:func:`speed_bound`, from the rows' speed histogram the tiles keep, per 100 m of
 altitude). Each map computed for a region records its worst ratio to that bound.
+
+A computed posterior is derived data, stored beside its evidence so that it is computed
+once for all processes (:func:`encode_posterior`, :func:`decode_posterior`).
 """
 
 from __future__ import annotations
 
+import io
 import logging
+import pickle
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,6 +73,53 @@ def compute_posterior(
     post = _posterior(spec, evidence, start, stored, settle)
     post.speed_bound = speed_bound(spec, evidence.speeds)
     post.plausibility = plausibility(RegionMap(spec, post))
+    return post
+
+
+#: what a stored posterior may name besides this package's classes (:func:`decode_posterior`):
+#: numpy's arrays, dtypes and scalars, plain containers, and the stencil cache (a stencil is
+#: pickled as its key)
+POSTERIOR_NAMES = frozenset(
+    {
+        ("bdf.sparse.stencil", "lattice_stencil"),
+        ("numpy", "dtype"),
+        ("numpy", "ndarray"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy._core.numeric", "_frombuffer"),
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy.core.numeric", "_frombuffer"),
+        ("collections", "OrderedDict"),
+        ("builtins", "slice"),
+        ("builtins", "frozenset"),
+        ("builtins", "set"),
+    }
+)
+
+
+def encode_posterior(post: Posterior | Mixture) -> bytes:
+    """A computed (compact) posterior as bytes: its arrays and the objects that hold them."""
+    return pickle.dumps(post, protocol=5)
+
+
+def decode_posterior(blob: bytes) -> Posterior | Mixture:
+    """:func:`encode_posterior`'s bytes back, naming only classes of this package and numpy's
+    arrays (a damaged or foreign blob is a ``ValueError``, never code run)."""
+
+    class Reader(pickle.Unpickler):
+        def find_class(self, module: str, name: str):
+            found = super().find_class(module, name) if module.startswith("bdf.") else None
+            if not (isinstance(found, type) or (module, name) in POSTERIOR_NAMES):
+                raise pickle.UnpicklingError(f"a stored posterior names {module}.{name}")
+            return found or super().find_class(module, name)
+
+    try:
+        post = Reader(io.BytesIO(blob)).load()
+    except Exception as exc:
+        raise ValueError(f"not a stored posterior: {exc}") from exc
+    if not isinstance(post, Posterior | Mixture):
+        raise ValueError(f"not a stored posterior: a {type(post).__name__}")
     return post
 
 

@@ -6,12 +6,14 @@ import urllib.parse
 
 from service.store.base import (
     CorruptTile,
+    Lease,
     MapStore,
     RegionChanged,
     RegionExists,
     RegionInfo,
     RegionNotFound,
     Snapshot,
+    StoredMap,
     StoreError,
     StoreFull,
     StoreUnavailable,
@@ -64,6 +66,7 @@ def redacted(url: str) -> str:
 
 __all__ = [
     "CorruptTile",
+    "Lease",
     "MapStore",
     "RegionChanged",
     "RegionExists",
@@ -73,6 +76,7 @@ __all__ = [
     "StoreError",
     "StoreFull",
     "StoreUnavailable",
+    "StoredMap",
     "TileInfo",
     "UploadConflict",
     "UploadNotFound",

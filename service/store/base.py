@@ -1,6 +1,6 @@
 """The MapStore interface, shared by the SQLite and PostgreSQL backends.
 
-What is stored (schema version 4; both backends, same tables):
+What is stored (schema version 5; both backends, same tables):
 
     meta     key, value                          schema_version
     regions  name, region_id, spec (JSON), version, observations, hyper (JSON or NULL),
@@ -9,6 +9,8 @@ What is stored (schema version 4; both backends, same tables):
              checksum (CRC-32 of stats, "crc32:" and 8 hex digits; sha256 hex before)
     uploads  region_id, upload_id, kind, digest, result (JSON), applied_at     (the ledger)
     versions region_id, version, committed_at                                 (when each was written)
+    maps     region_id, version, settled, computed_at, seconds, checksum, posterior (blob)
+    leases   region_id, holder, version, since, expires_at
 
 ``tiles.stats`` is :func:`bdf.region.evidence.encode_tile`: the tile's statistics and their
 rounding residual, each :meth:`bdf.statistics.SectorEvidence.to_bytes` (little-endian
@@ -37,6 +39,13 @@ reported (:class:`CorruptTile`, naming the tile) and never decoded into a map;
 :meth:`MapStore.verify` checks a whole store. Schema 2 had no checksums: its blobs are
 trusted once and checksummed; schema 3 had no ``versions`` (its versions' times are
 unknown: ``committed_at`` is None for them).
+
+``maps`` holds each region's newest computed map (:func:`bdf.region.map.encode_posterior`,
+CRC-32 checked like the tiles): derived data, computed once by the process that holds the
+region's ``leases`` row and loaded by every other process, replica and restart
+(:mod:`service.refresh`); a newer version's map replaces it (never older over newer, nor
+unsettled over settled). A lease expires unless renewed, so a crashed holder's work is
+taken over; its times are the holders' clocks (replicas' clocks agree to well within a lease).
 
 Exactly once: ``apply`` adds the increments of all tiles, bumps the version and writes
 the ledger row in one transaction, under the region's row lock. A replay of an upload id
@@ -72,7 +81,7 @@ from bdf.region.evidence import Increment, decode_tile, decode_tile_parts, encod
 from bdf.region.spec import RegionSpec, TileKey, key_str, parse_key
 from bdf.statistics import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence, compensated_sum
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
 WRITE_CHUNK = 16
 #: Upload ids are client idempotency keys: printable, bounded.
@@ -162,6 +171,26 @@ class Snapshot:
     region: RegionInfo
     tiles: dict[TileKey, TileInfo]
     evidence: dict[TileKey, SectorEvidence] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class StoredMap:
+    """A region's stored map, as :meth:`MapStore.stored_map` reads it."""
+
+    version: int
+    settled: bool
+    computed_at: float
+    seconds: float  # how long it took to compute
+
+
+@dataclass(frozen=True)
+class Lease:
+    """Who computes a region's map now (:meth:`MapStore.take_lease`)."""
+
+    holder: str
+    version: int
+    since: float
+    expires_at: float
 
 
 def payload_digest(kind: str, *arrays: np.ndarray | None) -> str:
@@ -266,13 +295,21 @@ class MapStore(ABC):
                 region_id TEXT NOT NULL REFERENCES regions (region_id) ON DELETE CASCADE,
                 version BIGINT NOT NULL, committed_at DOUBLE PRECISION NOT NULL,
                 PRIMARY KEY (region_id, version))""",
+            f"""CREATE TABLE IF NOT EXISTS maps (
+                region_id TEXT PRIMARY KEY REFERENCES regions (region_id) ON DELETE CASCADE,
+                version BIGINT NOT NULL, settled INTEGER NOT NULL, computed_at DOUBLE PRECISION NOT NULL,
+                seconds DOUBLE PRECISION NOT NULL, checksum TEXT NOT NULL, posterior {blob_type} NOT NULL)""",
+            """CREATE TABLE IF NOT EXISTS leases (
+                region_id TEXT PRIMARY KEY REFERENCES regions (region_id) ON DELETE CASCADE,
+                holder TEXT NOT NULL, version BIGINT NOT NULL, since DOUBLE PRECISION NOT NULL,
+                expires_at DOUBLE PRECISION NOT NULL)""",
         ]
 
     def _init_schema(self, q) -> None:
         rows = q("SELECT value FROM meta WHERE key = 'schema_version'")
         if not rows:
             q("INSERT INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-        elif int(rows[0][0]) in (2, 3):  # 4 adds versions (the table exists by now)
+        elif int(rows[0][0]) in (2, 3, 4):  # 4 adds versions, 5 maps and leases (the tables exist by now)
             if int(rows[0][0]) == 2:  # 3 added checksums: computed once over the stored blobs
                 q("ALTER TABLE tiles ADD COLUMN checksum TEXT")
                 for region_id, key, blob in q("SELECT region_id, key, stats FROM tiles"):
@@ -342,9 +379,8 @@ class MapStore(ABC):
             rows = q(f"SELECT region_id FROM regions WHERE name = ?{self._lock_region()}", (name,))
             if not rows:
                 raise RegionNotFound(f"no region {name!r}")
-            q("DELETE FROM tiles WHERE region_id = ?", (rows[0][0],))
-            q("DELETE FROM uploads WHERE region_id = ?", (rows[0][0],))
-            q("DELETE FROM versions WHERE region_id = ?", (rows[0][0],))
+            for table in ("tiles", "uploads", "versions", "maps", "leases"):
+                q(f"DELETE FROM {table} WHERE region_id = ?", (rows[0][0],))
             q("DELETE FROM regions WHERE name = ?", (name,))
 
     def _region(self, q, name: str) -> RegionInfo:
@@ -637,11 +673,93 @@ class MapStore(ABC):
             self._committed(q, region_id, version)
         return {**result, "replayed": False}
 
+    # -- computed maps and their leases -------------------------------------------------------
+    def save_map(self, region_id: str, version: int, settled: bool, seconds: float, blob: bytes) -> bool:
+        """Store the map of the region instance's ``version`` (``blob``: its encoded posterior)
+        unless a newer one, or this version's settled, is stored; returns whether it was."""
+        with self._write() as q:
+            if not q("SELECT 1 FROM regions WHERE region_id = ?", (region_id,)):
+                return False  # deleted meanwhile: its map goes with it
+            rows = q(
+                "INSERT INTO maps (region_id, version, settled, computed_at, seconds, checksum, posterior)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?) ON CONFLICT (region_id) DO UPDATE SET"
+                " version = excluded.version, settled = excluded.settled, computed_at = excluded.computed_at,"
+                " seconds = excluded.seconds, checksum = excluded.checksum, posterior = excluded.posterior"
+                " WHERE maps.version < excluded.version"
+                " OR (maps.version = excluded.version AND maps.settled < excluded.settled)"
+                " RETURNING version",
+                (region_id, int(version), int(settled), time.time(), float(seconds), checksum(blob), blob),
+            )
+        return bool(rows)
+
+    def stored_map(self, region_id: str) -> StoredMap | None:
+        """What the region instance's stored map is (version, settled, when, how long it
+        took), without its bytes; None if none is."""
+        with self._read() as q:
+            rows = q(
+                "SELECT version, settled, computed_at, seconds FROM maps WHERE region_id = ?", (region_id,)
+            )
+        return (
+            StoredMap(int(rows[0][0]), bool(rows[0][1]), float(rows[0][2]), float(rows[0][3]))
+            if rows
+            else None
+        )
+
+    def load_map(self, region_id: str) -> tuple[StoredMap, bytes] | None:
+        """The region instance's stored map and its bytes, checked against their checksum
+        (:class:`CorruptTile` if they fail); None if none is stored."""
+        with self._read() as q:
+            rows = q(
+                "SELECT version, settled, computed_at, seconds, checksum, posterior FROM maps"
+                " WHERE region_id = ?",
+                (region_id,),
+            )
+        if not rows:
+            return None
+        version, settled, computed_at, seconds, stored_checksum, blob = rows[0]
+        blob = bytes(blob)
+        if not checks_out(blob, stored_checksum):
+            raise CorruptTile(f"the stored map of version {version} fails its checksum (damaged on disk)")
+        return StoredMap(int(version), bool(settled), float(computed_at), float(seconds)), blob
+
+    def drop_map(self, region_id: str, version: int) -> None:
+        """Drop the stored map of ``version`` (one that cannot be read: the next refresh
+        computes it again)."""
+        with self._write() as q:
+            q("DELETE FROM maps WHERE region_id = ? AND version = ?", (region_id, int(version)))
+
+    def take_lease(self, region_id: str, holder: str, version: int, seconds: float) -> Lease:
+        """Hold the region instance's refresh lease for ``seconds`` (to compute ``version``)
+        if it is free, expired or ``holder``'s own (then renewed); returns the lease as it
+        is now: ``holder``'s if taken. :class:`RegionChanged` if the region is gone."""
+        now = time.time()
+        with self._write() as q:
+            if not q("SELECT 1 FROM regions WHERE region_id = ?", (region_id,)):
+                raise RegionChanged("the region was deleted or re-created meanwhile")
+            q(
+                "INSERT INTO leases (region_id, holder, version, since, expires_at) VALUES (?, ?, ?, ?, ?)"
+                " ON CONFLICT (region_id) DO UPDATE SET holder = excluded.holder, version = excluded.version,"
+                " since = CASE WHEN leases.holder = excluded.holder AND leases.version = excluded.version"
+                " THEN leases.since ELSE excluded.since END, expires_at = excluded.expires_at"
+                " WHERE leases.expires_at < ? OR leases.holder = excluded.holder",
+                (region_id, holder, int(version), now, now + seconds, now),
+            )
+            rows = q(
+                "SELECT holder, version, since, expires_at FROM leases WHERE region_id = ?", (region_id,)
+            )
+        holder_now, version_now, since, expires = rows[0]
+        return Lease(holder_now, int(version_now), float(since), float(expires))
+
+    def release_lease(self, region_id: str, holder: str) -> None:
+        """Free the lease if ``holder`` holds it."""
+        with self._write() as q:
+            q("DELETE FROM leases WHERE region_id = ? AND holder = ?", (region_id, holder))
+
     def verify(self) -> dict[str, list[str]]:
-        """Check every region's spec and every stored tile: its checksum, that it decodes,
-        that its statistics are finite and within the region's envelope, and that they can
-        be trusted after retractions; returns, per region, the problems found (empty lists:
-        the store is sound)."""
+        """Check every region's spec, its stored map's checksum, and every stored tile: its
+        checksum, that it decodes, that its statistics are finite and within the region's
+        envelope, and that they can be trusted after retractions; returns, per region, the
+        problems found (empty lists: the store is sound)."""
         report = {}
         with self._read() as q:
             names = [r[0] for r in q("SELECT name FROM regions ORDER BY name")]
@@ -657,6 +775,10 @@ class MapStore(ABC):
                 retracted = bool(
                     q("SELECT 1 FROM uploads WHERE region_id = ? AND kind = 'retracted'", (info.region_id,))
                 )
+            try:
+                self.load_map(info.region_id)
+            except CorruptTile as exc:
+                problems.append(f"region {name!r}: {exc}; the next refresh computes it again")
             for key in keys:  # one tile in memory at a time
                 with self._read() as q:
                     rows = q(

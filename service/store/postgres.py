@@ -58,6 +58,7 @@ class PostgresStore(MapStore):
                     q(statement)
                 # statistics are dense floats: pglz gains little and costs most of an upload's time
                 q("ALTER TABLE tiles ALTER COLUMN stats SET STORAGE EXTERNAL")
+                q("ALTER TABLE maps ALTER COLUMN posterior SET STORAGE EXTERNAL")
                 self._init_schema(q)
             self._schema_ready = True
 

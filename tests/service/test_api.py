@@ -761,13 +761,13 @@ def test_a_read_whose_map_is_not_ready_is_told_which_version_since_when_and_when
         ).raise_for_status()
         c.post(f"/v1/regions/{NAME}/query?min_version=1", json={"points": X[:2].tolist()}).raise_for_status()
         maps = app.state.service.maps
-        compute = maps._posterior
+        compute = maps.refresher.posterior
 
         def slow(*args, **kw):
             threading.Event().wait(3.0)
             return compute(*args, **kw)
 
-        monkeypatch.setattr(maps, "_posterior", slow)
+        monkeypatch.setattr(maps.refresher, "posterior", slow)
         c.post(
             f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "b"}
         ).raise_for_status()

@@ -269,8 +269,15 @@ def test_a_damaged_tile_is_reported_by_name_and_never_served(store_url, tmp_path
         assert upload(c, "a", 1, n=400).status_code == 200
     key = damage(store_url, tmp_path)
 
+    with TestClient(create_app(Settings(store_url=store_url))) as c:  # the map stored before the damage
+        r = c.post(QUERY, json={"points": [[150, 100, 30]]})
+        assert r.status_code == 200 and r.json()["region_version"] == 1
+    store = open_store(store_url)
+    store.drop_map(store.region(NAME).region_id, 1)  # computed again, from every tile
+    store.close()
+
     with TestClient(create_app(Settings(store_url=store_url)), raise_server_exceptions=False) as c:
-        r = c.post(QUERY, json={"points": [[150, 100, 30]]})  # a cold cache reads every tile
+        r = c.post(QUERY, json={"points": [[150, 100, 30]]})
         assert r.status_code == 500 and r.headers["content-type"] == "application/problem+json"
         assert f"tile {key} of region {NAME!r}" in r.json()["detail"] and "checksum" in r.json()["detail"]
         assert r.json()["request_id"] == r.headers["x-request-id"]
@@ -382,8 +389,8 @@ from tests.service.test_store import SPEC
 store = open_store("sqlite:///{tmp_path}/maps.db")
 spec = RegionSpec.model_validate(SPEC)
 maps = RegionMaps(store, isolate=True)
-maps._posterior(spec, region_total(spec, {{}}))
-print(*maps._pool._processes, flush=True)
+maps.refresher.posterior(spec, region_total(spec, {{}}))
+print(*maps.refresher._pool._processes, flush=True)
 time.sleep(600)
 """
     worker = subprocess.Popen(
@@ -398,3 +405,34 @@ time.sleep(600)
         worker.stdout.close()
     gone, alive = psutil.wait_procs([child], timeout=30)
     assert gone and not alive
+
+
+def test_a_damaged_stored_map_is_reported_and_computed_again(store_url):
+    """A stored map is derived data: damaged, `bdf verify` names it, and the next process
+    computes the map again from the tiles (the same answer) and stores it over."""
+    with TestClient(create_app(Settings(store_url=store_url))) as c:
+        assert c.post("/v1/regions", json=SPEC).status_code == 201
+        assert upload(c, "a", 1, n=400).status_code == 200
+        assert c.post(f"/v1/regions/{NAME}/hyperparameters").status_code == 200  # settled
+        first = c.post(QUERY, json={"points": [[150, 100, 30]]}).json()
+    store = open_store(store_url)
+    region_id = store.region(NAME).region_id
+    with store._write() as q:  # one byte of the stored posterior flipped
+        (blob,) = q("SELECT posterior FROM maps WHERE region_id = ?", (region_id,))[0]
+        blob = bytearray(blob)
+        blob[len(blob) // 2] ^= 0xFF
+        q("UPDATE maps SET posterior = ? WHERE region_id = ?", (bytes(blob), region_id))
+    problems = store.verify()[NAME]
+    assert len(problems) == 1 and "stored map of version 1 fails its checksum" in problems[0], problems
+    store.close()
+
+    app = create_app(Settings(store_url=store_url))
+    with TestClient(app) as c:
+        assert c.post(f"/v1/regions/{NAME}/hyperparameters").status_code == 200
+        again = c.post(QUERY, json={"points": [[150, 100, 30]]}).json()
+        assert app.state.service.maps.stats.count >= 1 and app.state.service.maps.stats.loaded == 0
+    assert again["region_version"] == 1
+    np.testing.assert_allclose(again["mean"], first["mean"], rtol=1e-9)
+    store = open_store(store_url)
+    assert store.verify() == {NAME: []}
+    store.close()

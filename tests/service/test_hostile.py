@@ -254,7 +254,7 @@ def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, mo
 
 
 def test_row_07_a_hyperparameter_fit_of_a_region_recreated_meanwhile_is_a_409(client, app, monkeypatch):
-    posterior = app.state.service.maps._posterior
+    posterior = app.state.service.maps.refresher.posterior
 
     def recreate_then(*args, **kw):
         out = posterior(*args, **kw)
@@ -263,9 +263,9 @@ def test_row_07_a_hyperparameter_fit_of_a_region_recreated_meanwhile_is_a_409(cl
         return out
 
     # no refresh of version 2
-    monkeypatch.setattr(app.state.service.maps, "_schedule", lambda region, version=0: None)
+    monkeypatch.setattr(app.state.service.maps.refresher, "schedule", lambda region, version=0: None)
     assert post_obs(client, rows(*data(8, n=20)), "b").status_code == 200
-    monkeypatch.setattr(app.state.service.maps, "_posterior", recreate_then)
+    monkeypatch.setattr(app.state.service.maps.refresher, "posterior", recreate_then)
     problem(client.post(f"/v1/regions/{NAME}/hyperparameters", headers=WRITE), 409, "re-created")
     view = client.get(f"/v1/regions/{NAME}", headers=READ).json()
     assert view["version"] == 0 and view["hyperparameters"]["fitted_at"] is None

@@ -17,7 +17,8 @@ from bdf.region.evidence import REJECTED, UNTRACKED_WARNING, encode_tile, increm
 from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
 from service.lanes import Lane
-from service.maps import PosteriorCache, RegionMaps
+from service.maps import RegionMaps
+from service.refresh import PosteriorCache
 from service.store import (
     RegionExists,
     RegionNotFound,
@@ -242,8 +243,8 @@ def test_queries_answer_from_the_previous_version_until_the_new_one_is_ready(sto
     maps.upload("town", "a", X, V)
     first = maps.predict("town", X[:5], min_version=1)
     gate = threading.Event()
-    posterior = maps._posterior
-    maps._posterior = lambda *a, **k: gate.wait(30) and posterior(*a, **k)  # the refresh is slow
+    posterior = maps.refresher.posterior
+    maps.refresher.posterior = lambda *a, **k: gate.wait(30) and posterior(*a, **k)  # the refresh is slow
     maps.upload("town", "b", *data(4, n=50))
     stale = maps.predict("town", X[:5])  # answers at once, from version 1, and says so
     assert stale.version == 1 and np.array_equal(stale.mean, first.mean)
@@ -278,14 +279,15 @@ def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(st
     # the fit comes from a lane's thread, of lower priority: the child it starts is not
     fit = lambda: there.upload(name, "fit", X, V, replace=True)  # noqa: E731
     anyio.run(lambda: Lane("heavy", 1, 0).run(fit))  # the fit's posterior, computed there
-    (child,) = there._pool._processes
+    (child,) = there.refresher._pool._processes
     assert psutil.Process(child).nice() == psutil.Process().nice()
     there.upload(name, "more", *data(4, n=100))  # a refresh, there
     Q = np.random.default_rng(5).uniform([0, 0, 0], [300, 200, 60], (200, 3))
-    here.refresh(name)  # both settled
-    there.refresh(name)
+    there.refresh(name)  # both settled, each its own: the map stored there is dropped first
+    store.drop_map(store.region(name).region_id, 2)
+    here.refresh(name)
     a, b = here.predict(name, Q), there.predict(name, Q, min_version=2)
-    assert a.version == b.version == 2 and len(there._pool._processes) == 1
+    assert a.version == b.version == 2 and len(there.refresher._pool._processes) == 1
     np.testing.assert_allclose(b.mean, a.mean, rtol=1e-12, atol=1e-12 * np.abs(a.mean).max())
     np.testing.assert_allclose(b.std, a.std, rtol=1e-12)
     axes = [np.linspace(0, 300, 7), np.linspace(0, 200, 5), np.linspace(0, 60, 4)]
@@ -296,11 +298,11 @@ def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(st
     with pytest.raises(ValueError, match="increase alpha or decrease beta"):
         there.upload(bad.name, "f", X, V, replace=True)
     # a child killed (out of memory, say) is replaced at the next posterior
-    (child,) = there._pool._processes
+    (child,) = there.refresher._pool._processes
     os.kill(child, signal.SIGKILL)
     there.upload(name, "again", *data(6, n=100))
     assert there.predict(name, Q, min_version=3).version == 3
-    assert list(there._pool._processes) != [child]
+    assert list(there.refresher._pool._processes) != [child]
     there.close()
 
 

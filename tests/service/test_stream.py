@@ -90,7 +90,7 @@ def test_refreshes_run_one_at_a_time_per_region_and_skip_to_the_newest_version(s
     maps.upload("town", "first", X[:100], V[:100])
     assert maps.predict("town", X[:3], min_version=1).version == 1
     gate, computed, running, most = threading.Event(), [], [0], [0]
-    posterior, lock = maps._posterior, threading.Lock()
+    posterior, lock = maps.refresher.posterior, threading.Lock()
 
     def slow(spec, evidence, *args, **kwargs):
         with lock:
@@ -105,7 +105,7 @@ def test_refreshes_run_one_at_a_time_per_region_and_skip_to_the_newest_version(s
             with lock:
                 running[0] -= 1
 
-    maps._posterior = slow
+    maps.refresher.posterior = slow
     for k in range(20):
         maps.upload("town", f"u{k}", X[100 + 100 * k : 200 + 100 * k], V[100 + 100 * k : 200 + 100 * k])
     stale = maps.predict("town", X[:3])
@@ -140,7 +140,7 @@ def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_versio
     maps.upload("town", "base", X[:2950], V[:2950], sample_weight=w[:2950])
     maps.refresh("town")
     calls, gate = [], threading.Event()
-    posterior = maps._posterior
+    posterior = maps.refresher.posterior
 
     def gated(spec, evidence, start, stored=True, settle=True, job=0):
         calls.append(settle)
@@ -148,7 +148,7 @@ def test_a_background_refresh_is_within_a_nat_at_once_and_settles_when_no_versio
             gate.wait(30)
         return posterior(spec, evidence, start, stored=stored, settle=settle, job=job)
 
-    maps._posterior = gated
+    maps.refresher.posterior = gated
     maps.upload("town", "more", X[2950:], V[2950:], sample_weight=w[2950:])
     quick = maps.predict("town", X[:5], min_version=2)
     assert quick.version == 2 and 0 < quick.evidence_gap < 1.0
@@ -184,7 +184,7 @@ def test_a_version_waits_only_for_the_refresh_under_way_and_abandons_a_settling_
     maps.refresh("town")
     gates = [threading.Event() for _ in range(8)]
     calls, ended = [], []
-    posterior = maps._posterior
+    posterior = maps.refresher.posterior
 
     def gated(spec, evidence, start=None, stored=True, settle=True, job=0):
         k = len(calls)
@@ -201,7 +201,7 @@ def test_a_version_waits_only_for_the_refresh_under_way_and_abandons_a_settling_
     def rows(a, b):
         return X[a:b], V[a:b]
 
-    maps._posterior = gated
+    maps.refresher.posterior = gated
     maps.upload("town", "v2", *rows(2900, 2950), sample_weight=w[2900:2950])
     wait_until(lambda: len(calls) >= 1)  # version 2 refreshing: version 3 waits for it and the next
     maps.upload("town", "v3", *rows(2950, 3000), sample_weight=w[2950:3000])
