@@ -226,6 +226,18 @@ class Refresher:
         if self._spawner is not None:
             self._spawner.stop()
 
+    def join(self, timeout: float) -> bool:
+        """Wait until no refresh runs (tests, before they change the store under it); False
+        if one still runs after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        with self._done:
+            while self._threads:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._done.wait(left)
+        return True
+
     # -- what readers see ------------------------------------------------------------------------
     def newest(self, info: RegionInfo) -> MapState | None:
         """The newest map here of the region instance ``info`` names."""

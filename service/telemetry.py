@@ -137,7 +137,13 @@ class _StateCollector:
             (CounterMetricFamily, "bdf_posterior_cache_hits", "region maps served from memory", cache.hits),
             (CounterMetricFamily, "bdf_posterior_cache_misses", "region maps not in memory", cache.misses),
             (GaugeMetricFamily, "bdf_posterior_cache_bytes", "memory held by cached maps", cache.nbytes),
-            (CounterMetricFamily, "bdf_map_refreshes", "region maps computed", refreshes.count),
+            (CounterMetricFamily, "bdf_map_refreshes", "region maps computed here", refreshes.count),
+            (
+                CounterMetricFamily,
+                "bdf_map_loads",
+                "region maps loaded from the store: computed by another process, or before a restart",
+                refreshes.loaded,
+            ),
             (CounterMetricFamily, "bdf_map_refresh_seconds", "time computing region maps", refreshes.seconds),
             (GaugeMetricFamily, "bdf_map_refresh_last_seconds", "the last map's time", refreshes.last_s),
             (

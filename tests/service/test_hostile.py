@@ -900,6 +900,7 @@ def test_row_24_a_database_that_lost_its_tables_is_503_then_recreated_without_a_
         c.post("/v1/regions", json=SPEC, headers=ADMIN).raise_for_status()
         post_obs(c, rows(*data(1, n=300)), "a").raise_for_status()
         assert c.get("/readyz").status_code == 200
+        assert app.state.service.maps.refresher.join(60)  # no refresh reads the store meanwhile
 
         def drop():
             with psycopg.connect(base, autocommit=True) as conn:
