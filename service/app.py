@@ -13,6 +13,8 @@ from __future__ import annotations
 import functools
 import gc
 import hashlib
+import html
+import json
 import logging
 import pathlib
 from contextlib import asynccontextmanager
@@ -24,7 +26,7 @@ import anyio.to_thread
 import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Header, Path, Query, Request, Response
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, Field
 
@@ -32,7 +34,7 @@ from bdf import sectors
 from bdf.region.route import CHUNK_SAMPLES, ENVELOPE_SAMPLES_PER_POINT, MAX_ROUTE_POINTS, SAMPLE_M
 from bdf.region.route import samples as route_samples
 from bdf.region.spec import REGION_NAME, REGION_NAME_RULE, RegionSpec, key_str
-from service import formats, problems, slices, wire
+from service import formats, problems, slices, webmap, wire
 from service.auth import PUBLIC, require
 from service.jobs import Jobs
 from service.lanes import Heavy, Lanes, Waiting
@@ -45,12 +47,29 @@ from service.wire import ARROW, GEOJSON, JSON, NPZ, PARQUET, PNG
 
 log = logging.getLogger("bdf.service")
 VIEWER_HTML = (pathlib.Path(__file__).parent / "viewer.html").read_text()
-#: the viewer runs its own inline script and style and draws PNGs fetched from this origin
-#: as blob: URLs; nothing else loads, and no other page may frame it
-VIEWER_POLICY = (
-    "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src blob:; "
-    "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
-)
+#: the viewer's script, styles and worker (MapLibre GL JS, shipped in the package)
+STATIC = {
+    name: (pathlib.Path(__file__).parent / "static" / name, media)
+    for name, media in (
+        ("maplibre-gl-csp.js", "text/javascript"),
+        ("maplibre-gl-csp-worker.js", "text/javascript"),
+        ("maplibre-gl.css", "text/css"),
+        ("maplibre-gl-LICENSE.txt", "text/plain"),
+    )
+}
+
+
+def viewer_policy(basemap: str | None) -> str:
+    """The viewer's Content-Security-Policy: its own scripts, styles, worker and tiles; a
+    basemap's origin too when one is set (its style, tiles and fonts)."""
+    other = " https:" if basemap else ""
+    return (
+        f"default-src 'none'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+        f"img-src 'self' data: blob:{other}; worker-src 'self' blob:; connect-src 'self'{other}; "
+        "base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
+    )
+
+
 RegionName = Annotated[str, Path(pattern=REGION_NAME, description=f"region name: {REGION_NAME_RULE}")]
 
 
@@ -127,6 +146,9 @@ class RegionView(BaseModel):
     plausibility: Plausibility | None = Field(
         None, description="how the map of the hyperparameters' evidence_version compares with its traffic"
     )
+    outline_wgs84: list[list[float]] = Field(
+        description="the region's horizontal boundary at its lowest altitude: a closed ring of [lon, lat]"
+    )
 
 
 class UploadView(BaseModel):
@@ -176,7 +198,26 @@ def _view(info: RegionInfo) -> dict:
             "at_bound": fitted.get("at_bound") if fitted else None,
         },
         "plausibility": fitted.get("plausibility"),
+        "outline_wgs84": _outline(info.spec),
     }
+
+
+def _outline(spec: RegionSpec) -> list[list[float]]:
+    """The region's horizontal boundary as [lon, lat], 16 points an edge (its edges are
+    straight in ENU, curved on the map)."""
+    (x0, y0, z0), (x1, y1, _) = spec.lower, spec.upper
+    t = np.linspace(0.0, 1.0, 16, endpoint=False)
+    ring = np.concatenate(
+        [
+            np.stack([x0 + (x1 - x0) * t, np.full(16, y0)], 1),
+            np.stack([np.full(16, x1), y0 + (y1 - y0) * t], 1),
+            np.stack([x1 - (x1 - x0) * t, np.full(16, y1)], 1),
+            np.stack([np.full(16, x0), y1 - (y1 - y0) * t], 1),
+            [[x0, y0]],
+        ]
+    )
+    geo = spec.frame().to_geodetic(np.column_stack([ring, np.full(len(ring), z0)]))
+    return geo[:, [1, 0]].round(7).tolist()
 
 
 @dataclass(frozen=True)
@@ -795,6 +836,142 @@ async def slice_png(
     return await svc.run(light)
 
 
+AltitudeM = Annotated[
+    float,
+    Query(allow_inf_nan=False, ge=-1000, le=30_000, description="altitude above the WGS84 ellipsoid, m"),
+]
+
+
+@router.get(
+    "/regions/{name}/tiles/{z}/{x}/{y}.png",
+    **scoped("read", responses={200: {"content": {PNG: {}}}}),
+)
+async def map_tile(
+    name: RegionName,
+    z: Annotated[int, Path(ge=0, le=webmap.MAX_ZOOM)],
+    x: Annotated[int, Path(ge=0)],
+    y: Annotated[int, Path(ge=0)],
+    svc: ServiceDep,
+    answer: AnswerDep,
+    alt_m: AltitudeM,
+    layer: Annotated[webmap.Layer, Query(description="what the tile colours (webmap.LAYERS)")] = "speed",
+    vmax: Annotated[
+        float | None,
+        Query(gt=0, allow_inf_nan=False, description="top of the colour scale (default per layer)"),
+    ] = None,
+    min_version: MinVersion = 0,
+):
+    """A 256 x 256 Web Mercator raster tile (XYZ) of the map at ``alt_m``: horizontal speed,
+    std (the largest component), ``known`` or the busiest class's share, on a fixed colour
+    scale (0 .. ``vmax``), faded where not known, transparent outside the region. For any
+    web map or GIS (QGIS: an XYZ tile layer); cached by ETag like the grids."""
+    try:
+        webmap.tile_lonlat(z, x, y, 2)
+    except ValueError as exc:
+        raise Problem(404, str(exc)) from None
+    top = vmax or webmap.LAYERS[layer].default_vmax
+
+    def light():
+        info, not_modified = answer.region_or_304(name)
+        if not_modified:
+            return not_modified
+        X, inside = webmap.tile_points(info.spec, z, x, y, alt_m)
+        if not len(X):  # the tile misses the region: nothing to answer from the map
+            empty = webmap.render_tile(layer, inside, np.zeros(0), np.zeros(0), top)
+            return Response(empty, media_type=PNG, headers={"Cache-Control": "max-age=3600"})
+
+        def work():
+            pred = svc.maps.predict(name, X, info, min_version, modes=layer == "share")
+            share = pred.modes.share if pred.modes is not None else None
+            value = webmap.values(layer, pred.mean, pred.std, pred.known, share)
+            png = webmap.render_tile(layer, inside, value, pred.known, top)
+            return Response(png, media_type=PNG, headers=answer.headers(pred))
+
+        return _light_or_heavy(svc, info, min_version, len(X), work)
+
+    return await svc.run(light)
+
+
+@router.get("/regions/{name}/flows", **scoped("read", responses={200: {"content": {GEOJSON: {}}}}))
+async def flows(
+    name: RegionName,
+    svc: ServiceDep,
+    answer: AnswerDep,
+    alt_m: AltitudeM,
+    step_m: Annotated[
+        float, Query(ge=1, allow_inf_nan=False, description="arrows about this far apart, m")
+    ] = 2000,
+    min_share: Annotated[
+        float, Query(ge=0, le=1, description="the least share of a mode drawn")
+    ] = sectors.MIN_SHARE,
+    arrow_s: Annotated[
+        float, Query(gt=0, le=3600, allow_inf_nan=False, description="an arrow is the flight of this many s")
+    ] = 10.0,
+    min_version: MinVersion = 0,
+):
+    """The flows at ``alt_m`` as GeoJSON arrows (MultiLineString: the shaft, the head):
+    each traffic class of share at least ``min_share`` at points ``step_m`` apart (one
+    class: the mean), as far as it flies in ``arrow_s``; properties speed_mps, heading_deg,
+    share, known."""
+
+    def light():
+        info, not_modified = answer.region_or_304(name)
+        if not_modified:
+            return not_modified
+        _, _, X, inside = webmap.lattice(info.spec, alt_m, step_m)
+        X = X[inside]
+        if len(X) > svc.settings.max_query_points:
+            raise Problem(
+                422,
+                f"{len(X)} arrows exceed max_query_points {svc.settings.max_query_points}: a larger step_m",
+            )
+        if not len(X):
+            raise Problem(422, f"alt_m {alt_m} leaves region {name!r}: no point of it lies at that altitude")
+
+        def work():
+            pred = svc.maps.predict(name, X, info, min_version, modes=info.spec.directions > 1)
+            body = webmap.flows_geojson(info.spec, X, pred, min_share, arrow_s)
+            return JSONResponse(body, media_type=GEOJSON, headers=answer.headers(pred))
+
+        return _light_or_heavy(svc, info, min_version, len(X), work)
+
+    return await svc.run(light)
+
+
+@router.get("/regions/{name}/tube_outline", **scoped("read", responses={200: {"content": {GEOJSON: {}}}}))
+async def tube_outline(
+    name: RegionName,
+    svc: ServiceDep,
+    answer: AnswerDep,
+    alt_m: AltitudeM,
+    max_std_mps: Annotated[float, Query(gt=0, allow_inf_nan=False, description="the tube bound, m/s")],
+    step_m: Annotated[float, Query(ge=1, allow_inf_nan=False, description="the lattice contoured, m")] = 500,
+    min_version: MinVersion = 0,
+):
+    """The outline of the velocity tube at ``alt_m``: where every std component is below
+    ``max_std_mps``, as GeoJSON contour lines (MultiLineString of [lon, lat]) on a lattice
+    ``step_m`` apart; its ``inside`` property is the share of the lattice within the tube."""
+
+    def light():
+        info, not_modified = answer.region_or_304(name)
+        if not_modified:
+            return not_modified
+        lon, lat, X, inside = webmap.lattice(info.spec, alt_m, step_m)
+        if inside.sum() > svc.settings.max_query_points:
+            raise Problem(422, f"{int(inside.sum())} points exceed max_query_points: a larger step_m")
+        if not inside.any():
+            raise Problem(422, f"alt_m {alt_m} leaves region {name!r}: no point of it lies at that altitude")
+
+        def work():
+            pred = svc.maps.predict(name, X[inside], info, min_version)
+            body = webmap.tube_outline_geojson(lon, lat, inside, pred.std.max(axis=1), max_std_mps)
+            return JSONResponse(body, media_type=GEOJSON, headers=answer.headers(pred))
+
+        return _light_or_heavy(svc, info, min_version, int(inside.sum()), work)
+
+    return await svc.run(light)
+
+
 @router.get("/regions/{name}/tiles", **scoped("read"))
 async def tiles(name: RegionName, svc: ServiceDep):
     """The region's tiles that hold data: key, version, weighted count, points, bytes."""
@@ -851,10 +1028,25 @@ async def readyz(request: Request, svc: ServiceDep):
 
 
 @ops.get("/viewer", response_class=HTMLResponse, **scoped(PUBLIC))
-async def viewer():
-    """The map viewer: region, altitude slider, component and layer, drawn from slice.png.
-    The page itself is public; its requests carry the token typed into it, if any."""
-    return HTMLResponse(VIEWER_HTML, headers={"Content-Security-Policy": VIEWER_POLICY})
+async def viewer(svc: ServiceDep):
+    """The web map: the region's map as raster tiles at an altitude (speed, std, known,
+    share) with its legend, flows as arrows, the tube's outline, routes from a GeoJSON
+    file, the answer at a click, and the view in the URL; over a basemap if
+    ``viewer_basemap_url`` is set. The page itself is public; its requests carry the token
+    typed into it, if any."""
+    basemap = svc.settings.viewer_basemap_url
+    page = VIEWER_HTML.replace("{{BASEMAP}}", html.escape(basemap or "", quote=True))
+    page = page.replace("{{LEGENDS}}", json.dumps(webmap.legends()).replace("</", "<\\/"))
+    return HTMLResponse(page, headers={"Content-Security-Policy": viewer_policy(basemap)})
+
+
+@ops.get("/static/{file}", **scoped(PUBLIC))
+async def static(file: str):
+    """The viewer's MapLibre GL JS files (BSD-3-Clause, its licence beside them)."""
+    if file not in STATIC:
+        raise Problem(404, f"no static file {file!r}")
+    path, media = STATIC[file]
+    return FileResponse(path, media_type=media, headers={"Cache-Control": "public, max-age=86400"})
 
 
 @ops.get(

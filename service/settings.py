@@ -92,6 +92,12 @@ class Settings(BaseSettings):
     )
     max_headers: int = Field(100, ge=1, description="header fields per request (431 above)")
     cache_mb: float = Field(512.0, gt=0, description="memory for cached tile posteriors, per worker")
+    viewer_basemap_url: str | None = Field(
+        None,
+        pattern=r"^https?://[^\s\"<>]+$",
+        description="a MapLibre style URL drawn under the viewer's map (a basemap); none: the region's "
+        "outline and a graticule on a plain background, nothing fetched from elsewhere",
+    )
     tokens: dict[SecretStr, list[Scope]] = Field(default_factory=dict, description="bearer token -> scopes")
     max_body_mb: float = Field(256.0, gt=0, description="largest request body (413 above)")
     max_points: int = Field(2_000_000, ge=1, description="observations per upload or fit request")
