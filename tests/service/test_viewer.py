@@ -151,65 +151,145 @@ def test_slice_png_endpoint(live_server):
 
 @pytest.fixture
 def browser():
-    """Debian's Chromium, driven by Playwright (no browser download). Skipped where it is
-    missing, unless ``BDF_TEST_BROWSER=required`` (CI), where its absence fails."""
+    """Debian's Chromium, driven by Playwright (no browser download), WebGL on SwiftShader
+    (the CPU). Skipped where it is missing, unless ``BDF_TEST_BROWSER=required`` (CI), where
+    its absence fails."""
     if CHROMIUM is None:
         if os.environ.get("BDF_TEST_BROWSER") == "required":
             pytest.fail("BDF_TEST_BROWSER=required but no chromium on PATH (apt-get install chromium)")
         pytest.skip("no chromium on PATH: `make browser` installs Debian's package")
     from playwright.sync_api import sync_playwright
 
-    flags = [
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-    ]
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, args=flags)
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=BROWSER_FLAGS)
         yield browser
         browser.close()
 
 
-def test_viewer_page_in_headless_chromium(live_server, browser):
-    """The page asks for a token, lists the region, draws a slice; the slider (keyboard)
-    and the layer menu change the picture. Screenshots go to ``test-artifacts/``."""
+#: headless, WebGL on the CPU (SwiftShader), nothing fetched but the page's own requests
+BROWSER_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def tile_of(lat: float, lon: float, z: int) -> tuple[int, int]:
+    """The XYZ tile holding a point (Web Mercator)."""
+    n = 2**z
+    y = (1 - np.log(np.tan(np.radians(lat)) + 1 / np.cos(np.radians(lat))) / np.pi) / 2 * n
+    return int((lon + 180) / 360 * n), int(y)
+
+
+def test_map_tiles_flows_and_the_tube_outline(live_server):
+    """A tile over the region is coloured inside it and clear outside; a tile far away is
+    clear; its ETag answers 304; the flows point along the mean; the outline encloses the
+    tube; nonsense is a 4xx naming what."""
+    server = live_server()
+    with httpx.Client(base_url=server.url, timeout=60) as c:
+        create_town(c)
+        view = c.get(f"/v1/regions/{NAME}").json()
+        ring = np.array(view["outline_wgs84"])
+        assert ring.shape == (65, 2) and np.array_equal(ring[0], ring[-1])
+        centre = ring[:-1].mean(axis=0)
+        x, y = tile_of(centre[1], centre[0], 17)  # 300 m at 48 degrees: a tile holds the region
+        url = f"/v1/regions/{NAME}/tiles/17/{x}/{y}.png"
+        c.post(f"/v1/regions/{NAME}/hyperparameters").raise_for_status()  # settled: the ETag holds
+        r = c.get(url, params={"alt_m": 20, "layer": "std"})
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+        assert r.headers["x-region-version"] == "1"
+        rgba = imread(io.BytesIO(r.content))
+        assert rgba.shape == (256, 256, 4)
+        opaque = rgba[..., 3] > 0
+        assert 500 < opaque.sum() < 256 * 256  # the region, and the clear tile around it
+        assert (
+            c.get(
+                url, params={"alt_m": 20, "layer": "std"}, headers={"If-None-Match": r.headers["etag"]}
+            ).status_code
+            == 304
+        )
+        far = imread(io.BytesIO(c.get(f"/v1/regions/{NAME}/tiles/17/0/0.png", params={"alt_m": 20}).content))
+        assert far[..., 3].max() == 0
+        for path, params, status, message in (
+            ("tiles/18/0/0.png", {"alt_m": 20, "layer": "wind"}, 422, "layer"),
+            ("tiles/3/8/0.png", {"alt_m": 20}, 404, "does not exist"),
+            ("tiles/23/0/0.png", {"alt_m": 20}, 422, "z"),
+            ("flows", {"alt_m": 5000}, 422, "leaves region"),
+            ("tube_outline", {"alt_m": 20}, 422, "max_std_mps"),
+        ):
+            r = c.get(f"/v1/regions/{NAME}/{path}", params=params)
+            assert r.status_code == status and message in r.json()["detail"], (path, r.text)
+
+        flows = c.get(f"/v1/regions/{NAME}/flows", params={"alt_m": 20, "step_m": 40, "arrow_s": 10}).json()
+        assert flows["type"] == "FeatureCollection" and len(flows["features"]) > 10
+        points = [f["geometry"]["coordinates"][0][0] for f in flows["features"]]
+        answer = c.post(
+            f"/v1/regions/{NAME}/query",
+            json={"points": [[lat, lon, 20] for lon, lat in points], "frame": "wgs84"},
+        ).json()
+        for feature, (ve, vn, _) in zip(flows["features"], answer["mean"], strict=True):
+            heading = np.degrees(np.arctan2(ve, vn)) % 360
+            assert abs((feature["properties"]["heading_deg"] - heading + 180) % 360 - 180) < 0.1
+            assert feature["properties"]["speed_mps"] == pytest.approx(np.hypot(ve, vn), abs=0.01)
+
+        stds = np.array(
+            c.post(f"/v1/regions/{NAME}/query", json={"points": [[150, 100, 20]]}).json()["std"][0]
+        )
+        bound = float(stds.max()) * 1.5  # the region's middle is inside this tube
+        outline = c.get(
+            f"/v1/regions/{NAME}/tube_outline", params={"alt_m": 20, "max_std_mps": bound, "step_m": 5}
+        ).json()
+        lines = outline["features"][0]["geometry"]["coordinates"]
+        assert lines and 0 < outline["features"][0]["properties"]["inside"] < 1
+
+
+def test_viewer_web_map_in_headless_chromium(live_server, browser):
+    """The page asks for a token, lists the region, draws its tiles, flows and tube
+    outline; a click shows the answer there; the layer menu redraws and the view is in the
+    URL. A screenshot goes to ``test-artifacts/``."""
     server = live_server(env={"BDF_TOKENS": '{"tok-0123456789abcdef": ["read", "write", "admin"]}'})
     auth = {"Authorization": "Bearer tok-0123456789abcdef"}
     with httpx.Client(base_url=server.url, timeout=60, headers=auth) as c:
         create_town(c)
-        png_at_30 = c.get(f"/v1/regions/{NAME}/slice.png", params={"alt_m": 30}).content
+        c.post(
+            f"/v1/regions/{NAME}/query?min_version=1", json={"points": [[150, 100, 20]]}
+        ).raise_for_status()
 
-    page = browser.new_page(viewport={"width": 1100, "height": 900})
-    errors = []
+    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    errors, tiles = [], []
     page.on("pageerror", lambda e: errors.append(str(e)))
+    page.on("response", lambda r: tiles.append((r.status, r.url)) if "/tiles/" in r.url else None)
     page.goto(f"{server.url}/viewer")
     page.wait_for_selector("#status.error")  # no token yet: the problem's text is shown
     assert "401" in page.text_content("#status")
 
     page.fill("#token", "tok-0123456789abcdef")
-    page.press("#token", "Enter")  # commits the field: its change event reloads the regions
-    page.wait_for_selector("#image[data-alt-m='20']")
-    assert page.text_content("#status") == f"{NAME} at 20 m, region version 1"
-    assert page.input_value("#alt") == "20" and page.text_content("#altLabel") == "20 m"
-    before = page.locator("#image").screenshot()
+    page.press("#token", "Enter")
+    page.wait_for_selector(f"#map[data-drawn='{NAME}@20/speed']")
+    page.wait_for_function("() => document.querySelectorAll('.maplibregl-canvas').length === 1")
+    page.wait_for_timeout(1500)  # the tiles of the view arrive
+    assert tiles and all(status == 200 for status, _ in tiles), tiles
+    assert page.text_content("#legend").startswith("horizontal speed of the mean velocity (m/s)")
 
-    page.focus("#alt")
-    page.keyboard.press("ArrowRight")  # step: half the vertical spacing, 10 m
-    page.wait_for_selector("#image[data-alt-m='30']")
-    after = page.locator("#image").screenshot()
-    assert after != before
-    size = page.eval_on_selector("#image", "i => [i.naturalHeight, i.naturalWidth]")
-    assert size == list(imread(io.BytesIO(png_at_30)).shape[:2])  # the endpoint's picture
+    box = page.locator("#map").bounding_box()
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)  # the region's middle
+    page.wait_for_selector("#answer[data-answered]")
+    text = page.text_content("#answer")
+    assert "m/s towards" in text and "known" in text and "version1" in text.replace(" ", "")
 
     page.select_option("#layer", "std")
-    page.wait_for_selector("#image[data-layer='std']")
-    assert page.locator("#image").screenshot() != after
+    page.wait_for_selector(f"#map[data-drawn='{NAME}@20/std']")
+    page.wait_for_timeout(1500)
+    assert any("layer=std" in url for _, url in tiles)
+    assert "layer=std" in page.url and "region=town" in page.url and "#" in page.url
+    assert page.text_content("#legend").startswith("predictive std")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=ARTIFACTS / "viewer.png", full_page=True)
+    page.screenshot(path=ARTIFACTS / "viewer.png")
     assert (ARTIFACTS / "viewer.png").stat().st_size > 20_000
     assert errors == []
