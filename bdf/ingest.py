@@ -54,20 +54,27 @@ class Observations:
         )
 
 
+#: file names read as JSON records
+JSON_SUFFIXES = (".json", ".json.gz", ".jsonl", ".jsonl.gz")
+
+
+def json_records(path) -> list[dict]:
+    """The records of a JSON(.gz) file: a JSON list of objects, or JSON lines (the whole
+    file in memory: for large data, Parquet)."""
+    opener = gzip.open if str(path).lower().endswith(".gz") else open
+    with opener(path, "rt") as fh:
+        text = fh.read()
+    if text.lstrip().startswith("["):
+        return json.loads(text)
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
 def read_table(path) -> dict[str, np.ndarray]:
     """Columns of a CSV, Parquet or JSON(.gz) file (a JSON list of records, or JSON lines)."""
     path = Path(path)
     name = path.name.lower()
-    if name.endswith((".json", ".json.gz", ".jsonl", ".jsonl.gz")):
-        opener = gzip.open if name.endswith(".gz") else open
-        with opener(path, "rt") as fh:
-            text = fh.read()
-        stripped = text.lstrip()
-        records = (
-            json.loads(text)
-            if stripped.startswith("[")
-            else [json.loads(line) for line in text.splitlines() if line.strip()]
-        )
+    if name.endswith(JSON_SUFFIXES):
+        records = json_records(path)
         keys = {k for r in records[:1000] for k in r}
         return {k: np.array([r.get(k) for r in records], dtype=object) for k in keys}
     if name.endswith((".parquet", ".pq")):

@@ -21,7 +21,7 @@ import json
 import sys
 import time
 from collections.abc import Callable, Generator, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Literal
 
 import httpx
@@ -61,6 +61,8 @@ class Region:
     #: that map against its traffic: worst_ratio, implausible_share, grid_step_m (None
     #: before the first map of "auto" hyperparameters)
     plausibility: dict | None = None
+    #: the region's horizontal boundary as a closed ring of [lon, lat]
+    outline_wgs84: list | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True)
@@ -729,7 +731,8 @@ class _Endpoints:
 
 
 def _region(js: dict) -> Region:
-    return Region(**js)
+    """The region view; fields a newer service adds are left out (this SDK keeps working)."""
+    return Region(**{f.name: js[f.name] for f in fields(Region) if f.name in js})
 
 
 def _summary(results: Iterable[dict]) -> UploadResult:

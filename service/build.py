@@ -52,7 +52,7 @@ from service.problems import Problem
 from service.refresh import fitted
 from service.store import MapStore
 
-SUFFIXES = (".parquet", ".arrow", ".csv", ".csv.gz")
+SUFFIXES = (".parquet", ".arrow", ".csv", ".csv.gz", *ingest.JSON_SUFFIXES)
 #: Rows a task reads at most (whole Parquet row groups may exceed it: they are the unit).
 ROWS_PER_TASK = 500_000
 #: Rows turned into evidence at once: with the window factors, about 1 kB of memory each.
@@ -143,7 +143,7 @@ def plan(paths, rows_per_task: int = ROWS_PER_TASK) -> list[Slice]:
             size = path.stat().st_size
             step = rows_per_task * CSV_BYTES_PER_ROW
             out += [Slice(str(path), a, min(a + step, size)) for a in range(0, size, step)]
-        else:  # .csv.gz: one stream
+        else:  # .csv.gz, JSON: one stream
             out.append(Slice(str(path), 0, -1))
     return out
 
@@ -187,6 +187,8 @@ def read_slice(piece: Slice, batch_rows: int = BATCH_ROWS) -> Iterator[pa.Record
                 yield batch.slice(c, min(batch_rows, b - c))
             if at >= piece.stop:
                 return
+    elif kind in ingest.JSON_SUFFIXES:  # one slice, read whole (traffic's samples are JSON)
+        yield from pa.Table.from_pylist(ingest.json_records(path)).to_batches(batch_rows)
     else:
         yield from _csv_batches(path, piece, batch_rows)
 

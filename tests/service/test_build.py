@@ -2,6 +2,7 @@
 
 import gzip
 import itertools
+import json
 import os
 import signal
 import subprocess
@@ -124,8 +125,8 @@ def test_tracks_cut_across_slices_and_batches_build_the_map_of_one_upload(store,
 
 
 def test_adsb_state_vectors_build_in_the_regions_frame(store, spec, client, tmp_path):
-    """traffic-schema CSV and OpenSky-schema Parquet: converted on the worker, on-ground rows
-    rejected and counted."""
+    """traffic-schema CSV and JSON records and OpenSky-schema Parquet: converted on the
+    worker, on-ground rows rejected and counted."""
     frame = spec.frame()
     X, V = data(5, n=300)
     lat, lon, alt = frame.to_geodetic(X).T
@@ -156,19 +157,24 @@ def test_adsb_state_vectors_build_in_the_regions_frame(store, spec, client, tmp_
     opensky = {"time": traffic["timestamp"] / 1000, "icao24": traffic["icao24"], "lat": lat, "lon": lon}
     opensky |= {"geoaltitude": alt, "velocity": speed, "heading": track, "vertrate": local[:, 2]}
     pq.write_table(pa.table(opensky | {"onground": onground}), tmp_path / "states.parquet", row_group_size=64)
-    result = build(
-        store, "town", [csv, tmp_path / "states.parquet"], client, progress=False, rows_per_task=64
-    )
+    records = [  # traffic's own samples are JSON records (quickstart.json.gz)
+        {k: v.item() if hasattr(v, "item") else v for k, v in zip(traffic, row, strict=True)}
+        for row in zip(*traffic.values(), strict=True)
+    ]
+    with gzip.open(tmp_path / "states.json.gz", "wt") as fh:
+        json.dump(records, fh)
+    files = [csv, tmp_path / "states.parquet", tmp_path / "states.json.gz"]
+    result = build(store, "town", files, client, progress=False, rows_per_task=64)
     keep = ~onground
-    assert result["accepted"] == 2 * keep.sum() and result["untracked"] == 0
-    assert result["rejected"] == {**NO_REJECTS, "on_ground": 2 * onground.sum()}
+    assert result["accepted"] == 3 * keep.sum() and result["untracked"] == 0
+    assert result["rejected"] == {**NO_REJECTS, "on_ground": 3 * onground.sum()}
     # one track (icao24 "abc"), 1 Hz: weighed in each file alike, whatever its slices
     weight = ingest.track_weights(np.zeros(keep.sum(), int), np.arange(len(X))[keep], V[keep], spec.gamma)
     expected = increments(
         spec,
-        np.concatenate([X[keep]] * 2),
-        np.concatenate([V[keep]] * 2),
-        sample_weight=np.r_[weight, weight],
+        np.concatenate([X[keep]] * 3),
+        np.concatenate([V[keep]] * 3),
+        sample_weight=np.r_[weight, weight, weight],
     )
     assert_evidence_equal(store.snapshot("town").evidence, {k: i.evidence for k, i in expected.items()}, 1e-9)
 
@@ -189,7 +195,11 @@ def test_a_bad_file_fails_the_build_and_stores_nothing(store, spec, client, tmp_
     for paths, message in (
         ([good, tmp_path / "novel.parquet"], "novel.parquet: the table lacks the velocity columns"),
         ([good, tmp_path / "notes.csv"], "notes.csv: the table lacks the velocity columns"),
-        ([good, tmp_path / "notes.txt"], "notes.txt: a build reads .parquet, .arrow, .csv, .csv.gz files"),
+        (
+            [good, tmp_path / "notes.txt"],
+            "notes.txt: a build reads .parquet, .arrow, .csv, .csv.gz, .json, .json.gz, .jsonl, "
+            ".jsonl.gz files",
+        ),
         ([good, tmp_path / "broken.parquet"], "cannot read the files' metadata"),
         ([good, tmp_path / "missing.parquet"], "missing.parquet: no such file"),
         ([], "at least one"),
