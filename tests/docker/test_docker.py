@@ -227,3 +227,60 @@ def _answers(url: str) -> bool:
         return httpx.get(f"{url}/healthz", timeout=1).status_code == 200
     except httpx.TransportError:
         return False
+
+
+def readme_docker_commands() -> list[list[str]]:
+    """The README's Docker block, one argv per command (continued lines joined)."""
+    text = (DOCKER.parent / "README.md").read_text()
+    block = text[text.index("- **Docker.**") :]
+    block = block[block.index("```") + 3 :]
+    block = block[: block.index("```")].replace("\\\n", " ")
+    return [shlex.split(line, comments=True) for line in block.splitlines() if line.strip()]
+
+
+def test_the_readmes_docker_steps_name_what_exists_and_parse():
+    """Each command of the README's Docker block: compose on the compose file, services it
+    defines, bdf arguments our command line accepts, files under /observations that ship in
+    docker/observations or that an earlier step makes there, the edge's address."""
+    from clients.cli import build_parser
+    from clients.samples import SAMPLES
+
+    services = compose()["services"]
+    proxy_port = services["proxy"]["ports"][0].split(":")[0]
+    made, ran = set(), []
+    for argv in readme_docker_commands():
+        if argv[0] == "export":
+            assert {kv.split("=", 1)[0] for kv in argv[1:]} == {"BDF_TOKENS", "POSTGRES_PASSWORD"}
+            continue
+        if argv[0] == "curl":
+            assert argv[-1].startswith(f"http://127.0.0.1:{proxy_port}/"), argv
+            ran.append("curl")
+            continue
+        if argv[0] == ".venv/bin/bdf":
+            args = build_parser().parse_args(argv[1:])
+            assert (args.command, args.action) == ("data", "fetch")
+            made.add(f"{argv[3]}-{Path(SAMPLES[argv[3]][1]).name}")
+            assert Path(argv[argv.index("--cache") + 1]) == Path("docker/observations")
+            continue
+        assert argv[:4] == ["docker", "compose", "-f", "docker/compose.yaml"], argv
+        assert (DOCKER.parent / argv[3]).exists()
+        verb, rest = argv[4], argv[5:]
+        if verb == "up":
+            scale = rest[rest.index("--scale") + 1].split("=")[0]
+            assert scale in services
+            ran.append("up")
+            continue
+        assert verb == "run" and rest[0] == "--rm" and rest[1] in services, argv
+        bdf_args = rest[2:]
+        build_parser().parse_args(bdf_args)  # exits (SystemExit) on arguments it does not take
+        for arg in bdf_args:
+            if arg.startswith("/observations/"):
+                name = arg.removeprefix("/observations/")
+                assert (DOCKER / "observations" / name).exists() or name in made, arg
+        if "--url" in bdf_args:
+            host, port = bdf_args[bdf_args.index("--url") + 1].removeprefix("http://").split(":")
+            assert host == "proxy" and port == "8080" == services["proxy"]["ports"][0].split(":")[1]
+        ran.append(bdf_args[0])
+    assert ran == ["up", "region", "build", "curl"]
+    spec = json.loads((DOCKER / "observations" / "paris-region.json").read_text())
+    RegionSpec.model_validate(spec)
