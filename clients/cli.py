@@ -218,21 +218,22 @@ def _plot(args) -> int:
     with _client(args) as bdf:
         spec = RegionSpec.model_validate(bdf.region(args.name).spec)
         step = _floats(args.step, (1, 3), "--step") if args.step else None
+        geo = {"title": args.name, "origin": (spec.origin.lat, spec.origin.lon)}
         if args.kind == "tube":
             step = step or (np.array(spec.spacing_m) / 2).tolist()
             tubes = bdf.tubes(args.name, args.max_std_mps, step)
-            path = plots.plot_tube(tubes, args.max_std_mps, args.out, title=args.name)
+            path = plots.plot_tube(tubes, args.max_std_mps, args.out, **geo)
         else:
             step = step or (np.array(spec.spacing_m) / 8).tolist()
             alt = min(max(args.alt_m, spec.lower[2]), spec.upper[2])
             bbox = [*spec.lower[:2], alt, *spec.upper[:2], alt]
             grid = bdf.grid(args.name, step, bbox, modes=args.kind == "modes")
             if args.kind == "slice":
-                path = plots.plot_slice(grid, alt, args.component, args.out, title=args.name)
+                path = plots.plot_slice(grid, alt, args.component, args.out, **geo)
             elif args.kind == "modes":
-                path = plots.plot_modes(grid, alt, args.out, title=args.name)
+                path = plots.plot_modes(grid, alt, args.out, **geo)
             else:
-                path = plots.plot_arrows(grid, alt, args.out, title=args.name)
+                path = plots.plot_arrows(grid, alt, args.out, **geo)
     print(f"wrote {path}")
     return 0
 

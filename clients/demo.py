@@ -68,8 +68,8 @@ def run(
                 bdf.delete_region(spec.name)
             bdf.create_region(spec)
             _build(bdf, spec, obs, test, report)
-        pictures = _pictures(bdf, spec, out)
         plan = _plan(bdf, spec, busiest_flow(obs.subset(~test), ROUTE_BAND_M), plan_time_s)
+        pictures = _pictures(bdf, spec, out, plan.costmap.weights.max_std_mps)
     print("\nrisk-aware route vs shortest path (metres, m/s, seconds)")
     print(plan.table())
     route_file = out / "route.geojson"
@@ -128,20 +128,26 @@ def _print(title: str, report: dict) -> None:
         print(f"  {key:<{width}}  {value}")
 
 
-def _pictures(bdf: BDFClient, spec, out: Path) -> list[Path]:
-    step = (np.array(spec.spacing_m) / 8).tolist()
+def _pictures(bdf: BDFClient, spec, out: Path, bound: float) -> list[Path]:
+    """The map's pictures, on its latitude and longitude too; the tube of the route's
+    bound (``bound``, m/s)."""
+    step, origin = (np.array(spec.spacing_m) / 8).tolist(), (spec.origin.lat, spec.origin.lon)
     paths = []
     for alt, kind in ((1000.0, "slice"), (3000.0, "arrows")):
         grid = bdf.grid(spec.name, step, [*spec.lower[:2], alt, *spec.upper[:2], alt])
         if kind == "slice":
-            paths.append(plots.plot_slice(grid, alt, "e", out / f"slice_e_{alt:.0f}m.png", title=spec.name))
+            path = out / f"slice_e_{alt:.0f}m.png"
+            paths.append(plots.plot_slice(grid, alt, "e", path, title=spec.name, origin=origin))
         else:
-            paths.append(plots.plot_arrows(grid, alt, out / f"flow_{alt:.0f}m.png", title=spec.name))
+            paths.append(
+                plots.plot_arrows(grid, alt, out / f"flow_{alt:.0f}m.png", title=spec.name, origin=origin)
+            )
     for alt in (1000.0, 3000.0):
         grid = bdf.grid(spec.name, step, [*spec.lower[:2], alt, *spec.upper[:2], alt], modes=True)
-        paths.append(plots.plot_modes(grid, alt, out / f"modes_{alt:.0f}m.png", title=spec.name))
-    tubes = bdf.tubes(spec.name, 25.0, (np.array(spec.spacing_m) / 4).tolist())
-    paths.append(plots.plot_tube(tubes, 25.0, out / "tube_3d.png", title=spec.name))
+        path = out / f"modes_{alt:.0f}m.png"
+        paths.append(plots.plot_modes(grid, alt, path, title=spec.name, origin=origin))
+    tubes = bdf.tubes(spec.name, bound, (np.array(spec.spacing_m) / 4).tolist())
+    paths.append(plots.plot_tube(tubes, bound, out / "tube.png", title=spec.name, origin=origin))
     return paths
 
 

@@ -829,7 +829,8 @@ async def slice_png(
         return [x, y, np.array([alt_m])]
 
     def encode(spec, axes, pred):
-        return formats.encode_slice(name, axes, pred, view, answer.headers(pred))
+        origin = (spec.origin.lat, spec.origin.lon)
+        return formats.encode_slice(name, axes, pred, view, answer.headers(pred), origin)
 
     with_modes = layer in ("modes", "share")
     light = _on_grid(svc, answer, name, axes_of, min_version, with_modes, PNG, encode)

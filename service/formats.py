@@ -807,7 +807,7 @@ def encode_tube(
     return JSONResponse(content, media_type=GEOJSON, headers=headers)
 
 
-def encode_slice(name: str, axes, pred, view: slices.SliceView, headers: dict) -> Response:
+def encode_slice(name: str, axes, pred, view: slices.SliceView, headers: dict, origin=None) -> Response:
     """One horizontal slice as a PNG with its colour scale (:func:`service.slices.render_slice`)."""
     x, y, z = axes
     per_class = {}
@@ -830,6 +830,7 @@ def encode_slice(name: str, axes, pred, view: slices.SliceView, headers: dict) -
         component=view.component,
         max_std_mps=view.max_std_mps,
         title=f"{name} v{pred.version}",
+        origin=origin,
         **per_class,
     )
     return Response(png, media_type=PNG, headers=headers)

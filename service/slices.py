@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from matplotlib.cm import ScalarMappable
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 
 from bdf.grid import axis_counts
 from bdf.sectors import MIN_SHARE
@@ -36,6 +36,11 @@ class SliceView:
 
 
 COMPONENTS = ("e", "n", "u")
+#: uncertainty as the web map draws it: dark where the map can be trusted, pale where not
+STD_CMAP = "YlGnBu_r"
+#: cells with no data within the kernel's reach (the prior), or outside the tube
+UNKNOWN_GREY = "0.85"
+MODE_COLOUR = "#c2185b"
 MAX_SIDE = 256  # cells per horizontal axis of a slice: enough for a screen, cheap to predict
 
 
@@ -84,6 +89,7 @@ def render_slice(
     mode_mean: np.ndarray | None = None,
     mode_known: np.ndarray | None = None,
     min_share: float = MIN_SHARE,
+    origin: tuple[float, float] | None = None,
 ) -> bytes:
     """PNG of one slice. ``mean``, ``std``: (nx, ny, 3) m/s; ``known``: (nx, ny);
     ``share`` (nx, ny, C), ``share_std`` (nx, ny), ``mode_mean`` (nx, ny, C, 3) and
@@ -98,7 +104,8 @@ def render_slice(
     ``min_share`` of the traffic and data of its own within the kernel's reach (elsewhere a
     mode is only its prior: the class's mean velocity at that altitude), along its
     horizontal mean, as wide as its share, faint where that share is less than one std above
-    ``min_share``, on the horizontal speed of the mixture.
+    ``min_share``, on the horizontal speed of the mixture. ``origin`` (lat, lon): latitude
+    and longitude ticks too (:func:`geo_ticks`).
     """
     c = COMPONENTS.index(component)
     if layer in ("modes", "share") and share is None:
@@ -115,25 +122,29 @@ def render_slice(
         label = "horizontal speed of the mixture [m/s]"
     elif layer == "std":
         values = np.ma.masked_invalid(std[..., c])
-        cmap, norm = "magma_r", Normalize(float(values.min()), _robust_max(values))
-        label = f"predictive std of v{component} [m/s]"
+        cmap, norm = STD_CMAP, Normalize(float(values.min()), _robust_max(values))
+        label = f"predictive std of v{component} [m/s] (dark: trustworthy)"
     else:
         hide = ~known if layer == "mean" else ~(known & (std < max_std_mps).all(axis=-1))
         values = np.ma.array(mean[..., c], mask=hide)
         limit = _robust_max(np.abs(values))
         cmap, norm = "RdBu_r", Normalize(-limit, limit)
         label = f"mean v{component} [m/s]"
-    fig = Figure(figsize=(7.2, 6.0), layout="constrained")
+    fig = Figure(figsize=(7.2, 6.4), layout="constrained")
     ax = fig.add_subplot()
-    ax.set_facecolor("0.85")  # masked cells: no data, or outside the tube
+    ax.set_facecolor(UNKNOWN_GREY)  # masked cells: no data, or outside the tube
     extent = [x[0] / 1e3, x[-1] / 1e3, y[0] / 1e3, y[-1] / 1e3]
     im = ax.imshow(values.T, origin="lower", extent=extent, cmap=cmap, norm=norm, aspect="equal")
     fig.colorbar(im, ax=ax, label=label, shrink=0.9, extend="max" if layer == "std" else "both")
-    if layer == "modes" and _mode_arrows(ax, x, y, share, share_std, mode_mean, mode_known, min_share):
-        headings = ScalarMappable(Normalize(0, 360), "hsv")  # opaque, whichever arrows were drawn
-        bar = fig.colorbar(headings, ax=ax, location="bottom", shrink=0.6, aspect=40)
-        bar.set_label("heading of the mode [degrees from north]")
-        bar.set_ticks([0, 90, 180, 270, 360])
+    handles = []
+    if layer == "modes":
+        handles = _mode_arrows(ax, x, y, share, share_std, mode_mean, mode_known, min_share)
+    if layer != "std":
+        grey = "no data within the kernel's reach" if layer != "tube" else "no data, or outside the tube"
+        handles.append(Patch(color=UNKNOWN_GREY, label=grey))
+        ax.legend(handles=handles, loc="lower left", fontsize=7, framealpha=0.85)
+    if origin is not None:
+        geo_ticks(ax, origin)
     what = {
         "mean": "mean",
         "std": "uncertainty",
@@ -141,7 +152,11 @@ def render_slice(
         "modes": f"traffic modes (share >= {min_share:g})",
         "share": "directional purity",
     }[layer]
-    ax.set(xlabel="east [km]", ylabel="north [km]", title=f"{title}: {what} at {alt_m:.0f} m")
+    ax.set(
+        xlabel="east of the region's origin [km]",
+        ylabel="north [km]",
+        title=f"{title}: {what} at {alt_m:.0f} m (region ENU up)",
+    )
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     return buf.getvalue()
@@ -149,11 +164,10 @@ def render_slice(
 
 def _mode_arrows(ax, x, y, share, share_std, mode_mean, mode_known, min_share):
     """An arrow per class and cell (every k-th cell) with at least ``min_share`` of the
-    traffic and data of its own (``mode_known``): along the mode's horizontal mean,
-    coloured by heading, wider as its share grows (three widths: below 0.2, to 0.5, above),
-    faint unless the share is at least one std above ``min_share``. Returns whether any was
-    drawn."""
-    drawn = False
+    traffic and data of its own (``mode_known``): along the mode's horizontal mean (its
+    direction is the heading: one colour, a key for the length), wider as its share grows
+    (three widths: below 0.2, to 0.5, above), faint unless the share is at least one std
+    above ``min_share``. Returns the legend's handles of the widths drawn."""
     k = max(1, int(np.ceil(max(len(x), len(y)) / ARROWS_PER_SIDE)))
     xs, ys = np.meshgrid(x[::k] / 1e3, y[::k] / 1e3, indexing="ij")
     s, m, seen = share[::k, ::k], mode_mean[::k, ::k], mode_known[::k, ::k]
@@ -161,29 +175,50 @@ def _mode_arrows(ax, x, y, share, share_std, mode_mean, mode_known, min_share):
     cell_km = k * float(x[1] - x[0]) / 1e3 if len(x) > 1 else 1.0
     scale = max(float(np.max(speed[seen & (s >= min_share)], initial=0.0)), 1e-9) / (0.9 * cell_km)
     show = seen & (s >= min_share) & (speed > 0)
-    heading = np.degrees(np.arctan2(m[..., 0], m[..., 1])) % 360.0
     sure = s - share_std[::k, ::k, None] >= min_share
+    key = None
     for low, high, width in ((min_share, 0.2, 0.002), (0.2, 0.5, 0.004), (0.5, 1.01, 0.007)):
         for established, alpha in ((False, 0.25), (True, 1.0)):
             pick = show & (s >= low) & (s < high) & (sure == established)
             if pick.any():
                 cells = np.nonzero(pick)
-                drawn = True
-                ax.quiver(
+                key = ax.quiver(
                     xs[cells[:2]],
                     ys[cells[:2]],
                     m[..., 0][pick],
                     m[..., 1][pick],
-                    heading[pick],
-                    cmap="hsv",
-                    clim=(0, 360),
+                    color=MODE_COLOUR,
                     angles="xy",
                     scale_units="xy",
                     scale=scale,
                     width=width,
                     alpha=alpha,
+                    label=f"a mode with {low:g} to {min(high, 1):g} of the traffic" if established else None,
                 )
-    return drawn
+    if key is not None:
+        speed_key = float(np.round(0.5 * scale * cell_km, -1)) or 10.0
+        ax.quiverkey(key, 0.86, -0.085, speed_key, f"{speed_key:g} m/s", labelpos="E", coordinates="axes")
+    return ax.get_legend_handles_labels()[0]
+
+
+def geo_ticks(ax, origin: tuple[float, float]) -> None:
+    """Longitude and latitude ticks on the top and right of axes in ENU km from ``origin``
+    (lat, lon): exact along the axes through the origin (pyproj), where the web map's
+    graticule crosses them."""
+    from bdf.frames import ENUFrame
+
+    frame, km = ENUFrame(*origin), np.linspace(-500.0, 500.0, 2001)
+    zeros = np.zeros_like(km)
+    lon = frame.to_geodetic(np.column_stack([km * 1e3, zeros, zeros]))[:, 1]
+    lat = frame.to_geodetic(np.column_stack([zeros, km * 1e3, zeros]))[:, 0]
+    top = ax.secondary_xaxis(
+        "top", functions=(lambda x: np.interp(x, km, lon), lambda v: np.interp(v, lon, km))
+    )
+    right = ax.secondary_yaxis(
+        "right", functions=(lambda y: np.interp(y, km, lat), lambda v: np.interp(v, lat, km))
+    )
+    top.set_xlabel("longitude [deg E]", fontsize=8)
+    right.set_ylabel("latitude [deg N]", fontsize=8)
 
 
 def _robust_max(values: np.ma.MaskedArray) -> float:

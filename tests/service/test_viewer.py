@@ -73,7 +73,8 @@ def test_render_slice_colours_only_what_the_layer_shows():
 
     everything, none = draw("tube", bound=1.0), draw("tube", bound=0.4)  # std 0.5 in / out
     assert everything > none + 50_000  # the map area, beside the colour bar both share
-    assert draw("mean") == everything  # the whole map is known and inside the tube
+    # the whole map is known and inside the tube: the same colours (to the legends' boxes)
+    assert abs(draw("mean") - everything) < 0.005 * everything
     assert draw("mean", known=np.zeros_like(known)) == none  # no data: grey map, same bar
 
 
