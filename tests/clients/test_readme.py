@@ -99,7 +99,7 @@ def stop(proc: subprocess.Popen) -> None:
     assert proc.wait(60) in (0, -signal.SIGTERM)
 
 
-def test_the_readme_walked_top_to_bottom(tmp_path):
+def test_the_readme_walked_top_to_bottom(tmp_path, monkeypatch):
     postgres = os.environ.get("BDF_TEST_POSTGRES_URL")
     namespace: dict = {}
     exec(PRELUDE, namespace)

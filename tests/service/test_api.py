@@ -575,8 +575,15 @@ def test_every_route_declares_its_scope_and_enforces_it(live_server, tmp_path):
     paths = create_app(Settings(store_url=f"sqlite:///{tmp_path / 'openapi'}")).openapi()["paths"]
     routes = [(m.upper(), p, op["x-scope"]) for p, ops in paths.items() for m, op in ops.items()]
     assert {scope for *_, scope in routes} == {"public", "read", "write", "admin"}
-    assert len(routes) == 19
-    fill = {"{name}": NAME, "{job_id}": "0" * 32}
+    assert len(routes) == 23
+    fill = {
+        "{name}": NAME,
+        "{job_id}": "0" * 32,
+        "{file}": "maplibre-gl.css",
+        "{z}": "0",
+        "{x}": "0",
+        "{y}": "0",
+    }
     with httpx.Client(base_url=server.url, timeout=60) as c:
         for method, path, scope in routes:
             url = path

@@ -104,7 +104,13 @@ def live_app():
 @settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
 def test_every_route_answers_fuzzed_requests_without_5xx_and_as_its_schema_says(case, live_app):
     seeded(live_app)
-    case.call_and_validate(headers=AUTH, checks=CHECKS)
+    checks = CHECKS
+    if case.path.endswith("{y}.png"):
+        # schemathesis reports the region name it mutated for this path template, then sends
+        # the configured name: a valid request it calls negative; the tile's own bad z, x, y
+        # and parameters are asserted in tests/service/test_viewer.py
+        checks = [c for c in CHECKS if c is not negative_data_rejection]
+    case.call_and_validate(headers=AUTH, checks=checks)
 
 
 # -- decoders ---------------------------------------------------------------------------------

@@ -237,13 +237,14 @@ def longest_routes(http):
 def huge_headers(http):
     """Two requests with a 64 MB header value each, no token (they stalled /healthz 3.3 s)."""
     port = httpx.URL(str(http.base_url)).port
+    # made before the prober starts: copying 64 MB holds this process's GIL, and the prober's
+    # own threads (not the server) would wait for it
+    request = b"GET /v1/regions HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 64_000_000 + b"\r\n\r\n"
 
     def send():
         with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
             with contextlib.suppress(OSError):  # the server answers 431 and closes before the end
-                sock.sendall(
-                    b"GET /v1/regions HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 64_000_000 + b"\r\n\r\n"
-                )
+                sock.sendall(request)
             answer = b""
             with contextlib.suppress(OSError):
                 while chunk := sock.recv(65536):

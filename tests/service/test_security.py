@@ -92,6 +92,23 @@ def test_security_headers_and_the_viewer_policy(app):
             assert r.headers["x-content-type-options"] == "nosniff"
             assert r.headers["referrer-policy"] == "no-referrer"
             assert r.headers["x-frame-options"] == "DENY"
-        policy = c.get("/viewer").headers["content-security-policy"]
+        page = c.get("/viewer")
+        policy = page.headers["content-security-policy"]
         assert "default-src 'none'" in policy and "frame-ancestors 'none'" in policy
-        assert "img-src blob:" in policy and "connect-src 'self'" in policy
+        assert "img-src 'self' data: blob:;" in policy and "connect-src 'self';" in policy  # nothing else
+        assert "https:" not in policy and '<meta name="bdf-basemap" content="">' in page.text
+        assert c.get("/static/maplibre-gl-csp.js").headers["content-type"].startswith("text/javascript")
+        assert c.get("/static/..%2Fapp.py").status_code == 404  # only the files it lists
+
+
+def test_a_basemap_is_one_setting_and_opens_the_policy_to_it(tmp_path):
+    from service.app import create_app
+    from service.settings import Settings
+
+    url = "https://tiles.example.org/styles/liberty.json?key=a&b=c"
+    with TestClient(create_app(Settings(store_url=f"sqlite:///{tmp_path}", viewer_basemap_url=url))) as c:
+        page = c.get("/viewer")
+    assert 'content="https://tiles.example.org/styles/liberty.json?key=a&amp;b=c"' in page.text
+    assert "connect-src 'self' https:" in page.headers["content-security-policy"]
+    with pytest.raises(ValueError, match="viewer_basemap_url"):
+        Settings(store_url=f"sqlite:///{tmp_path}", viewer_basemap_url='https://x"><script>')
