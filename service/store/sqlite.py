@@ -14,7 +14,15 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
-from service.store.base import SCHEMA_VERSION, MapStore, StoreDamaged, StoreError, StoreFull, StoreUnavailable
+from service.store.base import (
+    SCHEMA_VERSION,
+    MapStore,
+    RegionInfo,
+    StoreDamaged,
+    StoreError,
+    StoreFull,
+    StoreUnavailable,
+)
 
 FILE_NAME = "maps.sqlite3"
 
@@ -31,6 +39,7 @@ class SqliteStore(MapStore):
         # this process's writers queue here, woken as the lock frees, not in SQLite's busy
         # handler, whose sleeps let a stream of writers starve one past the timeout
         self._writer = threading.Lock()
+        self._writes = 0  # this store's write transactions (region(): what it may have changed)
         self._init_connections()
         if self._current():
             return  # nothing to write: a store on read-only media opens, and serves reads
@@ -97,7 +106,21 @@ class SqliteStore(MapStore):
             with self._transaction("BEGIN IMMEDIATE") as q:
                 yield q
         finally:
+            self._writes += 1  # committed or not: the regions read before are read again
             self._writer.release()
+
+    def region(self, name: str) -> RegionInfo:
+        """:meth:`MapStore.region`, kept per thread while the database is unchanged: every
+        request reads its region, and a read that finds nothing new costs one pragma
+        (``data_version`` changes with another connection's commit; this store's own writes
+        count in ``_writes``)."""
+        changed = (self._connection().execute("PRAGMA data_version").fetchone()[0], self._writes)
+        held = self._local.__dict__.setdefault("regions", {})
+        if name in held and held[name][0] == changed:
+            return held[name][1]
+        info = super().region(name)  # read after the mark: a commit between is seen next time
+        held[name] = (changed, info)
+        return info
 
     def _read(self):
         return self._transaction("BEGIN")

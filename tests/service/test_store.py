@@ -524,3 +524,33 @@ def test_tiles_checksummed_before_crc32_still_read_and_damage_still_shows(store,
             sha = hashlib.sha256(bytes(stats)).hexdigest()
             q("UPDATE tiles SET checksum = ? WHERE region_id = ? AND key = ?", (sha, info.region_id, key))
     assert_evidence_equal(store.snapshot("town").evidence, before, rtol=0)
+
+
+def test_a_region_read_sees_every_commit_of_any_connection(tmp_path):
+    name = SPEC["name"]
+    """SQLite keeps a thread's region read while the database is unchanged: another
+    connection's commit (another process's store) and this store's own writes, in any
+    thread, are seen at the next read; a deletion too."""
+    from service.store.sqlite import SqliteStore
+
+    here, there = SqliteStore(tmp_path), SqliteStore(tmp_path)
+    spec = RegionSpec.model_validate(SPEC)
+    here.create_region(spec)
+    assert here.region(name).version == 0 and here.region(name) is here.region(name)  # kept
+    X, V = data(1)
+    region_id = there.region(name).region_id
+    there.apply(name, region_id, "a", "d", increments(spec, X, V), observations=len(X))
+    assert here.region(name).version == 1  # another connection's commit
+    here.apply(name, region_id, "b", "e", increments(spec, X, V), observations=len(X))
+    assert here.region(name).version == 2  # its own, from this thread
+    seen = []
+    thread = threading.Thread(target=lambda: seen.append(here.region(name).version))
+    thread.start()
+    thread.join()
+    here.record_hyperparameters(name, region_id, {"alpha": [1.0] * 3}, 2)  # a write, no new version
+    assert seen == [2] and here.region(name).hyper["alpha"] == [1.0] * 3
+    there.delete_region(name)
+    with pytest.raises(RegionNotFound):
+        here.region(name)
+    here.close()
+    there.close()
