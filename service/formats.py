@@ -169,10 +169,11 @@ def read_route(spec: RegionSpec, body: bytes, media: str, limits: Limits) -> Rou
         raw = _geojson_route(raw)
     route = RouteBody.model_validate(raw)
     _check_size(len(route.points), 0, limits)
-    P = _to_region(spec, route.frame, _array(route.points), None)[0]
+    given = _array(route.points)
+    P = _to_region(spec, route.frame, given, None)[0]
     if len(P) < 2:
         raise Problem(422, f"a route needs at least 2 points, got {len(P)}")
-    _inside(spec, P, "route point(s)")
+    _inside(spec, P, "route point(s)", route.frame, given)
     try:
         craft = vehicle(route.vehicle if isinstance(route.vehicle, str) else route.vehicle.model_dump())
         P, times, heading = checked(P, craft, route.times_s, route.heading_deg)
@@ -514,7 +515,7 @@ def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes:
     else:
         raise Problem(415, f"send {JSON} or {ARROW}, not {media or 'no Content-Type'}")
     X = _to_region(spec, frame, P, None)[0]
-    _inside(spec, X, "point(s)")
+    _inside(spec, X, "point(s)", frame, P)
     if heading is not None:
         heading = np.asarray(heading, float)
         if heading.ndim == 0:
@@ -524,17 +525,39 @@ def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes:
     return PointQuery(X, heading, modes)
 
 
-def _inside(spec: RegionSpec, X: np.ndarray, what: str) -> None:
+def _inside(spec: RegionSpec, X: np.ndarray, what: str, frame: str = "enu", given=None) -> None:
     """422 naming the rows of ``X`` not finite or outside the region (``spec.inside`` is never
-    true for a row that is not finite)."""
+    true for a row that is not finite), in the frame they were sent in: for WGS84 points the
+    region's latitude, longitude and altitude ranges and the first row as sent."""
     outside = ~spec.inside(X)
-    if outside.any():
-        rows = np.flatnonzero(outside)
-        raise Problem(
-            422,
-            f"{rows.size} {what} not finite or outside region {spec.name!r} ({spec.bounds_m.min} .. "
-            f"{spec.bounds_m.max} ENU metres): rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}",
+    if not outside.any():
+        return
+    rows = np.flatnonzero(outside)
+    listed = f"rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}"
+    if frame == "wgs84":
+        (lat0, lat1), (lon0, lon1) = _geodetic_ranges(spec)
+        first = np.round(np.asarray(given, float)[rows[0]], 6).tolist()
+        where = (
+            f"latitude {lat0:.5f} .. {lat1:.5f}, longitude {lon0:.5f} .. {lon1:.5f}, altitude "
+            f"{spec.lower[2]:g} .. {spec.upper[2]:g} m near its origin; row {rows[0]} is {first} "
+            "(lat, lon, alt_m)"
         )
+    else:
+        where = f"{spec.bounds_m.min} .. {spec.bounds_m.max} ENU metres"
+    raise Problem(422, f"{rows.size} {what} not finite or outside region {spec.name!r} ({where}): {listed}")
+
+
+def _geodetic_ranges(spec: RegionSpec) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The region's latitude and longitude ranges (its ENU box's corners at its lowest level)."""
+    corners = np.array(
+        [
+            [x, y, spec.lower[2]]
+            for x in (spec.lower[0], spec.upper[0])
+            for y in (spec.lower[1], spec.upper[1])
+        ]
+    )
+    geo = spec.frame().to_geodetic(corners)
+    return (geo[:, 0].min(), geo[:, 0].max()), (geo[:, 1].min(), geo[:, 1].max())
 
 
 def media_type(content_type: str | None) -> str:

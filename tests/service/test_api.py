@@ -522,6 +522,15 @@ def test_limits_and_errors_are_problem_json(live_server):
                 "nope",
             ),
             (c.post(f"/v1/regions/{NAME}/query", json={"points": [[1e7, 0, 0]]}), 422, "outside region"),
+            (  # latitude and longitude asked: the region's in those terms, and the row as sent
+                c.post(
+                    f"/v1/regions/{NAME}/query",
+                    json={"frame": "wgs84", "points": [[48.0005, 2.001, 20], [2.001, 48.0005, 20]]},
+                ),
+                422,
+                "(latitude 48.00000 .. 48.00180, longitude 2.00000 .. 2.00402, altitude 0 .. 60 m near its "
+                "origin; row 1 is [2.001, 48.0005, 20.0] (lat, lon, alt_m)): rows [1]",
+            ),
             (
                 c.post(
                     f"/v1/regions/{NAME}/query", json={"points": [[0, 0, 0]]}, headers={"Accept": "text/html"}
