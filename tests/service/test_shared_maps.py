@@ -1,12 +1,17 @@
 """A version's map is computed once and shared through the store (service.refresh): by the
 processes on one store, by a restart, and after its computing process died."""
 
+import subprocess
+import sys
 import threading
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from bdf.region.evidence import increments
 from bdf.region.spec import RegionSpec
 from service.app import create_app
 from service.maps import RegionMaps
@@ -15,6 +20,7 @@ from service.store import open_store
 from tests.service.test_store import SPEC, data
 
 NAME = SPEC["name"]
+ROOT = Path(__file__).resolve().parents[2]
 FIXED = {**SPEC, "alpha": 1e-3, "beta": 0.05}  # no settling pass: one computation per version
 
 
@@ -84,20 +90,44 @@ def test_processes_on_one_store_compute_each_version_once(store_url):
     store_a.close()
 
 
-def test_a_dead_holders_lease_is_taken_over_when_it_expires(store, spec):
-    """A process took the region's lease and died (it never renews it): the next refresh
-    waits for its map until the lease expires, then computes the version itself."""
-    maps = RegionMaps(store)
-    maps.upload(NAME, "a", *data(1))
-    info = store.region(NAME)
-    dead = store.take_lease(info.region_id, "dead-process", info.version, 1.0)
-    assert dead.holder == "dead-process"
-    assert store.take_lease(info.region_id, "another", info.version, 1.0).holder == "dead-process"
-    state = maps.refresh(NAME)
-    assert state.version == 1 and maps.stats.count >= 1
+def test_a_killed_holders_version_is_computed_by_another_process_once_its_lease_expires(
+    store_url, store, spec
+):
+    """A process takes the region's lease (2 s) to compute a version and is killed (SIGKILL)
+    while it computes: the next process's refresh waits for it, takes the lease over once
+    it expired, computes the version, stores it and frees the lease."""
+    X, V = data(1)
+    store.apply(NAME, store.region(NAME).region_id, "a", "d", increments(spec, X, V), observations=len(X))
+    info = store.region(NAME)  # version 1, and no refresh of it here yet
+    script = f"""
+import threading
+from service.maps import RegionMaps
+from service.store import open_store
+maps = RegionMaps(open_store({store_url!r}), lease_s=2.0)
+maps.refresher.posterior = lambda *a, **k: threading.Event().wait()  # computes forever
+maps.refresh({NAME!r})
+"""
+    holder = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 60
+        while (lease := store.take_lease(info.region_id, "probe", info.version, 0.0)).holder == "probe":
+            store.release_lease(info.region_id, "probe")  # not taken yet: free it again
+            assert holder.poll() is None and time.monotonic() < deadline
+            time.sleep(0.1)
+        assert lease.version == info.version and str(holder.pid) in lease.holder
+        holder.kill()
+        holder.wait(30)
+        maps, done = RegionMaps(store), []
+        taker = threading.Thread(target=lambda: done.append(maps.refresh(NAME)), daemon=True)
+        taker.start()  # it waits for the holder's map, then takes its lease over
+        taker.join(60)
+        assert done, "the dead holder's lease was never taken over"
+        state = done[0]
+    finally:
+        holder.kill()
+    assert state.version == 1 and maps.stats.count >= 1 and maps.stats.loaded == 0
     assert store.stored_map(info.region_id).version == 1
-    # the lease was freed: anyone takes it at once
-    assert store.take_lease(info.region_id, "next", 2, 1.0).holder == "next"
+    assert store.take_lease(info.region_id, "next", 2, 1.0).holder == "next"  # freed
     maps.close()
 
 

@@ -1,0 +1,114 @@
+"""Server CPU per query of this tree against another commit, side by side on one machine
+(these machines are noisy: the ratio is the figure, not either time).
+
+    .venv/bin/python bench/bench_query_cpu.py --against 9d1bbb5 [--directions 1] [--seconds 8]
+        [--connections 4] [--rounds 2] [--no-append]
+
+Each side is ``bdf serve`` (2 uvicorn workers, SQLite) of its own checkout (the other commit
+in a temporary git worktree), holding the demo's Paris map (``paris_demo_region``, fitted
+over HTTP from the flight split's training rows); ``wrk`` POSTs the same 1,000 held-out
+points as Arrow on ``--connections`` for ``--seconds``, the two sides alternating for
+``--rounds``. Reported: requests/s, p50, and the CPU of each server's process tree per
+request (/proc), and their ratio (this tree over the other).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_core import arguments, publish, rows_table  # bench/ is on the path as a script
+from bench_service import QUERY, build, query_body, wrk_load
+
+from bdf import ingest
+from clients.local import LocalService
+from clients.samples import load_paris, paris_demo_region
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@contextlib.contextmanager
+def served(checkout: Path, data: Path, spec, obs, test):
+    """``bdf serve`` of ``checkout`` (its own modules first on the path) with the map built."""
+    env = {"BDF_WORKERS": "2", "BDF_LOG_LEVEL": "warning", "PYTHONPATH": str(checkout)}
+    env["BDF_REQUEST_TIMEOUT_S"] = "600"  # a fresh checkout compiles its kernels during the first fit
+    with contextlib.chdir(checkout), LocalService(data, env) as svc:
+        build(svc.url, spec, obs, test)
+        yield svc
+
+
+def main(argv=None) -> int:
+    parser = arguments(__doc__.splitlines()[0])
+    parser.add_argument("--against", required=True, help="the other commit (any git revision)")
+    parser.add_argument("--directions", type=int, default=1)
+    parser.add_argument("--seconds", type=float, default=8.0)
+    parser.add_argument("--connections", type=int, default=4)
+    parser.add_argument("--rounds", type=int, default=2)
+    args = parser.parse_args(argv)
+    obs, lower, upper = load_paris()
+    test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
+    spec = paris_demo_region(lower, upper, directions=args.directions)
+    body = query_body(obs.X[test], "arrow")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+        other = Path(tmp) / "other"
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(other), args.against],
+            check=True,
+        )
+        stack.callback(subprocess.run, ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)])
+        sides = {
+            "this tree": stack.enter_context(served(ROOT, Path(tmp) / "here", spec, obs, test)),
+            args.against: stack.enter_context(served(other, Path(tmp) / "there", spec, obs, test)),
+        }
+        for svc in sides.values():  # every worker has the map before the load
+            for _ in range(4):
+                httpx.post(
+                    f"{svc.url}{QUERY}?min_version=1",
+                    content=body[0],
+                    headers={"Content-Type": body[1], "Accept": body[1]},
+                    timeout=300,
+                )
+        runs = {name: [] for name in sides}
+        for _ in range(args.rounds):
+            for name, svc in sides.items():
+                runs[name].append(wrk_load(svc.url, svc.proc.pid, body, args.connections, args.seconds))
+        for name, results in runs.items():
+            rows.append(
+                {
+                    "server": name,
+                    "requests/s": float(np.mean([r["req/s"] for r in results])),
+                    "p50 ms": float(np.mean([r["p50 ms"] for r in results])),
+                    "server CPU ms/request": float(np.mean([r["server CPU ms/req"] for r in results])),
+                }
+            )
+    ratio = rows[0]["server CPU ms/request"] / rows[1]["server CPU ms/request"]
+    publish(
+        [
+            "",
+            f"## Query CPU against {args.against}, {datetime.date.today()}",
+            "",
+            f"`python bench/bench_query_cpu.py --against {args.against} --directions {args.directions} "
+            f"--seconds {args.seconds:g} --connections {args.connections} --rounds {args.rounds}`: "
+            f"1,000-point Arrow queries of the demo's map ({args.directions} class(es)), 2 workers, SQLite.",
+            "",
+            rows_table(rows),
+            "",
+            f"Server CPU per request, this tree / {args.against}: **{ratio:.3f}**.",
+        ],
+        not args.no_append,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
