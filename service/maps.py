@@ -25,7 +25,7 @@ from bdf.region.evidence import accepted_rows_increments, checked_rows, region_t
 from bdf.region.route import assess as assess_route
 from bdf.region.spec import RegionSpec
 from service import lanes
-from service.refresh import MapState, Refresher, _serves, fitted
+from service.refresh import MapState, Refresher, fitted, serves
 from service.store import MapStore, RegionChanged, RegionInfo, payload_digest
 
 log = logging.getLogger(__name__)
@@ -276,7 +276,7 @@ class RegionMaps:
         a map to be computed."""
         if (info.region_id, info.version) in self.cache:
             return True
-        return _serves(self.refresher.newest(info), info, min_version, False)
+        return serves(self.refresher.newest(info), info, min_version, False)
 
     def settled(self, info: RegionInfo) -> bool:
         """The map of ``info``'s version is computed here and its hyperparameters settled."""
@@ -316,7 +316,7 @@ class RegionMaps:
         if state is not None:
             return state
         newest = self.refresher.newest(info)
-        if _serves(newest, info, min_version, False):
+        if serves(newest, info, min_version, False):
             self.refresher.schedule(region, info.version)
             return newest
         return self.wait_for(info, min_version)

@@ -295,7 +295,7 @@ class Refresher:
             self._schedule_locked(region, info.version)
             while True:
                 newest = entry.newest
-                if _serves(newest, info, at_least, settled):
+                if serves(newest, info, at_least, settled):
                     return newest
                 if self._closed:
                     raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
@@ -410,7 +410,7 @@ class Refresher:
                 if state is not None and (state.posterior.settled or not settle):
                     return state
                 newest = self.newest(info)
-                if _serves(newest, info, at_least, settle):
+                if serves(newest, info, at_least, settle):
                     return newest
                 stored = self._load(info, settle)
                 if stored is not None:
@@ -514,7 +514,7 @@ class Refresher:
                 self.stats.loaded += 1
             log.info("region %s version %d: map loaded from the store", info.spec.name, stored.version)
         state = self.newest(info)
-        return state if _serves(state, info, info.version, settle) else None
+        return state if serves(state, info, info.version, settle) else None
 
     @contextlib.contextmanager
     def _renewing(self, info: RegionInfo):
@@ -614,7 +614,7 @@ class Refresher:
             )
 
 
-def _serves(state: MapState | None, info: RegionInfo, at_least: int, settled: bool) -> bool:
+def serves(state: MapState | None, info: RegionInfo, at_least: int, settled: bool) -> bool:
     """``state`` answers a query of the region instance ``info`` that needs version
     ``at_least`` (and ``settled`` hyperparameters)."""
     return (
