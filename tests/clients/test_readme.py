@@ -105,10 +105,9 @@ def test_the_readme_walked_top_to_bottom(tmp_path, monkeypatch):
     exec(PRELUDE, namespace)
 
     # the library's examples, in order
+    monkeypatch.chdir(tmp_path)  # the examples write files where they run
     for starts in ("from bdf import BayesianDynamicField", "f = BayesianDynamicField("):
-        code = block(starts, "python")
-        os.chdir(tmp_path)
-        exec(code, namespace)
+        exec(block(starts, "python"), namespace)
     assert (tmp_path / "paris.bdf").exists()
     region_example = block("from bdf.region.spec import RegionSpec", "python")
     exec(region_example, namespace)
