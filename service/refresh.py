@@ -404,25 +404,13 @@ class Refresher:
         was: the newer version's refresh starts at once."""
         entry = self._region(region)
         with entry.building:
-            while True:
-                info = self.store.region(region)
-                state = self.cache.get((info.region_id, info.version))
-                if state is not None and (state.posterior.settled or not settle):
-                    return state
-                newest = self.newest(info)
-                if serves(newest, info, at_least, settle):
-                    return newest
-                stored = self._load(info, settle)
-                if stored is not None:
-                    return stored
-                lease = self.store.take_lease(info.region_id, self.holder, info.version, self.lease_s)
-                if lease.holder == self.holder:
-                    break
-                with self._done:  # another process computes it: its map is loaded once stored
-                    entry.computing = (lease.version, lease.since)
-                    if self._closed:
-                        raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
-                    self._done.wait(LEASE_POLL_S)
+            try:
+                found, info, newest = self._ready_or_leased(region, entry, at_least, settle)
+            finally:
+                with self._lock:
+                    entry.computing = None  # whoever computed it is done (or this one starts)
+            if found is not None:
+                return found
             try:
                 with self._renewing(info):
                     return self._computed(region, entry, info, newest, settle, yields)
@@ -431,6 +419,30 @@ class Refresher:
                     entry.computing = None
                 with contextlib.suppress(StoreUnavailable):
                     self.store.release_lease(info.region_id, self.holder)
+
+    def _ready_or_leased(self, region: str, entry: RegionRefresh, at_least: int, settle: bool):
+        """``(map, info, newest)``: a map that serves (cached, published or stored), or None
+        once this process holds the region's lease to compute the version of ``info``;
+        meanwhile another process's lease is waited out (its map loaded once stored)."""
+        while True:
+            info = self.store.region(region)
+            state = self.cache.get((info.region_id, info.version))
+            if state is not None and (state.posterior.settled or not settle):
+                return state, info, None
+            newest = self.newest(info)
+            if serves(newest, info, at_least, settle):
+                return newest, info, newest
+            stored = self._load(info, settle)
+            if stored is not None:
+                return stored, info, newest
+            lease = self.store.take_lease(info.region_id, self.holder, info.version, self.lease_s)
+            if lease.holder == self.holder:
+                return None, info, newest
+            with self._done:  # another process computes it: its map is loaded once stored
+                entry.computing = (lease.version, lease.since)
+                if self._closed:
+                    raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
+                self._done.wait(LEASE_POLL_S)
 
     def _computed(
         self, region: str, entry: RegionRefresh, info: RegionInfo, newest, settle: bool, yields: bool
