@@ -2,14 +2,16 @@
 (these machines are noisy: the ratio is the figure, not either time).
 
     .venv/bin/python bench/bench_query_cpu.py --against 9d1bbb5 [--directions 1] [--seconds 8]
-        [--connections 4] [--rounds 2] [--no-append]
+        [--connections 4] [--rounds 2] [--profile] [--no-append]
 
 Each side is ``bdf serve`` (2 uvicorn workers, SQLite) of its own checkout (the other commit
 in a temporary git worktree), holding the demo's Paris map (``paris_demo_region``, fitted
 over HTTP from the flight split's training rows); ``wrk`` POSTs the same 1,000 held-out
 points as Arrow on ``--connections`` for ``--seconds``, the two sides alternating for
 ``--rounds``. Reported: requests/s, p50, and the CPU of each server's process tree per
-request (/proc), and their ratio (this tree over the other).
+request (/proc), and their ratio (this tree over the other). ``--profile``: one more run of
+this tree under py-spy (every worker, 200 Hz), and where a query's time goes: the share of
+the samples inside the query's work that lie in each of :data:`PROFILED`.
 """
 
 from __future__ import annotations
@@ -34,6 +36,42 @@ from clients.local import LocalService
 from clients.samples import load_paris, paris_demo_region
 
 ROOT = Path(__file__).resolve().parents[1]
+#: what --profile reports (py-spy frame names): the compute, then the request's other work
+PROFILED = {
+    "the map's answer": "RegionMaps.predict",
+    "  the midpoint-lattice gather (variance, data density)": "Posterior._midpoints",
+    "  the mean's gather": "Posterior.mean",
+    "  known's normalisation": "_normalised",
+    "the region read (and ETag)": "MapAnswer.region_or_304",
+    "decoding the Arrow body": "read_query",
+    "encoding the answer": "encode_points",
+}
+
+
+def profile(pid: int, run) -> dict:
+    """py-spy over the process tree ``pid`` while ``run()`` loads it: each of
+    :data:`PROFILED`'s share of the samples in the query's work (``query.<locals>.step``)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        raw = Path(tmp) / "raw.txt"
+        spy = subprocess.Popen(
+            ["py-spy", "record", "-p", str(pid), "--subprocesses", "-f", "raw", "-r", "200", "-o", str(raw)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        run()
+        spy.send_signal(2)  # py-spy writes its samples on SIGINT
+        spy.wait(60)
+        counts = {name: 0 for name in PROFILED}
+        busy = 0
+        for line in raw.read_text().splitlines():
+            stack, _, n = line.rpartition(" ")
+            frames = {f.split(" (")[0] for f in stack.split(";")}
+            if "query.<locals>.step" not in frames:
+                continue
+            busy += int(n)
+            for name, frame in PROFILED.items():
+                counts[name] += int(n) * (frame in frames)
+    return {name: 100.0 * c / max(busy, 1) for name, c in counts.items()}
 
 
 @contextlib.contextmanager
@@ -53,6 +91,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=8.0)
     parser.add_argument("--connections", type=int, default=4)
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--profile", action="store_true", help="where this tree's query time goes (py-spy)")
     args = parser.parse_args(argv)
     obs, lower, upper = load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
@@ -82,6 +121,12 @@ def main(argv=None) -> int:
         for _ in range(args.rounds):
             for name, svc in sides.items():
                 runs[name].append(wrk_load(svc.url, svc.proc.pid, body, args.connections, args.seconds))
+        shares = None
+        if args.profile:
+            here = sides["this tree"]
+            shares = profile(
+                here.proc.pid, lambda: wrk_load(here.url, here.proc.pid, body, args.connections, args.seconds)
+            )
         for name, results in runs.items():
             rows.append(
                 {
@@ -98,12 +143,19 @@ def main(argv=None) -> int:
             f"## Query CPU against {args.against}, {datetime.date.today()}",
             "",
             f"`python bench/bench_query_cpu.py --against {args.against} --directions {args.directions} "
-            f"--seconds {args.seconds:g} --connections {args.connections} --rounds {args.rounds}`: "
+            f"--seconds {args.seconds:g} --connections {args.connections} --rounds {args.rounds}"
+            f"{' --profile' if args.profile else ''}`: "
             f"1,000-point Arrow queries of the demo's map ({args.directions} class(es)), 2 workers, SQLite.",
             "",
             rows_table(rows),
             "",
             f"Server CPU per request, this tree / {args.against}: **{ratio:.3f}**.",
+            *(
+                []
+                if shares is None
+                else ["", "Where this tree's query time goes (% of the samples in its work, py-spy):", ""]
+                + [f"- {name.strip()}: {share:.0f} %" for name, share in shares.items()]
+            ),
         ],
         not args.no_append,
     )

@@ -44,11 +44,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import arguments, postgres_schema, publish, rows_table  # bench/ is on the path
 from bench_service import arrow_points
+from bench_stream import _map_metrics
 from bench_tracks import split
 
 from clients.local import LocalService, free_port
 from clients.samples import paris_demo_region
-from service.formats import arrow_bytes
 
 DOCKER = Path(__file__).resolve().parents[1] / "docker"
 ARROW = "application/vnd.apache.arrow.stream"
@@ -61,14 +61,8 @@ MAP_READY = re.compile(
 
 def upload_body(train, rows) -> bytes:
     """Raw rows as a user sends them: positions, velocities, the track and its times."""
-    X, V = train.X[rows], train.V[rows]
-    return arrow_bytes(
-        {
-            **{c: X[:, i] for i, c in enumerate("xyz")},
-            **{c: V[:, i] for i, c in enumerate(("ve", "vn", "vu"))},
-            "track": train.flight[rows].astype(np.int64),
-            "t": train.time[rows],
-        }
+    return arrow_points(
+        train.X[rows], train.V[rows], track=train.flight[rows].astype(np.int64), t=train.time[rows]
     )
 
 
@@ -118,11 +112,6 @@ def posterior_cpu_s(pid: int) -> float:
         except psutil.NoSuchProcess:
             continue
     return total
-
-
-def metric(text: str, name: str) -> float:
-    found = re.search(rf"^{name}(?:_total)? ([0-9.e+-]+)$", text, re.M)
-    return float(found[1]) if found else 0.0
 
 
 def run(postgres: str, replicas: int, data, seconds: float, uploaders: int, readers: int, tmp: Path) -> dict:
@@ -203,7 +192,7 @@ def run(postgres: str, replicas: int, data, seconds: float, uploaders: int, read
                 t.join()
             time.sleep(1.0)
             cpu = [posterior_cpu_s(s.proc.pid) - c0 for s, c0 in zip(services, cpu0, strict=True)]
-            texts = [httpx.get(f"{s.url}/metrics", timeout=10).text for s in services]
+            metrics = [_map_metrics(httpx.get(f"{s.url}/metrics", timeout=10).text) for s in services]
         finally:
             edge.stop()
             for s in services:
@@ -223,8 +212,8 @@ def run(postgres: str, replicas: int, data, seconds: float, uploaders: int, read
         "reads per replica": " / ".join(
             str(sum(v for k, v in counts.items() if k.startswith(f"read r{i} "))) for i in range(replicas)
         ),
-        "maps computed (per replica)": " / ".join(f"{metric(t, 'bdf_map_refreshes'):g}" for t in texts),
-        "maps loaded (per replica)": " / ".join(f"{metric(t, 'bdf_map_loads'):g}" for t in texts),
+        "maps computed (per replica)": " / ".join(f"{m.get('bdf_map_refreshes', 0):g}" for m in metrics),
+        "maps loaded (per replica)": " / ".join(f"{m.get('bdf_map_loads', 0):g}" for m in metrics),
         "versions computed twice": sum(n > 1 for n in passes.values()),
         "posterior CPU [s] (per replica)": " / ".join(f"{x:.1f}" for x in cpu),
         "posterior CPU [s]": sum(cpu),

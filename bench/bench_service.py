@@ -69,12 +69,13 @@ CLIENTS = 16
 UPLOADERS = 10
 
 
-def arrow_points(X, V=None, sample_weight=None) -> bytes:
+def arrow_points(X, V=None, sample_weight=None, track=None, t=None) -> bytes:
+    """An Arrow body of points (a query), with velocities an upload (and the optional columns)."""
     cols = {"x": X[:, 0], "y": X[:, 1], "z": X[:, 2]}
     if V is not None:
         cols.update(ve=V[:, 0], vn=V[:, 1], vu=V[:, 2])
-    if sample_weight is not None:
-        cols.update(sample_weight=sample_weight)
+    optional = {"sample_weight": sample_weight, "track": track, "t": t}
+    cols.update({name: values for name, values in optional.items() if values is not None})
     return arrow_bytes(cols)
 
 

@@ -198,26 +198,8 @@ def _view(info: RegionInfo) -> dict:
             "at_bound": fitted.get("at_bound") if fitted else None,
         },
         "plausibility": fitted.get("plausibility"),
-        "outline_wgs84": _outline(info.spec),
+        "outline_wgs84": webmap.outline(info.spec).round(7).tolist(),
     }
-
-
-def _outline(spec: RegionSpec) -> list[list[float]]:
-    """The region's horizontal boundary as [lon, lat], 16 points an edge (its edges are
-    straight in ENU, curved on the map)."""
-    (x0, y0, z0), (x1, y1, _) = spec.lower, spec.upper
-    t = np.linspace(0.0, 1.0, 16, endpoint=False)
-    ring = np.concatenate(
-        [
-            np.stack([x0 + (x1 - x0) * t, np.full(16, y0)], 1),
-            np.stack([np.full(16, x1), y0 + (y1 - y0) * t], 1),
-            np.stack([x1 - (x1 - x0) * t, np.full(16, y1)], 1),
-            np.stack([np.full(16, x0), y1 - (y1 - y0) * t], 1),
-            [[x0, y0]],
-        ]
-    )
-    geo = spec.frame().to_geodetic(np.column_stack([ring, np.full(len(ring), z0)]))
-    return geo[:, [1, 0]].round(7).tolist()
 
 
 @dataclass(frozen=True)
@@ -919,15 +901,8 @@ async def flows(
         info, not_modified = answer.region_or_304(name)
         if not_modified:
             return not_modified
-        _, _, X, inside = webmap.lattice(info.spec, alt_m, step_m)
+        _, _, X, inside = _lattice(svc, info, alt_m, step_m)
         X = X[inside]
-        if len(X) > svc.settings.max_query_points:
-            raise Problem(
-                422,
-                f"{len(X)} arrows exceed max_query_points {svc.settings.max_query_points}: a larger step_m",
-            )
-        if not len(X):
-            raise Problem(422, f"alt_m {alt_m} leaves region {name!r}: no point of it lies at that altitude")
 
         def work():
             pred = svc.maps.predict(name, X, info, min_version, modes=info.spec.directions > 1)
@@ -937,6 +912,22 @@ async def flows(
         return _light_or_heavy(svc, info, min_version, len(X), work)
 
     return await svc.run(light)
+
+
+def _lattice(svc: Service, info: RegionInfo, alt_m: float, step_m: float):
+    """:func:`service.webmap.lattice` of the region at ``alt_m``: 422 when none of it lies
+    at that altitude or it holds more than ``max_query_points`` points inside."""
+    lon, lat, X, inside = webmap.lattice(info.spec, alt_m, step_m)
+    points, most = int(inside.sum()), svc.settings.max_query_points
+    if points > most:
+        raise Problem(
+            422, f"{points} points at step_m {step_m:g} exceed max_query_points {most}: a larger step_m"
+        )
+    if not points:
+        raise Problem(
+            422, f"alt_m {alt_m} leaves region {info.spec.name!r}: no point of it lies at that altitude"
+        )
+    return lon, lat, X, inside
 
 
 @router.get("/regions/{name}/tube_outline", **scoped("read", responses={200: {"content": {GEOJSON: {}}}}))
@@ -957,11 +948,7 @@ async def tube_outline(
         info, not_modified = answer.region_or_304(name)
         if not_modified:
             return not_modified
-        lon, lat, X, inside = webmap.lattice(info.spec, alt_m, step_m)
-        if inside.sum() > svc.settings.max_query_points:
-            raise Problem(422, f"{int(inside.sum())} points exceed max_query_points: a larger step_m")
-        if not inside.any():
-            raise Problem(422, f"alt_m {alt_m} leaves region {name!r}: no point of it lies at that altitude")
+        lon, lat, X, inside = _lattice(svc, info, alt_m, step_m)
 
         def work():
             pred = svc.maps.predict(name, X[inside], info, min_version)

@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from bdf import ingest
 from bdf.region.route import MAX_ROUTE_SPEED_MPS, MIN_TUBE_STD_MPS, VEHICLES, Vehicle, checked, vehicle
 from bdf.region.spec import RegionSpec
-from service import slices
+from service import slices, webmap
 from service.problems import Problem
 from service.wire import (
     ARROW,
@@ -535,7 +535,7 @@ def _inside(spec: RegionSpec, X: np.ndarray, what: str, frame: str = "enu", give
     rows = np.flatnonzero(outside)
     listed = f"rows {rows[:5].tolist()}{' ...' if rows.size > 5 else ''}"
     if frame == "wgs84":
-        (lat0, lat1), (lon0, lon1) = _geodetic_ranges(spec)
+        (lat0, lat1), (lon0, lon1) = webmap.geodetic_bounds(spec)
         first = np.round(np.asarray(given, float)[rows[0]], 6).tolist()
         where = (
             f"latitude {lat0:.5f} .. {lat1:.5f}, longitude {lon0:.5f} .. {lon1:.5f}, altitude "
@@ -545,19 +545,6 @@ def _inside(spec: RegionSpec, X: np.ndarray, what: str, frame: str = "enu", give
     else:
         where = f"{spec.bounds_m.min} .. {spec.bounds_m.max} ENU metres"
     raise Problem(422, f"{rows.size} {what} not finite or outside region {spec.name!r} ({where}): {listed}")
-
-
-def _geodetic_ranges(spec: RegionSpec) -> tuple[tuple[float, float], tuple[float, float]]:
-    """The region's latitude and longitude ranges (its ENU box's corners at its lowest level)."""
-    corners = np.array(
-        [
-            [x, y, spec.lower[2]]
-            for x in (spec.lower[0], spec.upper[0])
-            for y in (spec.lower[1], spec.upper[1])
-        ]
-    )
-    geo = spec.frame().to_geodetic(corners)
-    return (geo[:, 0].min(), geo[:, 0].max()), (geo[:, 1].min(), geo[:, 1].max())
 
 
 def media_type(content_type: str | None) -> str:

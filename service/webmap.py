@@ -102,15 +102,24 @@ def values(layer: Layer, mean: np.ndarray, std: np.ndarray, known: np.ndarray, s
     return share.max(axis=1)
 
 
-def _upsample(grid: np.ndarray) -> np.ndarray:
-    """The sample lattice (SAMPLES, SAMPLES) to pixel centres (TILE_PX, TILE_PX), bilinear."""
+def _interpolation() -> np.ndarray:
+    """(TILE_PX, SAMPLES): each pixel centre's bilinear weights on the sample lattice's axis."""
     centres = (np.arange(TILE_PX) + 0.5) / BLOCK_PX
     lo = np.minimum(centres.astype(int), SAMPLES - 2)
     w = centres - lo
     A = np.zeros((TILE_PX, SAMPLES))
     A[np.arange(TILE_PX), lo] = 1.0 - w
     A[np.arange(TILE_PX), lo + 1] = w
-    return A @ grid @ A.T
+    return A
+
+
+#: the same for every tile: made once
+INTERPOLATION = _interpolation()
+
+
+def _upsample(grid: np.ndarray) -> np.ndarray:
+    """The sample lattice (SAMPLES, SAMPLES) to pixel centres (TILE_PX, TILE_PX), bilinear."""
+    return INTERPOLATION @ grid @ INTERPOLATION.T
 
 
 def render_tile(layer: Layer, inside: np.ndarray, value: np.ndarray, known: np.ndarray, vmax: float) -> bytes:
@@ -137,19 +146,40 @@ def render_tile(layer: Layer, inside: np.ndarray, value: np.ndarray, known: np.n
     return out.getvalue()
 
 
+def outline(spec) -> np.ndarray:
+    """The region's horizontal boundary at its lowest altitude: a closed ring (65, 2) of
+    [lon, lat], 16 points an edge (its edges are straight in ENU, curved on the map)."""
+    (x0, y0, z0), (x1, y1, _) = spec.lower, spec.upper
+    t = np.linspace(0.0, 1.0, 16, endpoint=False)
+    ring = np.concatenate(
+        [
+            np.stack([x0 + (x1 - x0) * t, np.full(16, y0)], 1),
+            np.stack([np.full(16, x1), y0 + (y1 - y0) * t], 1),
+            np.stack([x1 - (x1 - x0) * t, np.full(16, y1)], 1),
+            np.stack([np.full(16, x0), y1 - (y1 - y0) * t], 1),
+            [[x0, y0]],
+        ]
+    )
+    geo = spec.frame().to_geodetic(np.column_stack([ring, np.full(len(ring), z0)]))
+    return geo[:, [1, 0]]
+
+
+def geodetic_bounds(spec) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The region's latitude and longitude ranges (of its :func:`outline`)."""
+    ring = outline(spec)
+    return (ring[:, 1].min(), ring[:, 1].max()), (ring[:, 0].min(), ring[:, 0].max())
+
+
 def lattice(spec, alt_m: float, step_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A latitude/longitude lattice over the region, about ``step_m`` apart, at ``alt_m``
     above the ellipsoid: its longitudes (nx,), latitudes (ny,), ENU points of the lattice
     (ny * nx, 3; latitude rows) and which of them lie inside the region."""
     frame = spec.frame()
-    corners = [
-        [x, y, spec.lower[2]] for x in (spec.lower[0], spec.upper[0]) for y in (spec.lower[1], spec.upper[1])
-    ]
-    geo = frame.to_geodetic(np.array(corners))
+    (lat0, lat1), (lon0, lon1) = geodetic_bounds(spec)
     dlat = step_m / 111_320.0
     dlon = dlat / max(np.cos(np.radians(frame.lat)), 1e-6)
-    lon = np.arange(geo[:, 1].min(), geo[:, 1].max() + dlon, dlon)
-    lat = np.arange(geo[:, 0].min(), geo[:, 0].max() + dlat, dlat)
+    lon = np.arange(lon0, lon1 + dlon, dlon)
+    lat = np.arange(lat0, lat1 + dlat, dlat)
     LON, LAT = np.meshgrid(lon, lat)
     X = frame.to_enu(LAT.ravel(), LON.ravel(), np.full(LAT.size, float(alt_m)))
     return lon, lat, X, np.all((X >= spec.lower) & (X <= spec.upper), axis=1)
