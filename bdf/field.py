@@ -58,7 +58,7 @@ class BayesianDynamicField:
         With ``noise_spacing``: the weight of ``1/beta`` in the local estimate, in units of
         sample weight (the data near a point outweigh it once they weigh more).
     directions : int
-        1 (the paper's model) or S in 2-16: a mixture over S horizontal heading sectors
+        1 (the paper's model) or S in 2-32: a mixture over S horizontal heading sectors
         and a slow class, with a share field (:mod:`bdf.sectors`).
     slow_mps : float
         With ``directions > 1``: horizontal speeds below it form the slow class.
@@ -263,7 +263,8 @@ class BayesianDynamicField:
             std ``sqrt(phi^T Sigma phi)`` (the uncertainty of the mean field itself).
         heading_deg : None, number or (n,)
             None: a directional field answers its mixture's mean and std. A heading
-            (degrees from north, clockwise): the mode of traffic flying it (its sector's).
+            (degrees from north, clockwise): the mode of traffic flying it (the two
+            nearest sectors' modes pooled, :func:`bdf.sectors.pooled`).
             A field of one direction has one mode.
         """
         X = as_points(X, "X", allow_empty=True)

@@ -12,7 +12,7 @@ from scipy import special
 from bdf import _blas, features, hyperparameters, noise, sparse
 from bdf.grid import HingeGrid
 from bdf.kernel import Kernel
-from bdf.sectors import Sectors, mixture_moments
+from bdf.sectors import Sectors, mixture_moments, pooled
 from bdf.statistics import MIDPOINT_BLOCK, Evidence, SectorEvidence
 
 #: ``known``: the data within the kernel's reach weigh at least this (:func:`known`): one
@@ -39,14 +39,29 @@ class Modes(NamedTuple):
 
     def answer(self, sectors: Sectors, heading_deg=None) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std (..., 3): the mixture's moments (at points or on a grid), or with
-        ``heading_deg`` (n,) the mode of each point's heading (the one mode of a map of one
+        ``heading_deg`` (one, or one per point) the mode of that heading: the two nearest
+        sectors' modes pooled (:func:`bdf.sectors.pooled`; the one mode of a map of one
         class)."""
         if self.share.shape[-1] == 1:
             return self.mean[..., 0, :], self.std[..., 0, :]
         if heading_deg is None:
             return mixture_moments(self.share, self.mean, self.std)
-        pick = (np.arange(len(self.share)), sectors.sector_of_heading(heading_deg))
-        return self.mean[pick], self.std[pick]
+        k0, k1, weight = (np.broadcast_to(a, self.share.shape[:-1]) for a in sectors.nearest_two(heading_deg))
+        return pooled(weight, *self._of(k0), *self._of(k1))
+
+    def heading_share(self, sectors: Sectors, heading_deg) -> np.ndarray:
+        """(...): the share of traffic of a heading, pooled as its mode (:meth:`answer`)."""
+        k0, k1, weight = (np.broadcast_to(a, self.share.shape[:-1]) for a in sectors.nearest_two(heading_deg))
+        s0, s1 = (np.take_along_axis(self.share, k[..., None], axis=-1)[..., 0] for k in (k0, k1))
+        return weight * s0 + (1.0 - weight) * s1
+
+    def _of(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std (..., 3) of class ``k`` (...) at each point."""
+        at = k[..., None, None]
+        return (
+            np.take_along_axis(self.mean, at, axis=-2)[..., 0, :],
+            np.take_along_axis(self.std, at, axis=-2)[..., 0, :],
+        )
 
     @property
     def prior_only(self) -> np.ndarray:
@@ -341,7 +356,9 @@ class Mixture:
 
     The modes are fitted and their variance densities computed at construction, side by
     side in a thread per core (their algebra releases the GIL, :mod:`bdf.sparse._lapack`): a
-    directional map is only ever queried whole.
+    directional map is only ever queried whole. Each mode drops its factor once its variance
+    density is made, so that a map's peak memory is the map with one class's factor and one
+    mode's per thread, whatever the number of classes.
     """
 
     def __init__(
@@ -384,8 +401,7 @@ class Mixture:
                 density=False,
                 settle=settle,
             )
-            post.variance_table()
-            return post
+            return post.compact()  # its factor goes now: memory bounded by a factor per thread
 
         # the modes side by side on the cores (their algebra releases the GIL), the most
         # data first so that the threads end together; and the total's variance meanwhile

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 #: Largest number of heading sectors.
-MAX_DIRECTIONS = 16
+MAX_DIRECTIONS = 32
 #: A mode carrying less of the traffic than this is not a flow: tubes, pictures and the
 #: planner ignore it (a near-empty class can look certain, e.g. the slow class fitted as
 #: constant where it has no data).
@@ -27,6 +27,8 @@ MIN_SHARE = 0.05
 #: A class at least this many degrees off the heading flown is crossing or opposing traffic
 #: (the conflict exposure of a route: the planner's cost and :func:`bdf.region.route.assess`).
 CROSSING_DEG = 67.5
+#: Stds below this (m/s) are taken as it when modes are pooled (:func:`pooled`).
+TINY_STD = 1e-9
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,17 @@ class Sectors:
         width = 360.0 / self.directions
         return np.floor(np.mod(h + width / 2.0, 360.0) / width).astype(np.int64) % self.directions
 
+    def nearest_two(self, heading_deg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sectors whose centres enclose each heading (degrees; any finite value,
+        wrapped), ``k0`` then ``k1`` clockwise, and ``k0``'s weight: linear in angle, 1 at
+        ``k0``'s centre, 1/2 on the boundary, 0 at ``k1``'s centre (:func:`pooled`)."""
+        h = np.asarray(heading_deg, float)
+        if not np.all(np.isfinite(h)):
+            raise ValueError("heading_deg must be finite")
+        turns = np.mod(h, 360.0) / (360.0 / self.directions)
+        k0 = np.floor(turns).astype(np.int64) % self.directions
+        return k0, (k0 + 1) % self.directions, 1.0 - (turns - np.floor(turns))
+
     def classify(self, V: np.ndarray) -> np.ndarray:
         """(n,) class of each velocity (n, 3) (east, north, up)."""
         if self.directions == 1:
@@ -78,3 +91,18 @@ def mixture_moments(share: np.ndarray, mean: np.ndarray, std: np.ndarray) -> tup
         "...c,...cd,...cd->...d", share, mean, mean
     )
     return m, np.sqrt(np.maximum(second - m * m, 0.0))
+
+
+def pooled(weight: np.ndarray, mean0, std0, mean1, std1) -> tuple[np.ndarray, np.ndarray]:
+    """The mode of a heading between two sector centres (:meth:`Sectors.nearest_two`): the
+    log-linear pool ``N(mean0, std0)^w N(mean1, std1)^(1 - w)``, per component (..., 3).
+    Its precision is ``w / std0^2 + (1 - w) / std1^2`` and its mean the precision-weighted
+    one: continuous in the heading, the sector's own mode at its centre, and the better
+    known of two modes counts for more. On the Paris flight split it beats the sector's own
+    mode on conditional RMSE, MSLL and cov95 at 8 and 16 sectors, and the linear and
+    share-weighted blends on MSLL (``bench/bench_core.py --directions``)."""
+    w = np.asarray(weight, float)[..., None]
+    p0 = w / np.maximum(std0, TINY_STD) ** 2
+    p1 = (1.0 - w) / np.maximum(std1, TINY_STD) ** 2
+    precision = p0 + p1
+    return (p0 * mean0 + p1 * mean1) / precision, 1.0 / np.sqrt(precision)

@@ -132,22 +132,22 @@ sys.path.insert(0, {root!r})
 from bdf.region.spec import RegionSpec
 from bdf.region.evidence import increments, region_total
 from bdf.region.map import compute_posterior
-nx = int(sys.argv[1])
+nx, directions = int(sys.argv[1]), int(sys.argv[2])
 spec = RegionSpec.model_validate({{
     "name": "full", "origin": {{"lat": 48.0, "lon": 2.0}},
     "bounds_m": {{"min": [0, 0, 0], "max": [500 * (nx - 1), 500 * (nx - 1), 900]}},
     "tile_size_m": [5000, 5000, 900], "spacing_m": [500, 500, 100],
-    "gamma": [4e-6, 4e-6, 1e-4], "directions": 8}})
+    "gamma": [4e-6, 4e-6, 1e-4], "directions": directions}})
 rng = np.random.default_rng(0)
 X = rng.uniform(spec.lower, spec.upper, (30000, 3))  # over the whole lattice: the worst fill
-heading = rng.integers(0, 8, len(X)) * np.pi / 4
+heading = rng.integers(0, directions, len(X)) * 2 * np.pi / directions  # every class full
 V = np.stack([40 * np.sin(heading), 40 * np.cos(heading), rng.normal(0, 1, len(X))], 1)
 evidence = region_total(spec, {{k: i.evidence for k, i in increments(spec, X, V).items()}})
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 t = time.perf_counter()
 compute_posterior(spec, evidence)
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(json.dumps({{"hinges": spec.grid.size, "offsets": len(spec.stencil.offsets),
+print(json.dumps({{"hinges": spec.grid.size, "offsets": spec.coupled_offsets,
                   "classes": spec.sectors.classes, "couplings": spec.couplings,
                   "s": time.perf_counter() - t, "base_mb": base, "peak_mb": peak}}))
 """

@@ -85,7 +85,8 @@ class UploadResult:
 @dataclass(frozen=True)
 class Prediction:
     """Mean and std (n, 3) in m/s, region ENU axes; ``known`` False where no data lies
-    within the kernel's reach (the map is its prior there)."""
+    within the kernel's reach (the map is its prior there). A point outside the region has
+    NaN rows and ``known`` False."""
 
     mean: np.ndarray
     std: np.ndarray
@@ -182,6 +183,11 @@ def _arrow(columns: dict[str, np.ndarray]) -> bytes:
 
 def _read_arrow(body: bytes):
     return _pyarrow().ipc.open_stream(body).read_all()
+
+
+def _vectors(rows: list) -> np.ndarray:
+    """JSON rows of 3 numbers (n, 3), a null row (a point outside the region) as NaN."""
+    return np.array([[np.nan] * 3 if row is None else row for row in rows], float).reshape(-1, 3)
 
 
 def _stack(table, names) -> np.ndarray:
@@ -684,8 +690,8 @@ class _Endpoints:
             response = yield _Request("POST", path, params=params, **_json_body(body))
             js = response.json()
             return Prediction(
-                np.array(js["mean"], float).reshape(-1, 3),
-                np.array(js["std"], float).reshape(-1, 3),
+                _vectors(js["mean"]),
+                _vectors(js["std"]),
                 np.array(js["known"], bool),
                 js["region_version"],
                 *_lag(response),

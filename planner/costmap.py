@@ -14,12 +14,13 @@ A route's cost is ``∫ (1 + risk(x) + flow(x, direction)) ds`` along it (metres
   mean (the prior, 0) is not held against the route.
 
 On a directional map (``modes``: each traffic class's share, mean and std, the classes of
-:class:`bdf.sectors.Sectors`) a segment flies in one class, the sector of its heading
-(the slow class when its horizontal speed at ``cruise_mps`` is below ``slow_mps``): risk,
-tube and flow are that mode's, and a *conflict* term is added,
-``w_conflict * sum over the other classes c of share_c * c_c * |cruise * direction -
-mean_c| / cruise``: the traffic met there, weighted by its closing speed and by how well the
-map knows it. (Swaminathan et al.'s "Down the CLiFF" cost weighs each mode's share by a
+:class:`bdf.sectors.Sectors`) a segment flies in the mode of its heading, the two nearest
+sectors' modes pooled as the service answers a heading (:func:`bdf.sectors.pooled`; the
+slow class when its horizontal speed at ``cruise_mps`` is below ``slow_mps``): risk, tube
+and flow are that mode's, and a *conflict* term is added, ``w_conflict * sum over the
+other classes c of share_c * c_c * |cruise * direction - mean_c| / cruise`` (the two pooled
+counted by their weights): the traffic met there, weighted by its closing speed and by how
+well the map knows it. (Swaminathan et al.'s "Down the CLiFF" cost weighs each mode's share by a
 Mahalanobis distance of the planned velocity; here every term carries the map's epistemic
 std.) A state (a point, no heading) is in the tube when some class's mode is.
 
@@ -40,7 +41,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import erfc
 
-from bdf.sectors import CROSSING_DEG, MIN_SHARE, Sectors
+from bdf.sectors import CROSSING_DEG, MIN_SHARE, Sectors, pooled
 
 #: Where no tile has data, the std is at least this many tube bounds.
 UNKNOWN_STD_RATIO = 10.0
@@ -49,8 +50,8 @@ UNKNOWN_STD_RATIO = 10.0
 CURVATURE_SAFETY = 1.25
 #: Columns of the per-voxel field table.
 S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
-#: Column of a class's share in the class table (after the 6 fields above).
-SHARE = 6
+#: Columns of a class's share and std (e, n, u) in the class table (after the 6 fields above).
+CLASS_FIELDS, SHARE, STD, CLASS_COLUMNS = 6, 6, slice(7, 10), 10
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ class CostMap:
     modes: ModeGrids | None = None
     table: np.ndarray = field(init=False, repr=False)  # (nx * ny * nz, 6) per-voxel fields
     curvature: np.ndarray = field(init=False, repr=False)  # (cells, 3) of s, see max_std_high
-    classes: np.ndarray | None = field(init=False, repr=False)  # (nx * ny * nz, C * 7) per class
+    classes: np.ndarray | None = field(init=False, repr=False)  # (nx * ny * nz, C * 10) per class
     class_curvature: np.ndarray | None = field(init=False, repr=False)  # (cells, C, 3)
 
     def __post_init__(self):
@@ -140,7 +141,7 @@ class CostMap:
         table = _voxel_fields(mean, std, self.weights)
         classes = class_curvature = None
         if self.modes is not None:
-            per_class = self._class_fields(shape, known)  # (nx, ny, nz, C, 7)
+            per_class = self._class_fields(shape, known)  # (nx, ny, nz, C, 10)
             # a state is in the tube when some class's mode with at least MIN_SHARE of the
             # traffic is: its fields are the least s's (the mixture's where no class has)
             s = np.where(per_class[..., SHARE] >= MIN_SHARE, per_class[..., S], np.inf)
@@ -166,7 +167,7 @@ class CostMap:
         return np.where(k, mean, 0.0), np.where(k, std, np.maximum(std, floor))
 
     def _class_fields(self, shape, known) -> np.ndarray:
-        """(nx, ny, nz, C, 7): each class's fields (s, risk, confidence, mean) and share."""
+        """(nx, ny, nz, C, 10): each class's fields (s, risk, confidence, mean), share and std."""
         m = self.modes
         C = m.sectors.classes
         share = np.asarray(m.share, float)
@@ -179,7 +180,7 @@ class CostMap:
         if not (np.isfinite(mean).all() and np.isfinite(std).all() and np.isfinite(share).all()):
             raise ValueError("mode means, stds and shares must be finite")
         mean, std = self._unknown_as_prior(mean, std, known)
-        return np.concatenate([_voxel_fields(mean, std, self.weights), share[..., None]], axis=-1)
+        return np.concatenate([_voxel_fields(mean, std, self.weights), share[..., None], std], axis=-1)
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -278,20 +279,33 @@ class CostMap:
     def flown(self, X, direction) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """On a directional map, per sample flying along ``direction``: the cost per metre,
         the tube's s (upper bound, as :meth:`max_std_high`) of the mode flown, the class
-        fields (n, C, 7) and the class flown (n,)."""
+        fields (n, C, 10) and the fields of the mode flown (n, 6). The mode flown is the
+        heading's, its two nearest sectors' modes pooled (as the service's answer for a
+        heading, :func:`bdf.sectors.pooled`), or the slow class's (:meth:`class_of`)."""
         w = self.weights
         F, cell, t = self._interpolate(X, self.classes)
-        C = self.modes.sectors.classes
-        F = F.reshape(len(F), C, SHARE + 1)
-        k = self.class_of(direction)
+        sectors = self.modes.sectors
+        F = F.reshape(len(F), sectors.classes, CLASS_COLUMNS)
         n = np.arange(len(F))
-        own = F[n, k]
+        k0, k1, weight = sectors.nearest_two(np.degrees(np.arctan2(direction[:, 0], direction[:, 1])))
+        slow = self.class_of(direction) == sectors.directions
+        k0, k1 = np.where(slow, sectors.directions, k0), np.where(slow, sectors.directions, k1)
+        weight = np.where(slow, 1.0, weight)
+        mean, std = pooled(weight, F[n, k0, MEAN], F[n, k0, STD], F[n, k1, MEAN], F[n, k1, STD])
+        # one class flown (the slow one, or a map of one direction): its fields as interpolated
+        own = np.where((k0 == k1)[:, None], F[n, k0, :CLASS_FIELDS], _voxel_fields(mean, std, w))
+        mean = own[:, MEAN]
         closing = np.linalg.norm(w.cruise_mps * direction[:, None, :] - F[:, :, MEAN], axis=2) / w.cruise_mps
         met = F[:, :, SHARE] * F[:, :, CONFIDENCE] * closing
-        conflict = met.sum(axis=1) - met[n, k]
-        cost = 1.0 + own[:, RISK] + w.flow * own[:, CONFIDENCE] * closing[n, k] + w.conflict * conflict
-        margin = np.einsum("nd,nd->n", t * (1.0 - t), self.class_curvature[cell, k])
-        return cost, own[:, S] + 0.5 * CURVATURE_SAFETY * margin, F, k
+        conflict = met.sum(axis=1) - weight * met[n, k0] - (1.0 - weight) * met[n, k1]
+        flow = np.linalg.norm(w.cruise_mps * direction - mean, axis=1) / w.cruise_mps
+        cost = 1.0 + own[:, RISK] + w.flow * own[:, CONFIDENCE] * flow + w.conflict * conflict
+        bend = t * (1.0 - t)
+        margin = np.maximum(
+            np.einsum("nd,nd->n", bend, self.class_curvature[cell, k0]),
+            np.einsum("nd,nd->n", bend, self.class_curvature[cell, k1]),
+        )
+        return cost, own[:, S] + 0.5 * CURVATURE_SAFETY * margin, F, own
 
     def integrand(self, F: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """Cost per metre at samples with fields ``F`` flying along unit ``direction``."""
@@ -387,8 +401,7 @@ def path_metrics(costmap: CostMap, waypoints) -> dict[str, float]:
     if costmap.modes is None:
         F = costmap.fields(X)
     else:
-        _, _, classes, k = costmap.flown(X, direction[seg])
-        F = classes[np.arange(len(X)), k]
+        _, _, classes, F = costmap.flown(X, direction[seg])
         sectors = costmap.modes.sectors
         flown = np.degrees(np.arctan2(direction[seg, 0], direction[seg, 1]))
         off = np.abs((sectors.centres_deg[None, :] - flown[:, None] + 180.0) % 360.0 - 180.0)

@@ -584,10 +584,12 @@ async def query(
     min_version: MinVersion = 0,
     modes: WithModes = False,
 ):
-    """Predictive mean and std at points; Arrow in and out on request. A directional region
-    answers its mixture, the mode of a heading (``heading_deg``: JSON field or Arrow
-    column), and on request (``modes``) every traffic class: JSON ``modes``, or Arrow columns
-    ``share{c}``, ``mode{c}_v{e,n,u}``, ``mode{c}_std_{e,n,u}`` and ``share_std``."""
+    """Predictive mean and std at points; Arrow in and out on request. A point outside the
+    region is answered null (``known`` false; counted in ``outside`` and
+    ``X-Points-Outside``); every point outside is a 422. A directional region answers its
+    mixture, the mode of a heading (``heading_deg``: JSON field or Arrow column), and on
+    request (``modes``) every traffic class: JSON ``modes``, or Arrow columns ``share{c}``,
+    ``mode{c}_v{e,n,u}``, ``mode{c}_std_{e,n,u}`` and ``share_std``."""
     answer.body = await request.body()
     out = formats.negotiate(request.headers.get("accept"), [JSON, ARROW])
     media = formats.media_type(request.headers.get("content-type"))
@@ -601,8 +603,11 @@ async def query(
         _within_budget(svc, info.spec, len(q.X), q.modes, out, "points")
 
         def work():
-            pred = svc.maps.predict(name, q.X, info, min_version, heading_deg=q.heading_deg, modes=q.modes)
-            return formats.encode_points(out, info.spec, pred, answer.headers(pred))
+            inside = q.inside
+            pred = svc.maps.predict(
+                name, inside.X, info, min_version, heading_deg=inside.heading_deg, modes=inside.modes
+            )
+            return formats.encode_points(out, info.spec, pred, answer.headers(pred), q.outside)
 
         return _light_or_heavy(svc, info, min_version, len(q.X), work)
 
@@ -752,7 +757,8 @@ async def tubes(
     """The voxels whose predictive std is below ``max_std_mps`` (all components, or one),
     where data lies within the kernel's reach, with their mean velocity: GeoJSON points (lon, lat, alt),
     npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow. With ``heading_deg``,
-    mean and std are the mode of that heading's sector, and its share bounds the tube too."""
+    mean and std are the mode of that heading (its two nearest sectors' modes pooled,
+    :func:`bdf.sectors.pooled`), and its share, pooled alike, bounds the tube too."""
     out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
     bound = formats.TubeBound(max_std_mps, component, heading_deg, min_share)
     max_json = svc.settings.max_json_voxels

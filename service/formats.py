@@ -98,7 +98,8 @@ class QueryBody(BaseModel):
     heading_deg: FiniteFloat | list[FiniteFloat] | None = Field(
         None,
         description="degrees from north, clockwise (one, or one per point): mean and std become "
-        "the mode of traffic flying that heading (a region of one direction has one mode)",
+        "the mode of traffic flying that heading: the two nearest sectors' modes pooled, the sector's "
+        "own at its centre (a region of one direction has one mode)",
     )
 
 
@@ -218,9 +219,16 @@ class ModesResult(BaseModel):
 
 
 class QueryResult(BaseModel):
-    mean: list[list[float]] = Field(description="[ve, vn, vu] m/s, region ENU axes")
-    std: list[list[float]] = Field(description="predictive std per component, m/s")
-    known: list[bool] = Field(description="false where no tile has data (the answer is the prior)")
+    mean: list[list[float] | None] = Field(
+        description="[ve, vn, vu] m/s, region ENU axes; null for a point outside the region"
+    )
+    std: list[list[float] | None] = Field(description="predictive std per component, m/s; null outside")
+    known: list[bool] = Field(
+        description="false where no tile has data (the answer is the prior), or outside"
+    )
+    outside: int = Field(
+        0, description="points outside the region: their rows are null (also X-Points-Outside)"
+    )
     region_version: int
     modes: ModesResult | None = None
 
@@ -230,6 +238,14 @@ class PointQuery:
     X: np.ndarray  # (n, 3) region ENU
     heading_deg: np.ndarray | None  # (n,) or None
     modes: bool
+    outside: np.ndarray  # (n,) the points outside the region: answered null (:func:`rows_outside`)
+
+    @property
+    def inside(self) -> PointQuery:
+        """The query of the points inside the region."""
+        keep = ~self.outside
+        heading = self.heading_deg[keep] if self.heading_deg is not None else None
+        return PointQuery(self.X[keep], heading, self.modes, self.outside[keep])
 
 
 def class_headings(spec: RegionSpec) -> list[float | None]:
@@ -502,8 +518,10 @@ def _observations(spec: RegionSpec, frame: str, P, V, noise, weight, track=None,
 
 def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes: bool = False) -> PointQuery:
     """Decode a query (JSON, or Arrow with an optional ``heading_deg`` column) into region
-    ENU points (n, 3) inside the region, the headings asked and whether the modes are
-    (``modes``: the request's query parameter, or the JSON body's field)."""
+    ENU points (n, 3), the headings asked and whether the modes are (``modes``: the
+    request's query parameter, or the JSON body's field). Points outside the region are
+    answered null (a fleet's batch may stray past its edge); a point not finite, or every
+    point outside, is a 422."""
     if media == JSON:
         query = QueryBody.model_validate_json(json_body(body, limits))
         _check_size(len(query.points), 0, limits)
@@ -515,21 +533,24 @@ def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes:
     else:
         raise Problem(415, f"send {JSON} or {ARROW}, not {media or 'no Content-Type'}")
     X = _to_region(spec, frame, P, None)[0]
-    _inside(spec, X, "point(s)", frame, P)
+    outside = ~spec.inside(X)
+    # a row not finite is an error, and so is a query with no point inside
+    _inside(spec, X, "point(s)", frame, P, outside if outside.all() else ~np.isfinite(X).all(axis=1))
     if heading is not None:
         heading = np.asarray(heading, float)
         if heading.ndim == 0:
             heading = np.full(len(X), float(heading))
         if heading.shape != (len(X),) or not np.isfinite(heading).all():
             raise Problem(422, f"heading_deg must be one finite number or {len(X)} (one per point)")
-    return PointQuery(X, heading, modes)
+    return PointQuery(X, heading, modes, outside)
 
 
-def _inside(spec: RegionSpec, X: np.ndarray, what: str, frame: str = "enu", given=None) -> None:
+def _inside(spec: RegionSpec, X: np.ndarray, what: str, frame: str = "enu", given=None, refused=None) -> None:
     """422 naming the rows of ``X`` not finite or outside the region (``spec.inside`` is never
-    true for a row that is not finite), in the frame they were sent in: for WGS84 points the
-    region's latitude, longitude and altitude ranges and the first row as sent."""
-    outside = ~spec.inside(X)
+    true for a row that is not finite; ``refused``: these rows instead), in the frame they were
+    sent in: for WGS84 points the region's latitude, longitude and altitude ranges and the
+    first row as sent."""
+    outside = ~spec.inside(X) if refused is None else refused
     if not outside.any():
         return
     rows = np.flatnonzero(outside)
@@ -684,9 +705,12 @@ def check_json_size(voxels: int, max_json_voxels: int) -> None:
         )
 
 
-def encode_points(out: str, spec: RegionSpec, pred, headers: dict) -> Response:
-    """A point query's answer: Arrow columns, or JSON streamed in chunks."""
+def encode_points(out: str, spec: RegionSpec, pred, headers: dict, outside: np.ndarray) -> Response:
+    """A point query's answer: Arrow columns, or JSON streamed in chunks. ``pred`` holds the
+    points inside the region; the rows of the points ``outside`` it (n,) are null (Arrow
+    nulls, JSON null; ``known`` false), counted in ``X-Points-Outside`` and JSON's ``outside``."""
     m = pred.modes
+    headers = {**headers, "X-Points-Outside": str(int(outside.sum()))}
     if out == ARROW:
         columns = {
             **vector_columns("v", pred.mean),
@@ -700,18 +724,50 @@ def encode_points(out: str, spec: RegionSpec, pred, headers: dict) -> Response:
                 columns |= vector_columns(f"mode{c}_std_", m.std[:, c])
                 columns[f"prior_only{c}"] = np.ascontiguousarray(m.prior_only[:, c])
             columns["share_std"] = m.share_std
+        columns = {
+            name: _rows_outside(values, outside, False if name == "known" else None, arrow=True)
+            for name, values in columns.items()
+        }
         return Response(arrow_body(columns), media_type=ARROW, headers=headers)
-    content = {"mean": pred.mean, "std": pred.std, "known": pred.known, "region_version": pred.version}
+    content = {
+        "mean": _rows_outside(pred.mean, outside),
+        "std": _rows_outside(pred.std, outside),
+        "known": _rows_outside(pred.known, outside, fill=False),
+        "outside": int(outside.sum()),
+        "region_version": pred.version,
+    }
     if m is not None:
         content["modes"] = {
             "heading_deg": class_headings(spec),
-            "share": m.share,
-            "share_std": m.share_std,
-            "mean": m.mean,
-            "std": m.std,
-            "prior_only": m.prior_only,
+            **{
+                name: _rows_outside(values, outside)
+                for name, values in (
+                    ("share", m.share),
+                    ("share_std", m.share_std),
+                    ("mean", m.mean),
+                    ("std", m.std),
+                    ("prior_only", m.prior_only),
+                )
+            },
         }
     return StreamingResponse(json_chunks(content), media_type=JSON, headers=headers)
+
+
+def _rows_outside(values: np.ndarray, outside: np.ndarray, fill=None, arrow: bool = False):
+    """The answer's rows (of the points inside) with a row for every point: ``fill`` outside,
+    or null (an Arrow array with nulls, or for JSON a list with None rows)."""
+    if not outside.any():
+        return values
+    if fill is not None:
+        full = np.full((len(outside), *values.shape[1:]), fill, values.dtype)
+        full[~outside] = values
+        return full
+    if arrow:
+        full = np.zeros(len(outside), values.dtype)
+        full[~outside] = values
+        return pa.array(full, mask=outside)
+    rows = iter(values.tolist())
+    return [None if out else next(rows) for out in outside.tolist()]
 
 
 def encode_grid(out: str, spec: RegionSpec, axes, pred, headers: dict, max_json_voxels: int) -> Response:
@@ -773,10 +829,9 @@ def encode_tube(
     """The voxels of a grid inside the tube, with their mean and std: npz (with the mask),
     Arrow or GeoJSON points."""
     mean_grid, std_grid, wide = pred.mean, pred.std, pred.known
-    if tube.heading_deg is not None:
-        sector = int(spec.sectors.sector_of_heading(tube.heading_deg))  # 0 in a region of one direction
-        mean_grid, std_grid = pred.modes.mean[..., sector, :], pred.modes.std[..., sector, :]
-        wide = wide & (pred.modes.share[..., sector] >= tube.min_share)
+    if tube.heading_deg is not None:  # the mode of the heading (the one mode of a map of one class)
+        mean_grid, std_grid = pred.modes.answer(spec.sectors, tube.heading_deg)
+        wide = wide & (pred.modes.heading_share(spec.sectors, tube.heading_deg) >= tube.min_share)
     component = tube.component
     bounded = std_grid if component == "all" else std_grid[..., ["e", "n", "u"].index(component), None]
     inside = wide & (bounded < tube.max_std_mps).all(axis=-1)

@@ -345,22 +345,20 @@ _WEIGHED = {
 
 def _read(region_map: RegionMap, X: np.ndarray, velocity: np.ndarray, heading: np.ndarray) -> dict:
     """The map at route samples ``X`` flown at ``velocity`` on ``heading``: the std of the
-    mode flown, the share of crossing traffic, and the mode's mean against the route's."""
+    mode flown (the heading's, :meth:`bdf.posterior.Modes.answer`; the slow class's below its
+    speed), the share of crossing traffic, and the mode's mean against the route's."""
     sectors = region_map.spec.sectors
     modes = region_map.predict_modes(X)
-    if sectors.classes == 1:
-        flown = np.zeros(len(X), np.int64)
-        crossing = np.zeros(len(X))
-    else:
-        speed = np.hypot(velocity[:, 0], velocity[:, 1])
-        flown = np.where(speed < sectors.slow_mps, sectors.directions, sectors.sector_of_heading(heading))
+    traffic, std = modes.answer(sectors, heading)
+    crossing = np.zeros(len(X))
+    if sectors.classes > 1:
+        slow = np.hypot(velocity[:, 0], velocity[:, 1]) < sectors.slow_mps
+        traffic[slow], std[slow] = modes.mean[slow, -1], modes.std[slow, -1]
         off = np.abs((sectors.centres_deg[None, :] - heading[:, None] + 180.0) % 360.0 - 180.0)
         crossing = (modes.share[:, : sectors.directions] * (off >= CROSSING_DEG)).sum(axis=1)
-    rows = np.arange(len(X))
-    traffic = modes.mean[rows, flown]
     traffic_heading = np.degrees(np.arctan2(traffic[:, 0], traffic[:, 1]))
     return {
-        "std": modes.std[rows, flown].max(axis=1),
+        "std": std.max(axis=1),
         "crossing": crossing,
         "mismatch": np.linalg.norm(velocity - traffic, axis=1),
         "offset": np.abs((traffic_heading - heading + 180.0) % 360.0 - 180.0),

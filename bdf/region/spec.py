@@ -39,14 +39,17 @@ MAX_TILES = 100_000
 #: A region's bounds lie within this distance of its origin (metres): ENU is a local frame.
 MAX_EXTENT_M = 1e6
 #: Most hinge offsets per axis-aligned box the kernel reaches (checked first, cheaply), and
-#: most couplings (hinges x the stencil's offsets x traffic classes, each a float64 of the
-#: Gram band): what bounds a posterior's memory.
+#: most couplings (hinges x the stencil's offsets, each a float64 of a class's Gram band):
+#: what bounds a factor's memory.
 MAX_STENCIL = 5000
 MAX_COUPLINGS = 3e8
-#: Peak memory of computing a region's map, per coupling, where data covers the whole
-#: lattice (the factor's fill is largest; it grows with the lattice), with room
-#: (``bench/bench_isolation.py --parts maps`` measures it).
+#: Peak memory of computing a region's map where data covers the whole lattice (the
+#: factor's fill is largest; it grows with the lattice), with room: per coupling (the
+#: factors of the map with one class and of a mode per thread, alive at once), and per
+#: hinge and traffic class (each class's evidence and tables, all kept)
+#: (``bench/bench_isolation.py --parts maps`` measures both).
 MAP_BYTES_PER_COUPLING = 45
+MAP_BYTES_PER_CLASS_HINGE = 0
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -208,9 +211,8 @@ class RegionSpec(BaseModel):
             )
         if self.couplings > MAX_COUPLINGS:
             raise ValueError(
-                f"{self.grid.size} hinges x {self.coupled_offsets} coupled offsets x "
-                f"{self.sectors.classes} traffic classes is {self.couplings:.3g} couplings, more than "
-                f"{MAX_COUPLINGS:g}: raise the spacing or gamma, or take fewer directions"
+                f"{self.grid.size} hinges x {self.coupled_offsets} coupled offsets is {self.couplings:.3g} "
+                f"couplings, more than {MAX_COUPLINGS:g}: raise the spacing or gamma"
             )
         return self
 
@@ -221,13 +223,17 @@ class RegionSpec(BaseModel):
 
     @property
     def couplings(self) -> int:
-        """Hinges x the stencil's offsets x traffic classes: what a map's memory grows with."""
-        return self.grid.size * self.coupled_offsets * self.sectors.classes
+        """Hinges x the stencil's offsets: what a factor's memory grows with (a map factors
+        its classes one at a time per thread, :class:`bdf.posterior.Mixture`)."""
+        return self.grid.size * self.coupled_offsets
 
     @property
     def map_bytes(self) -> float:
         """The most memory computing its map may take (data over the whole lattice)."""
-        return float(self.couplings) * MAP_BYTES_PER_COUPLING
+        return (
+            float(self.couplings) * MAP_BYTES_PER_COUPLING
+            + float(self.grid.size * self.sectors.classes) * MAP_BYTES_PER_CLASS_HINGE
+        )
 
     # -- geometry ---------------------------------------------------------------------------
     @property

@@ -117,12 +117,23 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
     ref_mean, ref_std = mixture_moments(modes.share, modes.mean, modes.std)
     assert_close(mean, ref_mean, 1e-12, "mixture mean")
     assert_close(std, ref_std, 1e-12, "mixture std")
-    # the conditional for a heading is its sector's mode
-    heading = np.where(Q[:, 0] > 5, 80.0, 10.0)
+    # the conditional for a heading on a sector's centre is that sector's mode; between two
+    # centres, their modes pooled: precision w / s0^2 + (1 - w) / s1^2, w linear in angle
+    rows = np.arange(len(Q))
+    heading = np.where(Q[:, 0] > 5, 90.0, 360.0)
     cond_mean, cond_std = mix.predict(Q, return_std=True, heading_deg=heading)
     sector = np.where(Q[:, 0] > 5, 1, 0)
-    np.testing.assert_array_equal(cond_mean, modes.mean[np.arange(len(Q)), sector])
-    np.testing.assert_array_equal(cond_std, modes.std[np.arange(len(Q)), sector])
+    assert_close(cond_mean, modes.mean[rows, sector], 1e-12, "mode at its centre")
+    assert_close(cond_std, modes.std[rows, sector], 1e-12, "std at its centre")
+    w = 1.0 - 30.0 / 90.0  # 30 degrees from the north sector's centre towards the east one
+    cond_mean, cond_std = mix.predict(Q, return_std=True, heading_deg=30.0)
+    p0, p1 = w / modes.std[:, 0] ** 2, (1 - w) / modes.std[:, 1] ** 2
+    assert_close(cond_std, 1 / np.sqrt(p0 + p1), 1e-12, "pooled std")
+    assert_close(cond_mean, (p0 * modes.mean[:, 0] + p1 * modes.mean[:, 1]) / (p0 + p1), 1e-12, "pooled mean")
+    # continuous in the heading: either side of a sector boundary (45 degrees) the same
+    below, above = (mix.predict(Q, return_std=True, heading_deg=h) for h in (45.0 - 1e-9, 45.0 + 1e-9))
+    assert_close(below[0], above[0], 1e-6, "mean across a boundary")
+    assert_close(below[1], above[1], 1e-6, "std across a boundary")
     with pytest.raises(ValueError, match="heading_deg must be one number or 300"):
         mix.predict(Q, heading_deg=[0.0, 1.0])
     with pytest.raises(ValueError, match="finite"):

@@ -53,6 +53,10 @@ def test_chunked_upload_query_grid_tubes_equal_the_library_and_a_rerun_applies_n
         np.testing.assert_allclose(pred.std, std, rtol=1e-6)
         assert pred.known.all() and pred.region_version == 3
         assert (pred.versions_behind, pred.seconds_behind) == (0, 0.0)  # it reads its own writes
+        # a point outside the region: its row is NaN, not known; the others as before
+        strayed = bdf.query(NAME, np.vstack([Xq[:2], [[1e7, 0, 0]]]), transport=transport)
+        assert np.isnan(strayed.mean[2]).all() and np.isnan(strayed.std[2]).all() and not strayed.known[2]
+        np.testing.assert_array_equal(strayed.mean[:2], pred.mean[:2])
 
     grid = bdf.grid(NAME, step=[50, 50, 20], bbox=[0, 0, 0, 300, 200, 60])
     assert grid.mean.shape == (7, 5, 4, 3)

@@ -299,15 +299,68 @@ def test_directional_regions_serve_the_mixture_of_the_library(client):
         np.testing.assert_array_equal(npz["heading_deg"][:4], [0, 90, 180, 270])
     r = client.get("/v1/regions/lanes/grid", params={"step": "50,50,20", "modes": "true"})
     assert r.status_code == 422 and "npz" in r.json()["detail"]
-    # the directional tube: the mode flown, where its share is at least min_share
+    # the directional tube: the mode flown (95 degrees: sectors 90 and 180 pooled), where its
+    # share (pooled alike) is at least min_share
     params = {"step": "50,50,20", "max_std_mps": 5.0, "heading_deg": 95.0, "min_share": 0.2}
     tube = client.get("/v1/regions/lanes/tubes", params=params, headers={"Accept": NPZ})
+    flown_mean, flown_std = ref.answer(spec.sectors, 95.0)
+    flown_share = ref.heading_share(spec.sectors, 95.0)
+    w = 1.0 - 5.0 / 90.0
+    np.testing.assert_allclose(flown_share, w * ref.share[:, 1] + (1 - w) * ref.share[:, 2], rtol=1e-12)
     with np.load(io.BytesIO(tube.content)) as npz:
         mask = npz["mask"].ravel()
-        expected = (ref.share[:, 1] >= 0.2) & (ref.std[:, 1] < 5.0).all(-1) & known(ref.weight)
+        expected = (flown_share >= 0.2) & (flown_std < 5.0).all(-1) & known(ref.weight)
         np.testing.assert_array_equal(mask, expected)
         assert 0 < mask.sum() < len(mask)
-        np.testing.assert_allclose(npz["mean"], ref.mean[mask, 1], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(npz["mean"], flown_mean[mask], rtol=0, atol=1e-6)
+
+
+def test_points_outside_the_region_are_answered_null_and_the_rest_as_alone(client):
+    """A batch straying past the region's edge: those rows are null (JSON null, Arrow nulls,
+    ``known`` false, counted), every other row is what the points inside alone get; a point
+    not finite, or every point outside, is still a 422."""
+    body = {**SPEC, "name": "edge", "directions": 4}
+    client.post("/v1/regions", json=body)
+    X, V = data(2, n=300)
+    r = client.post(
+        "/v1/regions/edge/observations",
+        json={"points": X.tolist(), "velocities": V.tolist()},
+        headers={"Idempotency-Key": "e"},
+    )
+    assert r.json()["accepted"] == 300
+    inside = X[:5] + 1.0
+    mixed = np.insert(inside, [1, 3], [[1e7, 0, 0], [0, 0, -1e3]], axis=0)  # rows 1 and 4 outside
+    query = {"modes": True, "heading_deg": 30.0}
+    alone = client.post("/v1/regions/edge/query", json={"points": inside.tolist(), **query}).json()
+    r = client.post("/v1/regions/edge/query", json={"points": mixed.tolist(), **query})
+    got = r.json()
+    assert r.status_code == 200 and r.headers["X-Points-Outside"] == "2" and got["outside"] == 2
+    assert got["mean"][1] is None and got["std"][4] is None and got["modes"]["share"][1] is None
+    assert got["known"] == [alone["known"][0], False, *alone["known"][1:3], False, *alone["known"][3:]]
+    keep = [0, 2, 3, 5, 6]
+    assert [got["mean"][i] for i in keep] == alone["mean"] and [got["std"][i] for i in keep] == alone["std"]
+    assert [got["modes"]["mean"][i] for i in keep] == alone["modes"]["mean"]
+    r = client.post(
+        "/v1/regions/edge/query",
+        content=arrow_table(dict(zip("xyz", mixed.T, strict=True))),
+        headers={"Content-Type": ARROW, "Accept": ARROW},
+    )
+    table = pa.ipc.open_stream(r.content).read_all()
+    assert r.headers["X-Points-Outside"] == "2" and table.column("ve").null_count == 2
+    assert table.column("ve").to_pylist()[1] is None and table.column("known").to_pylist()[4] is False
+    plain = client.post("/v1/regions/edge/query", json={"points": inside.tolist()}).json()
+    np.testing.assert_array_equal(table.column("ve").to_numpy()[keep], np.asarray(plain["mean"])[:, 0])
+    for points, detail in (
+        ([[0, 0, 0], [np.nan, 0, 0]], "rows [1]"),
+        ([[1e7, 0, 0], [0, 0, -1e3]], "rows [0, 1]"),
+    ):
+        P = np.array(points, float)
+        r = client.post(
+            "/v1/regions/edge/query",
+            content=arrow_table(dict(zip("xyz", P.T, strict=True))),
+            headers={"Content-Type": ARROW},
+        )
+        assert r.status_code == 422 and detail in r.json()["detail"], r.text
 
 
 def test_wgs84_bodies_equal_enu_bodies(client):
@@ -522,14 +575,14 @@ def test_limits_and_errors_are_problem_json(live_server):
                 "nope",
             ),
             (c.post(f"/v1/regions/{NAME}/query", json={"points": [[1e7, 0, 0]]}), 422, "outside region"),
-            (  # latitude and longitude asked: the region's in those terms, and the row as sent
+            (  # latitude and longitude swapped: the region's in those terms, and the row as sent
                 c.post(
                     f"/v1/regions/{NAME}/query",
-                    json={"frame": "wgs84", "points": [[48.0005, 2.001, 20], [2.001, 48.0005, 20]]},
+                    json={"frame": "wgs84", "points": [[2.001, 48.0005, 20], [2.002, 48.0005, 20]]},
                 ),
                 422,
                 "(latitude 48.00000 .. 48.00180, longitude 2.00000 .. 2.00402, altitude 0 .. 60 m near its "
-                "origin; row 1 is [2.001, 48.0005, 20.0] (lat, lon, alt_m)): rows [1]",
+                "origin; row 0 is [2.001, 48.0005, 20.0] (lat, lon, alt_m)): rows [0, 1]",
             ),
             (
                 c.post(

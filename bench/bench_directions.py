@@ -1,0 +1,131 @@
+"""Heading resolution: the demo's map with 8, 16, 24 and 32 sectors, and the mode of a heading.
+
+The Paris flight split (20 % of flights held out, seed 0), the training flights' raw 1 Hz
+rows with their ``track`` and ``t`` columns through the service's own path (the weights its
+uploads give them, :func:`bench_tracks.library_map`), on the demo's lattice. Per number of
+sectors, each in a fresh process (its peak RSS is the map's): the build, held-out MSLL of
+the mixture's moments, mixture MSLL, and the conditional answer at the heading each held-out
+row flies, two ways side by side: the two nearest sectors' modes pooled (the service's rule,
+:func:`bdf.sectors.pooled`) and the sector's own mode (the rule before); with the linear
+blend of the two modes (weights linear in angle, moments of the blend) for reference. Then
+the map over its box as traffic can fly it (:func:`bench_tracks.plausibility`), and a
+1,000-point query with the modes, in the library.
+
+    python bench/bench_directions.py [--directions 8,16,24,32] [--publish]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def conditional(sectors, test, modes, mu, sd) -> dict:
+    """The answer at each held-out row's own heading: pooled, the sector's own mode, and the
+    linear blend (slow rows: the slow class's mode, the same for all three)."""
+    from bdf import metrics
+    from bdf.sectors import mixture_moments
+
+    V, rows = test.V, np.arange(len(test.V))
+    heading = np.degrees(np.arctan2(V[:, 0], V[:, 1]))
+    slow = np.hypot(V[:, 0], V[:, 1]) < sectors.slow_mps
+    k0, k1, weight = sectors.nearest_two(heading)
+    blend = np.zeros_like(modes.share)
+    blend[rows, k0] += weight
+    blend[rows, k1] += 1.0 - weight
+    own = sectors.sector_of_heading(heading)
+    answers = {
+        "pooled": modes.answer(sectors, heading),
+        "own sector": (modes.mean[rows, own], modes.std[rows, own]),
+        "linear blend": mixture_moments(blend, modes.mean, modes.std),
+    }
+    out = {}
+    for name, (mean, std) in answers.items():
+        mean = np.where(slow[:, None], modes.mean[:, -1], mean)
+        std = np.where(slow[:, None], modes.std[:, -1], std)
+        out[f"{name}: RMSE"] = float(metrics.rmse(V, mean))
+        out[f"{name}: MSLL"] = float(metrics.msll(V, mean, std, mu, sd))
+        out[f"{name}: cov95"] = float(metrics.coverage(V, mean, std))
+    return out
+
+
+def one(directions: int) -> dict:
+    """The figures of the map with ``directions`` sectors (run in its own process)."""
+    import resource
+
+    from bench_tracks import library_map, plausibility, split
+
+    from bdf import metrics
+    from clients import samples
+
+    train, test, lower, upper = split()
+    spec = samples.paris_demo_region(lower, upper, directions=directions)
+    t0 = time.perf_counter()
+    rmap = library_map(spec, train, True)
+    build_s = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    modes = rmap.predict_modes(test.X)
+    mean, std, _ = rmap.predict(test.X, modes=modes)
+    mu, sd = train.V.mean(0), train.V.std(0)
+    Q = test.X[np.random.default_rng(0).choice(len(test.X), 1000, replace=False)]
+    query = []
+    for _ in range(5):
+        t = time.perf_counter()
+        rmap.predict(Q, modes=rmap.predict_modes(Q))
+        query.append(time.perf_counter() - t)
+    judged = plausibility(spec, rmap, train)
+    return {
+        "sectors": directions,
+        "build [s]": build_s,
+        "peak RSS [GB]": peak / 1e9,
+        "held-out MSLL": float(metrics.msll(test.V, mean, std, mu, sd)),
+        "mixture MSLL": metrics.mixture_msll(test.V, modes.share, modes.mean, modes.std, mu, sd),
+        **conditional(spec.sectors, test, modes, mu, sd),
+        "worst ratio to bound": judged["worst ratio to bound"],
+        "implausible voxels": judged["implausible voxels"],
+        "1,000-point query with modes [ms]": 1e3 * min(query),
+    }
+
+
+def main():
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--directions", default="8,16,24,32")
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a child: one map, JSON out
+    parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(one(args.one)))
+        return
+    from bench_core import publish, rows_table
+
+    rows = []
+    for directions in (int(d) for d in args.directions.split(",")):
+        out = subprocess.run(
+            [sys.executable, __file__, "--one", str(directions)], capture_output=True, text=True, cwd=ROOT
+        )
+        if out.returncode:
+            raise RuntimeError(out.stderr[-3000:])
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        print(rows[-1], flush=True)
+    command = f"python bench/bench_directions.py --directions {args.directions}"
+    lines = [
+        f"\n## Heading resolution ({time.strftime('%Y-%m-%d')}, `{command}`)\n",
+        "Paris flight split, raw rows with track and t (the service's weights), the demo's lattice; "
+        "conditional: the answer at each held-out row's own heading; each map in a fresh process.",
+        rows_table(rows),
+    ]
+    publish(lines, args.publish)
+
+
+if __name__ == "__main__":
+    main()
