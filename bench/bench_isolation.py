@@ -9,8 +9,9 @@ whose size a client chooses: point queries with modes (JSON, Arrow), grids with 
 (npz), slices. ``service.formats.BYTES_PER_NUMBER`` is set from these figures, with room.
 
 ``maps``: peak RSS of computing a map with data over its whole lattice (the worst fill),
-at 2,250, 4,840 and 10,240 hinges x 872 offsets x 9 classes, each in a fresh process
-(about 7 minutes): what ``bdf.region.spec.MAP_BYTES_PER_COUPLING`` is set from.
+at 2,250, 4,840 and 10,240 hinges x 872 offsets with 9 classes, and 4,840 with 33, each in a
+fresh process (about 20 minutes): what ``bdf.region.spec.MAP_BYTES_PER_COUPLING`` (per
+coupling of one factor) and ``MAP_BYTES_PER_CLASS_HINGE`` are set from.
 
 ``stress``: ``bdf serve`` (2 light threads, 1 heavy) on loopback; while each stress of the
 issue's table runs, a prober measures ``/healthz`` and a cached 1,000-point query of
@@ -148,20 +149,21 @@ t = time.perf_counter()
 compute_posterior(spec, evidence)
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({{"hinges": spec.grid.size, "offsets": spec.coupled_offsets,
-                  "classes": spec.sectors.classes, "couplings": spec.couplings,
+                  "classes": spec.sectors.classes, "couplings": spec.couplings, "estimate": spec.map_bytes,
                   "s": time.perf_counter() - t, "base_mb": base, "peak_mb": peak}}))
 """
 
 
 def map_rows() -> list[dict]:
     """Peak RSS of computing a region's map with data over its whole lattice (the factor's
-    largest fill), each in a fresh process: what ``MAP_BYTES_PER_COUPLING`` is set from."""
-    from bdf.region.spec import MAP_BYTES_PER_COUPLING
-
+    largest fill), each in a fresh process: what ``MAP_BYTES_PER_COUPLING`` and
+    ``MAP_BYTES_PER_CLASS_HINGE`` are set from (the classes' factors come one at a time)."""
     rows = []
-    for nx in (15, 22, 32):
+    for nx, directions in ((15, 8), (22, 8), (32, 8), (22, 32)):
         out = subprocess.run(
-            [sys.executable, "-c", MAP_CASE.format(root=str(ROOT)), str(nx)], capture_output=True, text=True
+            [sys.executable, "-c", MAP_CASE.format(root=str(ROOT)), str(nx), str(directions)],
+            capture_output=True,
+            text=True,
         )
         if out.returncode:
             raise RuntimeError(out.stderr[-3000:])
@@ -175,7 +177,7 @@ def map_rows() -> list[dict]:
                 "map s": round(got["s"], 1),
                 "peak RSS MB": round(got["peak_mb"]),
                 "B per coupling": round(got["peak_mb"] * 2**20 / got["couplings"], 1),
-                "estimate MB": round(got["couplings"] * MAP_BYTES_PER_COUPLING / 2**20),
+                "estimate MB": round(got["estimate"] / 2**20),
             }
         )
         print(rows[-1], flush=True)

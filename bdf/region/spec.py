@@ -48,8 +48,8 @@ MAX_COUPLINGS = 3e8
 #: factors of the map with one class and of a mode per thread, alive at once), and per
 #: hinge and traffic class (each class's evidence and tables, all kept)
 #: (``bench/bench_isolation.py --parts maps`` measures both).
-MAP_BYTES_PER_COUPLING = 45
-MAP_BYTES_PER_CLASS_HINGE = 0
+MAP_BYTES_PER_COUPLING = 250
+MAP_BYTES_PER_CLASS_HINGE = 1000
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]

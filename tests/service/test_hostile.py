@@ -592,7 +592,7 @@ specs = st.builds(
     reach=st.tuples(*[st.floats(0.3, 4.0)] * 3),
     tiles=st.tuples(*[st.floats(0.5, 6.0)] * 3),
     cutoff=st.sampled_from([1e-12, 1e-9, 1e-6]),
-    directions=st.sampled_from([1, 8]),
+    directions=st.sampled_from([1, 8, 32]),
     corner=st.tuples(*[st.floats(-5e5, 5e5)] * 3),
 )
 
@@ -604,9 +604,9 @@ def test_every_accepted_spec_takes_an_upload_and_answers_a_query_a_grid_and_a_sl
         spec = RegionSpec.model_validate(body)
     except ValueError:
         assume(False)  # refused with a reason (the 422s above); accepted ones must be served
-    # small maps here (a second each); the largest a spec may have is bounded by
-    # MAX_COUPLINGS, and what it costs is the isolation issue's memory budget
-    assume(spec.couplings <= 1e7)
+    # small maps here (a second each: a factor per class); the largest a spec may have is
+    # bounded by MAX_COUPLINGS, and what it costs is the isolation issue's memory budget
+    assume(spec.couplings * spec.sectors.classes <= 1e7)
     assume(np.prod(spec.tile_counts) <= 1000)
     with tempfile.TemporaryDirectory() as tmp:
         store = open_store(f"sqlite:///{tmp}")
