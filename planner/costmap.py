@@ -50,8 +50,8 @@ UNKNOWN_STD_RATIO = 10.0
 CURVATURE_SAFETY = 1.25
 #: Columns of the per-voxel field table.
 S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
-#: Columns of a class's share and std (e, n, u) in the class table (after the 6 fields above).
-CLASS_FIELDS, SHARE, STD, CLASS_COLUMNS = 6, 6, slice(7, 10), 10
+#: Columns of the class table: the 6 fields above, then the class's share and std (e, n, u).
+SHARE, STD, CLASS_COLUMNS = 6, slice(7, 10), 10
 
 
 @dataclass(frozen=True)
@@ -293,7 +293,7 @@ class CostMap:
         weight = np.where(slow, 1.0, weight)
         mean, std = pooled(weight, F[n, k0, MEAN], F[n, k0, STD], F[n, k1, MEAN], F[n, k1, STD])
         # one class flown (the slow one, or a map of one direction): its fields as interpolated
-        own = np.where((k0 == k1)[:, None], F[n, k0, :CLASS_FIELDS], _voxel_fields(mean, std, w))
+        own = np.where((k0 == k1)[:, None], F[n, k0, :SHARE], _voxel_fields(mean, std, w))
         mean = own[:, MEAN]
         closing = np.linalg.norm(w.cruise_mps * direction[:, None, :] - F[:, :, MEAN], axis=2) / w.cruise_mps
         met = F[:, :, SHARE] * F[:, :, CONFIDENCE] * closing

@@ -238,7 +238,7 @@ class PointQuery:
     X: np.ndarray  # (n, 3) region ENU
     heading_deg: np.ndarray | None  # (n,) or None
     modes: bool
-    outside: np.ndarray  # (n,) the points outside the region: answered null (:func:`rows_outside`)
+    outside: np.ndarray  # (n,) the points outside the region: answered null (:func:`encode_points`)
 
     @property
     def inside(self) -> PointQuery:

@@ -47,7 +47,7 @@ def test_spec_json_is_the_service_body():
         ({"origin": {"lat": 91, "lon": 0}}, "lat"),
         ({"extra": 1}, "extra"),
         ({"cutoff": 1}, "less than 1"),
-        ({"directions": 17}, "less than or equal to 16"),
+        ({"directions": 33}, "less than or equal to 32"),
         ({"directions": 0}, "greater than or equal to 1"),
         ({"overlap_m": [1000, 1000, 0]}, "extra"),  # tiles no longer overlap
         ({"noise_spacing_m": [100, 100, 100]}, "noise lattice would have"),
