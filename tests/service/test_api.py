@@ -833,8 +833,9 @@ def test_a_read_whose_map_is_not_ready_is_told_which_version_since_when_and_when
         c.post(
             f"/v1/regions/{NAME}/observations", json=body, headers={"Idempotency-Key": "a"}
         ).raise_for_status()
-        c.post(f"/v1/regions/{NAME}/query?min_version=1", json={"points": X[:2].tolist()}).raise_for_status()
         maps = app.state.service.maps
+        assert maps.refresher.join(60)  # the first map, however long the machine takes
+        c.post(f"/v1/regions/{NAME}/query?min_version=1", json={"points": X[:2].tolist()}).raise_for_status()
         compute = maps.refresher.posterior
 
         def slow(*args, **kw):
