@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_core import arguments, postgres_schema, publish, rows_table  # bench/ is on the path
 from bench_service import arrow_points
-from bench_stream import _map_metrics
+from bench_stream import map_metrics
 from bench_tracks import split
 
 from clients.local import LocalService, free_port
@@ -192,7 +192,7 @@ def run(postgres: str, replicas: int, data, seconds: float, uploaders: int, read
                 t.join()
             time.sleep(1.0)
             cpu = [posterior_cpu_s(s.proc.pid) - c0 for s, c0 in zip(services, cpu0, strict=True)]
-            metrics = [_map_metrics(httpx.get(f"{s.url}/metrics", timeout=10).text) for s in services]
+            metrics = [map_metrics(httpx.get(f"{s.url}/metrics", timeout=10).text) for s in services]
         finally:
             edge.stop()
             for s in services:

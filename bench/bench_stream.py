@@ -276,9 +276,9 @@ async def staleness(url, train, weight, seconds, uploaders=8, readers=8, rate=0.
                 versions.append(int(r.headers["X-Region-Version"]))
                 gaps.append(float(r.headers["X-Region-Evidence-Gap"]))
 
-        before = _map_metrics((await c.get("/metrics")).text)
+        before = map_metrics((await c.get("/metrics")).text)
         await asyncio.gather(*(upload(k) for k in range(uploaders)), *(read() for _ in range(readers)))
-        after = _map_metrics((await c.get("/metrics")).text)
+        after = map_metrics((await c.get("/metrics")).text)
     value = {k: after.get(k, 0.0) - before.get(k, 0.0) for k in after}  # during the load
     settles = value.get("bdf_map_settles", 0)
     quick = value.get("bdf_map_refreshes", 0) - settles  # the refreshes of a new version
@@ -304,7 +304,7 @@ async def staleness(url, train, weight, seconds, uploaders=8, readers=8, rate=0.
     }
 
 
-def _map_metrics(text: str) -> dict:
+def map_metrics(text: str) -> dict:
     return {m[0]: float(m[1]) for m in re.findall(r"^(bdf_map_\w+?)(?:_total)? ([0-9.e+-]+)$", text, re.M)}
 
 

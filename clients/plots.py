@@ -4,7 +4,8 @@
 * :func:`plot_arrows`: horizontal flow arrows over the std map;
 * :func:`plot_modes`: each traffic class's arrows (a directional map), as the viewer's
   ``modes`` layer draws them;
-* :func:`plot_tube`: the tube's voxels in 3D, coloured by vertical velocity (paper fig. 7).
+* :func:`plot_tube`: the tube as maps at a few altitudes, coloured by vertical velocity (the
+  paper's fig. 7 drew it in 3D, whose depth a page cannot show).
 """
 
 from __future__ import annotations
@@ -14,10 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from clients.sdk import Grid, Tubes
-from service.slices import STD_CMAP, UNKNOWN_GREY, geo_ticks
+from service.slices import MODE_COLOUR, STD_CMAP, UNKNOWN_GREY, geo_ticks, render_slice
 
 COMPONENTS = {"e": 0, "n": 1, "u": 2}
-ARROW_COLOUR = "#c2185b"
 
 
 def _pyplot():
@@ -97,7 +97,7 @@ def plot_arrows(grid: Grid, alt_m: float, path, title: str = "", origin=None) ->
                 gy[where],
                 grid.mean[sl][..., 0][where],
                 grid.mean[sl][..., 1][where],
-                color=ARROW_COLOUR,
+                color=MODE_COLOUR,
                 width=0.003,
                 alpha=alpha,
                 scale=4000,
@@ -128,9 +128,8 @@ def _unknown_patch():
 
 def plot_modes(grid: Grid, alt_m: float, path, title: str = "", min_share: float = 0.05, origin=None) -> Path:
     """Each traffic class with at least ``min_share`` of the traffic as an arrow along its
-    mode's horizontal mean, coloured by heading, wider with its share, over the mixture's
-    speed (a grid fetched with ``modes=True``)."""
-    from service.slices import render_slice
+    mode's horizontal mean (one colour: its direction is the heading), wider with its share,
+    over the mixture's speed (a grid fetched with ``modes=True``)."""
 
     if grid.share is None:
         raise ValueError("plot_modes needs a grid fetched with modes=True")

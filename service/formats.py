@@ -242,7 +242,9 @@ class PointQuery:
 
     @property
     def inside(self) -> PointQuery:
-        """The query of the points inside the region."""
+        """The query of the points inside the region (itself when none is outside)."""
+        if not self.outside.any():
+            return self
         keep = ~self.outside
         heading = self.heading_deg[keep] if self.heading_deg is not None else None
         return PointQuery(self.X[keep], heading, self.modes, self.outside[keep])

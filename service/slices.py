@@ -40,6 +40,7 @@ COMPONENTS = ("e", "n", "u")
 STD_CMAP = "YlGnBu_r"
 #: cells with no data within the kernel's reach (the prior), or outside the tube
 UNKNOWN_GREY = "0.85"
+#: arrows of the flow and of the modes (one colour: an arrow's direction is its heading)
 MODE_COLOUR = "#c2185b"
 MAX_SIDE = 256  # cells per horizontal axis of a slice: enough for a screen, cheap to predict
 

@@ -87,7 +87,7 @@ def tile_points(spec, z: int, x: int, y: int, alt_m: float) -> tuple[np.ndarray,
     lon, lat = tile_lonlat(z, x, y)
     LON, LAT = np.meshgrid(lon, lat)
     X = spec.frame().to_enu(LAT.ravel(), LON.ravel(), np.full(LAT.size, float(alt_m)))
-    inside = np.all((X >= spec.lower) & (X <= spec.upper), axis=1)
+    inside = spec.inside(X)
     return X[inside], inside.reshape(LAT.shape)
 
 
@@ -182,7 +182,7 @@ def lattice(spec, alt_m: float, step_m: float) -> tuple[np.ndarray, np.ndarray, 
     lat = np.arange(lat0, lat1 + dlat, dlat)
     LON, LAT = np.meshgrid(lon, lat)
     X = frame.to_enu(LAT.ravel(), LON.ravel(), np.full(LAT.size, float(alt_m)))
-    return lon, lat, X, np.all((X >= spec.lower) & (X <= spec.upper), axis=1)
+    return lon, lat, X, spec.inside(X)
 
 
 def tube_outline_geojson(lon, lat, inside, std_max: np.ndarray, max_std_mps: float) -> dict:

@@ -527,10 +527,10 @@ def test_tiles_checksummed_before_crc32_still_read_and_damage_still_shows(store,
 
 
 def test_a_region_read_sees_every_commit_of_any_connection(tmp_path):
-    name = SPEC["name"]
     """SQLite keeps a thread's region read while the database is unchanged: another
     connection's commit (another process's store) and this store's own writes, in any
     thread, are seen at the next read; a deletion too."""
+    name = SPEC["name"]
     from service.store.sqlite import SqliteStore
 
     here, there = SqliteStore(tmp_path), SqliteStore(tmp_path)
