@@ -49,6 +49,13 @@ class Modes(NamedTuple):
         k0, k1, weight = (np.broadcast_to(a, self.share.shape[:-1]) for a in sectors.nearest_two(heading_deg))
         return pooled(weight, *self._of(k0), *self._of(k1))
 
+    def as_one_class(self, sectors: Sectors) -> Modes:
+        """The mixture as one mode: its moments (:meth:`answer`), share 1, all the data's weight."""
+        mean, std = self.answer(sectors)
+        shape = self.share.shape[:-1]
+        weight = self.weight.sum(axis=-1, keepdims=True)
+        return Modes(np.ones((*shape, 1)), np.zeros(shape), mean[..., None, :], std[..., None, :], weight)
+
     def heading_share(self, sectors: Sectors, heading_deg) -> np.ndarray:
         """(...): the share of traffic of a heading, pooled as its mode (:meth:`answer`)."""
         k0, k1, weight = (np.broadcast_to(a, self.share.shape[:-1]) for a in sectors.nearest_two(heading_deg))

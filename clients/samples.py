@@ -94,10 +94,11 @@ def paris_region(
     name: str = "paris",
     directions: int = 1,
     cutoff: float = DEFAULT_CUTOFF,
+    model_directions: int | None = None,
 ):
     """The region of :func:`load_paris`'s box: one field, stored in 10 km tiles over the
     whole altitude band, gamma = 1 / spacing^2 unless given, on the sample's origin, with
-    ``directions`` heading sectors."""
+    ``directions`` heading sectors (and ``model_directions``: None, the spec's default)."""
     frame = sample_origin("paris")
     lower, upper, spacing = np.asarray(lower, float), np.asarray(upper, float), np.asarray(spacing, float)
     gamma = 1.0 / spacing**2 if gamma is None else np.asarray(gamma, float)
@@ -112,12 +113,13 @@ def paris_region(
             "spacing_m": spacing.tolist(),
             "gamma": gamma.tolist(),
             "directions": directions,
+            "model_directions": model_directions,
             "cutoff": cutoff,
         }
     )
 
 
-def paris_demo_region(lower, upper, directions: int = 1):
+def paris_demo_region(lower, upper, directions: int = 1, model_directions: int | None = None):
     """The demo's region: :func:`paris_region` on the CV-picked lattice, kernel and cutoff."""
     return paris_region(
         lower,
@@ -126,6 +128,7 @@ def paris_demo_region(lower, upper, directions: int = 1):
         PARIS_REGION_GAMMA,
         directions=directions,
         cutoff=PARIS_REGION_CUTOFF,
+        model_directions=model_directions,
     )
 
 

@@ -417,7 +417,7 @@ async def create_region(request: Request, svc: ServiceDep):
             422,
             f"computing this region's map may take {spec.map_bytes / 2**20:.0f} MiB ({spec.couplings:.3g} "
             f"couplings), more than this service's {budget / 2**20:.0f} MiB for one map: raise the spacing "
-            "or gamma, or take fewer directions",
+            "or gamma, or take fewer (model_)directions",
         )
     info = await svc.run(lambda: svc.maps.store.create_region(spec))
     return JSONResponse(_view(info), status_code=201)
@@ -521,7 +521,7 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
         return _apply(svc, name, upload_id, obs, replace=True, progress=progress)
 
     settings = svc.settings
-    search = spec.grid.size * spec.sectors.classes  # a fit's cost grows with it, whatever the rows
+    search = spec.grid.size * spec.model_sectors.classes  # a fit's cost grows with it, whatever the rows
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
         return await svc.run(fit, heavy=True)
     rows = (obs.X, obs.V, obs.input_noise_std, obs.sample_weight, obs.track, obs.time)

@@ -58,7 +58,8 @@ class Settings(BaseSettings):
     light_cost: int = Field(
         50_000,
         ge=0,
-        description="points or voxels x the map's posteriors (1, or 2 + directions) a light request may ask",
+        description="points or voxels x the map's posteriors (1, or 2 + model_directions) a light "
+        "request may ask",
     )
     light_body_mb: float = Field(1.0, ge=0, description="uploads with larger bodies are heavy")
     request_timeout_s: float = Field(

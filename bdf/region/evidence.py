@@ -80,7 +80,7 @@ def increments(
         grid = spec.tile_grid(key)
         rows = take_rows((X, V, input_noise, weight), idx)
         evidence = SectorEvidence.from_points(
-            grid, spec.kernel, *rows, sectors=spec.sectors, noise_lattice=spec.tile_noise_lattice(key)
+            grid, spec.kernel, *rows, sectors=spec.model_sectors, noise_lattice=spec.tile_noise_lattice(key)
         )
         evidence.speeds = speed_histogram(grid, rows[0], rows[1])
         out[key] = Increment(evidence, len(idx))
@@ -130,7 +130,7 @@ def decode_tile_parts(
     stencil = sparse.stencil_on(grid, spec.kernel)
 
     def part(data: bytes) -> SectorEvidence:
-        return SectorEvidence.from_bytes(data, grid, stencil, lattice, spec.sectors, format_version)
+        return SectorEvidence.from_bytes(data, grid, stencil, lattice, spec.model_sectors, format_version)
 
     if format_version < 5:
         return part(blob), None
@@ -161,7 +161,7 @@ def region_total(spec: RegionSpec, tiles: Mapping[TileKey, SectorEvidence]) -> S
     return SectorEvidence(
         tuple(
             _class_total(spec, {k: ev.classes[c] for k, ev in tiles.items()})
-            for c in range(spec.sectors.classes)
+            for c in range(spec.model_sectors.classes)
         ),
         speeds,
     )

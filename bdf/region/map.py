@@ -226,7 +226,7 @@ def region_field(spec: RegionSpec, alpha=None, beta=None) -> BayesianDynamicFiel
         noise_spacing=spec.noise_spacing_m,
         noise_prior=spec.noise_prior,
         cutoff=spec.cutoff,
-        directions=spec.directions,
+        directions=spec.model_directions,
         slow_mps=spec.slow_mps,
     )
 
@@ -272,8 +272,9 @@ class RegionMap:
         return known(weight) & (np.hypot(mean[..., 0], mean[..., 1]) <= self.bound_at(z))
 
     def predict_modes(self, X) -> Modes:
-        """:class:`~bdf.posterior.Modes` at ``X`` inside the region."""
-        return self.posterior.predict_modes(self.spec.inside_points(X))
+        """:class:`~bdf.posterior.Modes` at ``X`` inside the region: of the classes it
+        answers (:meth:`_answered`)."""
+        return self._answered(self.posterior.predict_modes(self.spec.inside_points(X)))
 
     def predict_grid(self, axes, modes: Modes | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`predict` on the grid ``axes[0] x axes[1] x axes[2]`` (inside the region):
@@ -292,4 +293,10 @@ class RegionMap:
 
     def predict_grid_modes(self, axes) -> Modes:
         """:class:`~bdf.posterior.Modes` on the grid ``axes``, the grid's shape first."""
-        return self.posterior.predict_grid_modes(self.spec.grid_axes(axes))
+        return self._answered(self.posterior.predict_grid_modes(self.spec.grid_axes(axes)))
+
+    def _answered(self, modes: Modes) -> Modes:
+        """A region of one class whose model is a mixture answers its moments as one mode."""
+        if self.spec.directions == 1 and modes.share.shape[-1] > 1:
+            return modes.as_one_class(self.spec.model_sectors)
+        return modes

@@ -50,6 +50,8 @@ MAX_COUPLINGS = 3e8
 #: (``bench/bench_isolation.py --parts maps`` measures both).
 MAP_BYTES_PER_COUPLING = 250
 MAP_BYTES_PER_CLASS_HINGE = 1000
+#: The model behind a region that answers one class (:attr:`RegionSpec.model_directions`).
+ONE_CLASS_MODEL_DIRECTIONS = 8
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -166,18 +168,41 @@ class RegionSpec(BaseModel):
     #: Kernel cutoff (:mod:`bdf.kernel`): it sets the precision's stencil, so the cost of
     #: a solve; looser values trade exactness for speed.
     cutoff: Annotated[float, Field(gt=0, lt=1)] = DEFAULT_CUTOFF
-    #: Heading sectors (1: the paper's model; more: a mixture, :mod:`bdf.sectors`).
+    #: Heading sectors the region answers (1: one velocity per point; more: a mixture of
+    #: traffic classes, :mod:`bdf.sectors`, and the mode of a heading).
     directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] = 1
+    #: Heading sectors of the model behind the answers (:data:`ONE_CLASS_MODEL_DIRECTIONS`
+    #: when one class is answered, else ``directions``): a region of one class answers the
+    #: moments of a directional mixture, since one smooth field cannot represent flows
+    #: stacked a few hundred metres apart that fly opposite ways (it swings between them to
+    #: several times the fastest traffic: ``bench/bench_one_class.py``); 1 is the paper's
+    #: model of one field.
+    model_directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] | None = None
     slow_mps: Positive = 5.0
     #: The longest time a row of a track stands for (its tracks' sampling interval, at most:
     #: :func:`bdf.ingest.track_weights`); sparser tracks count for less than they carry.
     track_interval_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 1.0
     envelope: Envelope = Envelope()
 
+    @model_validator(mode="before")
+    @classmethod
+    def _model_directions(cls, data):
+        """The model's sectors written out (a stored spec says what its evidence holds)."""
+        if isinstance(data, dict) and data.get("model_directions") is None:
+            directions = data.get("directions", 1)
+            one = directions == 1 or directions == "1"  # as the field reads it (lax)
+            data = {**data, "model_directions": ONE_CLASS_MODEL_DIRECTIONS if one else directions}
+        return data
+
     @model_validator(mode="after")
     def _consistent(self):
         """Refuse a spec that could not be served: every accepted one takes uploads and
         answers queries, grids and slices (a property test, tests/service/test_hostile.py)."""
+        if self.directions > 1 and self.model_directions != self.directions:
+            raise ValueError(
+                f"model_directions {self.model_directions} must equal directions {self.directions} (or be "
+                "left out): only a region of one class answers from another model"
+            )
         lower, upper, spacing = self.lower, self.upper, np.array(self.spacing_m)
         extent = upper - lower
         if np.abs(np.r_[lower, upper]).max() > MAX_EXTENT_M:
@@ -232,7 +257,7 @@ class RegionSpec(BaseModel):
         """The most memory computing its map may take (data over the whole lattice)."""
         return (
             float(self.couplings) * MAP_BYTES_PER_COUPLING
-            + float(self.grid.size * self.sectors.classes) * MAP_BYTES_PER_CLASS_HINGE
+            + float(self.grid.size * self.model_sectors.classes) * MAP_BYTES_PER_CLASS_HINGE
         )
 
     # -- geometry ---------------------------------------------------------------------------
@@ -268,8 +293,8 @@ class RegionSpec(BaseModel):
 
     @property
     def posteriors(self) -> int:
-        """Posteriors its map holds: one, or (directional) the total and each class's."""
-        return 1 if self.directions == 1 else 1 + self.sectors.classes
+        """Posteriors its map holds: one, or (a directional model) the total and each class's."""
+        return 1 if self.model_directions == 1 else 1 + self.model_sectors.classes
 
     @property
     def grid(self) -> HingeGrid:
@@ -285,7 +310,13 @@ class RegionSpec(BaseModel):
 
     @property
     def sectors(self) -> Sectors:
+        """The traffic classes the region answers."""
         return Sectors(self.directions, self.slow_mps)
+
+    @property
+    def model_sectors(self) -> Sectors:
+        """The traffic classes its evidence is split into and its map fits."""
+        return Sectors(self.model_directions, self.slow_mps)
 
     def frame(self) -> ENUFrame:
         return _frame(self.origin.lat, self.origin.lon, self.origin.alt_m)

@@ -81,7 +81,7 @@ from bdf.region.evidence import Increment, decode_tile, decode_tile_parts, encod
 from bdf.region.spec import RegionSpec, TileKey, key_str, parse_key
 from bdf.statistics import FORMAT_VERSION, READABLE_FORMATS, SectorEvidence, compensated_sum
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 #: Tile rows written per statement batch inside ``apply`` (fewer round trips to a server).
 WRITE_CHUNK = 16
 #: Upload ids are client idempotency keys: printable, bounded.
@@ -309,7 +309,7 @@ class MapStore(ABC):
         rows = q("SELECT value FROM meta WHERE key = 'schema_version'")
         if not rows:
             q("INSERT INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-        elif int(rows[0][0]) in (2, 3, 4):  # 4 adds versions, 5 maps and leases (the tables exist by now)
+        elif int(rows[0][0]) in (2, 3, 4, 5):  # 4 adds versions, 5 maps and leases (the tables exist by now)
             if int(rows[0][0]) == 2:  # 3 added checksums: computed once over the stored blobs
                 q("ALTER TABLE tiles ADD COLUMN checksum TEXT")
                 for region_id, key, blob in q("SELECT region_id, key, stats FROM tiles"):
@@ -317,6 +317,13 @@ class MapStore(ABC):
                         "UPDATE tiles SET checksum = ? WHERE region_id = ? AND key = ?",
                         (checksum(blob), region_id, key),
                     )
+            # 6 names the model's sectors: a region stored before holds evidence of its own
+            # directions (one class: the paper's model), which a new spec's default would not read
+            for name, text in q("SELECT name, spec FROM regions"):
+                body = json.loads(text)
+                if body.get("model_directions") is None:
+                    body["model_directions"] = body.get("directions", 1)
+                    q("UPDATE regions SET spec = ? WHERE name = ?", (json.dumps(body), name))
             q("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))
         elif int(rows[0][0]) != SCHEMA_VERSION:
             raise StoreError(

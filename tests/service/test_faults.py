@@ -2,6 +2,7 @@
 damaged tile, the server killed during an upload storm. Each ends with the stored data
 intact and equal to exactly the uploads that were acknowledged."""
 
+import json
 import os
 import socket
 import subprocess
@@ -372,6 +373,52 @@ def test_a_schema_2_store_is_upgraded_with_checksums_and_loses_nothing(store_url
     finally:
         store.close()
     assert_stored(store_url, [1])
+
+
+def test_a_schema_5_store_keeps_its_one_class_regions_on_the_model_their_evidence_holds(store_url):
+    """Schema 6 writes out a region's model sectors: a region of one class stored before it
+    holds one class's evidence, which a new spec's default (8 sectors) would not read."""
+    paper = {**SPEC, "model_directions": 1}
+    with TestClient(create_app(Settings(store_url=store_url))) as c:
+        assert c.post("/v1/regions", json=paper).status_code == 201
+        assert upload(c, "a", 1).status_code == 200
+        before = c.post(QUERY, json={"points": data(2, n=20)[0].tolist()}).json()
+        assert len(before["mean"]) == 20
+    if store_url.startswith("sqlite"):
+        import sqlite3
+
+        conn = sqlite3.connect(store_url.removeprefix("sqlite:///") + f"/{FILE_NAME}", isolation_level=None)
+        execute, mark = conn.execute, "?"
+    else:
+        import psycopg
+
+        base, _, schema = store_url.partition("?schema=")
+        conn = psycopg.connect(base, autocommit=True, options=f"-c search_path={schema}")
+        execute, mark = conn.execute, "%s"
+    (text,) = execute("SELECT spec FROM regions").fetchone()
+    old = json.loads(text)
+    del old["model_directions"]  # as schema 5 stored it
+    execute(f"UPDATE regions SET spec = {mark}", (json.dumps(old),))
+    execute("UPDATE meta SET value = '5' WHERE key = 'schema_version'")
+    conn.close()
+
+    store = open_store(store_url)
+    try:
+        assert store.verify() == {NAME: []}
+        snap = store.snapshot(NAME)
+        assert snap.region.spec == RegionSpec.model_validate(paper)
+        X, V = data(1, n=100)  # upload "a"
+        expected = increments(snap.region.spec, X, V)
+        assert_evidence_equal(snap.evidence, {k: i.evidence for k, i in expected.items()})
+    finally:
+        store.close()
+    with TestClient(create_app(Settings(store_url=store_url))) as c:
+        after = c.post(QUERY, json={"points": data(2, n=20)[0].tolist()}).json()
+        assert (after["mean"], after["std"], after["known"]) == (
+            before["mean"],
+            before["std"],
+            before["known"],
+        )
 
 
 def test_the_posterior_process_leaves_when_its_worker_is_killed(tmp_path):

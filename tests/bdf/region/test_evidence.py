@@ -14,8 +14,10 @@ def test_each_observation_is_counted_once_and_the_tiles_sum_to_the_region(small)
     tile_increments = increments(spec, X, V, sample_weight=w)
     assert sum(i.points for i in tile_increments.values()) == len(X)
     assert sum(i.evidence.count for i in tile_increments.values()) == pytest.approx(w.sum(), rel=1e-12)
-    (total,) = region_total(spec, {k: i.evidence for k, i in tile_increments.items()}).classes
-    direct = Evidence.from_points(spec.grid, spec.kernel, X, V, sample_weight=w, mass=False)
+    region = region_total(spec, {k: i.evidence for k, i in tile_increments.items()})
+    assert len(region.classes) == spec.model_sectors.classes
+    total = region.total()  # every class's
+    direct = Evidence.from_points(spec.grid, spec.kernel, X, V, sample_weight=w)
     for name in ("density", "proj", "mass", "v_sum", "v_sq"):
         got, want = getattr(total, name), getattr(direct, name)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())

@@ -12,7 +12,7 @@ from tests.bdf.region.conftest import LOCAL, SMALL
 @pytest.mark.parametrize("local", [{}, LOCAL, {"cutoff": 1e-6}])  # a looser cutoff: smaller tiles
 @pytest.mark.parametrize("alpha", ["auto", 2.0])
 def test_the_region_is_one_field_everywhere_empty_places_included(small, local, alpha):
-    spec = RegionSpec.model_validate({**SMALL, **local, "alpha": alpha})
+    spec = RegionSpec.model_validate({**SMALL, **local, "alpha": alpha, "model_directions": 1})
     _, X, V = small
     tile_increments = increments(spec, X, V)
     post = compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tile_increments.items()}))
@@ -44,7 +44,7 @@ def test_known_is_where_the_data_weigh_within_the_kernels_reach(small, direction
     the lattice); each class's own for a directional map; the grid path equals the points'.
     ``known`` follows it, not the tiles: a corner of a tile with data, far from them, is
     not known."""
-    spec = RegionSpec.model_validate({**SMALL, "directions": directions})
+    spec = RegionSpec.model_validate({**SMALL, "directions": directions, "model_directions": directions})
     _, X, V = small
     rng = np.random.default_rng(5)
     w = rng.uniform(0.001, 0.01, len(X))
@@ -86,3 +86,39 @@ def test_noisy_inputs_in_tiles_equal_the_field(small):
     ref_mean, ref_std = field.predict(Q, return_std=True)
     np.testing.assert_allclose(mean, ref_mean, rtol=0, atol=1e-6 * np.abs(ref_mean).max())
     np.testing.assert_allclose(std, ref_std, rtol=1e-6)
+
+
+def test_one_class_answers_the_moments_of_its_models_mixture(small):
+    """A region of one class on 8 sectors learns what the region of 8 sectors learns and
+    answers what it answers without a heading (the mixture's moments), at points and on
+    grids; its one mode is those moments with share 1 and all the data's weight; a heading
+    changes nothing."""
+    _, X, V = small
+    one_spec, eight_spec = (RegionSpec.model_validate({**SMALL, "directions": d}) for d in (1, 8))
+    assert one_spec.model_directions == 8
+    evidence = [
+        region_total(spec, {k: i.evidence for k, i in increments(spec, X, V).items()})
+        for spec in (one_spec, eight_spec)
+    ]
+    for a, b in zip(*(e.classes for e in evidence), strict=True):
+        np.testing.assert_array_equal(a.proj, b.proj)
+        np.testing.assert_array_equal(a.density, b.density)
+    post = compute_posterior(one_spec, evidence[0])
+    one, eight = RegionMap(one_spec, post), RegionMap(eight_spec, post)
+    Q = np.random.default_rng(4).uniform(one.spec.lower, one.spec.upper, (500, 3))
+    for got, want in zip(one.predict(Q), eight.predict(Q), strict=True):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(one.predict(Q, heading_deg=90.0)[0], one.predict(Q)[0])
+    modes, full = one.predict_modes(Q), eight.predict_modes(Q)
+    assert modes.share.shape == (len(Q), 1) and np.all(modes.share == 1)
+    for got, want in zip((modes.mean[:, 0], modes.std[:, 0]), eight.predict(Q)[:2], strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(modes.weight[:, 0], full.weight.sum(axis=1), rtol=1e-12)
+    axes = [np.linspace(0, 300, 7), np.linspace(0, 200, 5), np.array([10.0, 50.0])]
+    for got, want in zip(one.predict_grid(axes), eight.predict_grid(axes), strict=True):
+        np.testing.assert_array_equal(got, want)
+    grid_modes = one.predict_grid_modes(axes)
+    assert grid_modes.share.shape == (7, 5, 2, 1)
+    np.testing.assert_allclose(
+        grid_modes.mean[..., 0, :], eight.predict_grid(axes)[0], rtol=1e-12, atol=1e-12
+    )

@@ -16,6 +16,7 @@ def test_spec_json_is_the_service_body():
         "noise_prior": 0.1,
         "cutoff": 1e-12,
         "directions": 1,
+        "model_directions": 8,  # one class answered from the moments of 8 sectors
         "slow_mps": 5.0,
         "track_interval_s": 1.0,
         "envelope": {  # aircraft
@@ -49,6 +50,8 @@ def test_spec_json_is_the_service_body():
         ({"cutoff": 1}, "less than 1"),
         ({"directions": 33}, "less than or equal to 32"),
         ({"directions": 0}, "greater than or equal to 1"),
+        ({"directions": 8, "model_directions": 16}, "must equal directions 8"),
+        ({"model_directions": 33}, "less than or equal to 32"),
         ({"overlap_m": [1000, 1000, 0]}, "extra"),  # tiles no longer overlap
         ({"noise_spacing_m": [100, 100, 100]}, "noise lattice would have"),
         ({"noise_spacing_m": [1000, 1000, 100], "noise_prior": 0}, "greater than 0"),
@@ -57,3 +60,16 @@ def test_spec_json_is_the_service_body():
 def test_spec_rejects_bad_values(change, message):
     with pytest.raises(ValueError, match=message):
         RegionSpec.model_validate({**PARIS, **change})
+
+
+@pytest.mark.parametrize(
+    ("given", "model"),
+    [({}, 8), ({"model_directions": 1}, 1), ({"model_directions": 4}, 4), ({"directions": 16}, 16)],
+)
+def test_a_region_of_one_class_answers_from_eight_sectors_unless_told(given, model):
+    """The model's sectors are written out, so a stored spec names what its evidence holds."""
+    spec = RegionSpec.model_validate({**PARIS, **given})
+    assert spec.model_directions == model and spec.model_sectors.directions == model
+    assert spec.sectors.directions == spec.directions
+    assert spec.posteriors == (1 if model == 1 else 2 + model)
+    assert RegionSpec.model_validate(spec.model_dump(mode="json")) == spec
