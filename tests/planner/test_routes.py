@@ -56,7 +56,7 @@ def test_hard_tube_route_stays_below_the_bound_where_the_straight_line_does_not(
         along = bdf.query("corridor", densify(route, 10.0)).std.max(axis=1)
         straight = bdf.query("corridor", densify(np.array([START, GOAL]), 10.0)).std.max(axis=1)
     assert along.max() <= BOUND
-    assert straight.max() > 5 * BOUND  # across the gap: the prior, on the scale of the flow
+    assert straight.max() > 4 * BOUND  # across the gap: the prior, on the scale of the flow
     np.testing.assert_allclose(route[[0, -1]], [START, GOAL], atol=1e-3)
     assert plan.route.metrics["max_std_mps"] == pytest.approx(along.max(), rel=0.05)
     assert plan.route.metrics["integrated_risk_m"] < plan.baseline.metrics["integrated_risk_m"] / 3
@@ -205,7 +205,9 @@ def test_a_directional_map_routes_with_the_traffic_not_against_it():
     run = dict(weights=weights, step=10.0, planner="bitstar", time_s=60.0, max_iterations=3000, seed=3)
     plans = {}
     for directions in (1, 4):
-        spec = RegionSpec.model_validate({**SPEC, "name": "lanes", "directions": directions})
+        # against the paper's model of one field (a region of one class answers 8 sectors')
+        model = {"directions": directions, "model_directions": directions}
+        spec = RegionSpec.model_validate({**SPEC, "name": "lanes", **model})
         plans[directions] = plan_route(LocalMap.fit(spec, X, V), "lanes", start, goal, **run)
     lanes = plans[4].costmap
     directional = path_metrics(lanes, plans[4].route.enu)

@@ -242,7 +242,7 @@ def test_directional_regions_serve_the_mixture_of_the_library(client):
     mean, std, _ = library(spec, X, V, Xq)
     np.testing.assert_allclose(got["mean"], mean, rtol=0, atol=1e-6)
     np.testing.assert_allclose(got["std"], std, rtol=1e-6)
-    one = region_field(spec.model_copy(update={"directions": 1})).fit(X, V)
+    one = region_field(spec.model_copy(update={"directions": 1, "model_directions": 1})).fit(X, V)
     assert np.abs(np.asarray(got["std"]) / one.predict(Xq, return_std=True)[1] - 1).max() > 0.1
     # the modes and the mode of a heading, in JSON and Arrow
     field = region_field(spec).fit(X, V)

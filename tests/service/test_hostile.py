@@ -636,7 +636,7 @@ def test_a_retraction_over_http_needs_admin_and_is_counted(client):
     after = state(client)
     assert after["observations"] == before["observations"] and after["tiles"] != before["tiles"]
     np.testing.assert_allclose(after["mean"], before["mean"], rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(after["std"], before["std"], rtol=1e-9)
+    np.testing.assert_allclose(after["std"], before["std"], rtol=1e-8)  # 8 modes searched from other starts
     metrics = client.get("/metrics").text
     assert 'bdf_observations_total{outcome="retracted"} 40.0' in metrics
     assert 'bdf_uploads_applied_total{kind="retraction"} 1.0' in metrics
