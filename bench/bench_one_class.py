@@ -98,7 +98,7 @@ def main():
     parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
     args = parser.parse_args()
     train, test, lower, upper = split()
-    spec = samples.paris_demo_region(lower, upper, directions=1)
+    spec = samples.paris_demo_region(lower, upper, directions=1, model_directions=1)  # the paper's
     increments, _ = accepted_increments(spec, train.X, train.V, track=train.flight, time=train.time)
     classes = region_total(spec, {k: i.evidence for k, i in increments.items()})
     evidence = classes.total()

@@ -1,8 +1,8 @@
 """Server CPU per query of this tree against another commit, side by side on one machine
 (these machines are noisy: the ratio is the figure, not either time).
 
-    .venv/bin/python bench/bench_query_cpu.py --against 9d1bbb5 [--directions 1] [--seconds 8]
-        [--connections 4] [--rounds 2] [--profile] [--no-append]
+    .venv/bin/python bench/bench_query_cpu.py --against 9d1bbb5 [--directions 1]
+        [--model-directions M] [--seconds 8] [--connections 4] [--rounds 2] [--profile] [--no-append]
 
 Each side is ``bdf serve`` (2 uvicorn workers, SQLite) of its own checkout (the other commit
 in a temporary git worktree), holding the demo's Paris map (``paris_demo_region``, fitted
@@ -75,12 +75,13 @@ def profile(pid: int, run) -> dict:
 
 
 @contextlib.contextmanager
-def served(checkout: Path, data: Path, spec, obs, test):
-    """``bdf serve`` of ``checkout`` (its own modules first on the path) with the map built."""
+def served(checkout: Path, data: Path, body: dict, obs, test):
+    """``bdf serve`` of ``checkout`` (its own modules first on the path) with the map of
+    spec ``body`` built."""
     env = {"BDF_WORKERS": "2", "BDF_LOG_LEVEL": "warning", "PYTHONPATH": str(checkout)}
     env["BDF_REQUEST_TIMEOUT_S"] = "600"  # a fresh checkout compiles its kernels during the first fit
     with contextlib.chdir(checkout), LocalService(data, env) as svc:
-        build(svc.url, spec, obs, test)
+        build(svc.url, body, obs, test)
         yield svc
 
 
@@ -88,6 +89,12 @@ def main(argv=None) -> int:
     parser = arguments(__doc__.splitlines()[0])
     parser.add_argument("--against", required=True, help="the other commit (any git revision)")
     parser.add_argument("--directions", type=int, default=1)
+    parser.add_argument(
+        "--model-directions",
+        type=int,
+        help="this tree's model sectors (default: the spec's); the other commit gets the spec without "
+        "them if it predates them (its one class: the paper's model)",
+    )
     parser.add_argument("--seconds", type=float, default=8.0)
     parser.add_argument("--connections", type=int, default=4)
     parser.add_argument("--rounds", type=int, default=2)
@@ -95,7 +102,17 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     obs, lower, upper = load_paris()
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
-    spec = paris_demo_region(lower, upper, directions=args.directions)
+    spec = paris_demo_region(lower, upper, directions=args.directions, model_directions=args.model_directions)
+    here = spec.model_dump(mode="json")
+    older = subprocess.run(
+        ["git", "-C", str(ROOT), "show", f"{args.against}:bdf/region/spec.py"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    there = (
+        here if "model_directions" in older else {k: v for k, v in here.items() if k != "model_directions"}
+    )
     body = query_body(obs.X[test], "arrow")
     rows = []
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
@@ -106,8 +123,8 @@ def main(argv=None) -> int:
         )
         stack.callback(subprocess.run, ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)])
         sides = {
-            "this tree": stack.enter_context(served(ROOT, Path(tmp) / "here", spec, obs, test)),
-            args.against: stack.enter_context(served(other, Path(tmp) / "there", spec, obs, test)),
+            "this tree": stack.enter_context(served(ROOT, Path(tmp) / "here", here, obs, test)),
+            args.against: stack.enter_context(served(other, Path(tmp) / "there", there, obs, test)),
         }
         for svc in sides.values():  # every worker has the map before the load
             for _ in range(4):

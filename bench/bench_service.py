@@ -100,10 +100,11 @@ def stats(latencies, wall=None) -> dict:
     return out
 
 
-def build(url: str, spec, obs, test) -> float:
+def build(url: str, body: dict, obs, test) -> float:
+    """Create the region of spec ``body`` and fit it to the training rows: seconds."""
     train = obs.subset(~test)
     with httpx.Client(base_url=url, timeout=600) as c:
-        c.post("/v1/regions", json=spec.model_dump(mode="json")).raise_for_status()
+        c.post("/v1/regions", json=body).raise_for_status()
         t0 = time.perf_counter()
         r = c.post(
             "/v1/regions/paris/fit",
@@ -305,7 +306,7 @@ CONNECTIONS = (1, 4, 16, 64)
 def run(url_env: dict, data_dir, spec, obs, test, seconds) -> tuple[list[dict], float]:
     rows = []
     with LocalService(data_dir, url_env, ["--workers", url_env["BDF_WORKERS"]]) as svc:
-        fit_s = build(svc.url, spec, obs, test)
+        fit_s = build(svc.url, spec.model_dump(mode="json"), obs, test)
         points = obs.X[test]
         asyncio.run(warm(svc.url, arrow_points(points[:100])))
         for fmt in ("json", "arrow"):
