@@ -85,6 +85,21 @@ def test_dockerfile_passes_hadolint():
     assert run.returncode == 0, run.stdout + run.stderr
 
 
+def test_the_compose_file_is_valid_by_the_compose_specifications_own_schema(tmp_path):
+    """What ``docker compose config`` checks first, with neither a Docker engine nor Compose
+    v2 (neither installs here): compose.yaml against the Compose Specification's JSON schema
+    (check-jsonschema's copy), as written and interpolated; a broken file fails."""
+    check = [str(BIN / "check-jsonschema"), "--builtin-schema", "vendor.compose-spec"]
+    filled, broken = tmp_path / "filled.yaml", tmp_path / "broken.yaml"
+    filled.write_text(yaml.safe_dump(compose()))
+    services = compose()["services"]
+    services["service"]["ports"] = 8000  # a list of ports, not a number
+    broken.write_text(yaml.safe_dump({**compose(), "services": services}))
+    for path, valid in ((DOCKER / "compose.yaml", True), (filled, True), (broken, False)):
+        run = subprocess.run([*check, str(path)], capture_output=True, text=True)
+        assert (run.returncode == 0) == valid, run.stdout + run.stderr
+
+
 def test_image_and_compose_command_lines_work_outside_docker(tmp_path):
     image, services = dockerfile(), compose()["services"]
     assert image["ENTRYPOINT"] == ["bdf"] and image["CMD"] == ["serve"] and image["EXPOSE"] == "8000"
