@@ -309,7 +309,7 @@ class MapStore(ABC):
         rows = q("SELECT value FROM meta WHERE key = 'schema_version'")
         if not rows:
             q("INSERT INTO meta (key, value) VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-        elif int(rows[0][0]) in (2, 3, 4, 5):  # 4 adds versions, 5 maps and leases (the tables exist by now)
+        elif int(rows[0][0]) in (2, 3, 4, 5):  # 4 adds versions, 5 maps and leases, 6 model sectors
             if int(rows[0][0]) == 2:  # 3 added checksums: computed once over the stored blobs
                 q("ALTER TABLE tiles ADD COLUMN checksum TEXT")
                 for region_id, key, blob in q("SELECT region_id, key, stats FROM tiles"):
