@@ -86,9 +86,10 @@ def test_dockerfile_passes_hadolint():
 
 
 def test_the_compose_file_is_valid_by_the_compose_specifications_own_schema(tmp_path):
-    """What ``docker compose config`` checks first, with neither a Docker engine nor Compose
-    v2 (neither installs here): compose.yaml against the Compose Specification's JSON schema
-    (check-jsonschema's copy), as written and interpolated; a broken file fails."""
+    """What ``docker compose config`` checks, with neither a Docker engine nor Compose v2
+    (neither installs here): compose.yaml against the Compose Specification's JSON schema
+    (check-jsonschema's copy), as written and interpolated (a broken file fails), and the
+    references it resolves across the file."""
     check = [str(BIN / "check-jsonschema"), "--builtin-schema", "vendor.compose-spec"]
     filled, broken = tmp_path / "filled.yaml", tmp_path / "broken.yaml"
     filled.write_text(yaml.safe_dump(compose()))
@@ -98,6 +99,25 @@ def test_the_compose_file_is_valid_by_the_compose_specifications_own_schema(tmp_
     for path, valid in ((DOCKER / "compose.yaml", True), (filled, True), (broken, False)):
         run = subprocess.run([*check, str(path)], capture_output=True, text=True)
         assert (run.returncode == 0) == valid, run.stdout + run.stderr
+    # and what compose resolves across the file: services depended on exist (with a
+    # healthcheck where their health is awaited), named volumes are declared, bind mounts
+    # and build contexts exist beside the file
+    body = compose()
+    for name, service in body["services"].items():
+        needs = service.get("depends_on", [])
+        for other in needs:
+            assert other in body["services"], (name, other)
+            if isinstance(needs, dict) and needs[other].get("condition") == "service_healthy":
+                assert "healthcheck" in body["services"][other], (name, other)
+        for volume in service.get("volumes", []):
+            source = volume.split(":")[0]
+            if source.startswith("."):
+                assert (DOCKER / source).exists(), (name, volume)
+            else:
+                assert source in body["volumes"], (name, volume)
+        if "build" in service:
+            context = DOCKER / service["build"]["context"]
+            assert (context / service["build"]["dockerfile"]).is_file(), (name, service["build"])
 
 
 def test_image_and_compose_command_lines_work_outside_docker(tmp_path):
