@@ -42,6 +42,8 @@ PROFILED = {
     "  the midpoint-lattice gather (variance, data density)": "Posterior._midpoints",
     "  the mean's gather": "Posterior.mean",
     "  known's normalisation": "_normalised",
+    "  a mixture's gathers (every mode's tables)": "Mixture._gather",
+    "  a mixture's moments": "Mixture._moments",
     "the region read (and ETag)": "MapAnswer.region_or_304",
     "decoding the Arrow body": "read_query",
     "encoding the answer": "encode_points",
