@@ -49,9 +49,9 @@ class Modes(NamedTuple):
         k0, k1, weight = (np.broadcast_to(a, self.share.shape[:-1]) for a in sectors.nearest_two(heading_deg))
         return pooled(weight, *self._of(k0), *self._of(k1))
 
-    def as_one_class(self, sectors: Sectors) -> Modes:
-        """The mixture as one mode: its moments (:meth:`answer`), share 1, all the data's weight."""
-        mean, std = self.answer(sectors)
+    def as_one_class(self) -> Modes:
+        """The mixture as one mode: its moments, share 1, all the data's weight."""
+        mean, std = mixture_moments(self.share, self.mean, self.std)
         shape = self.share.shape[:-1]
         weight = self.weight.sum(axis=-1, keepdims=True)
         return Modes(np.ones((*shape, 1)), np.zeros(shape), mean[..., None, :], std[..., None, :], weight)

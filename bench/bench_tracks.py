@@ -83,13 +83,39 @@ def plausibility(spec: RegionSpec, rmap: RegionMap, train) -> dict:
         fastest = np.maximum(fastest, np.where(modes.share >= MODE_SHARE, mode_speed, 0.0).max(axis=-1))
     bound = speed_bound(train, axes[2], spec.envelope.max_horizontal_speed_mps)[None, None, :]
     over = fastest > bound
+    worst = np.unravel_index(np.argmax(fastest / bound), fastest.shape)
     return {
         "max speed [m/s]": float(fastest.max()),
         "worst ratio to bound": float((fastest / bound).max()),
         "implausible voxels": float(over.mean()),
         "known": float(known.mean()),
         "implausible among known": float(over[known].mean()) if known.any() else 0.0,
+        "worst voxel": worst_voxel(
+            spec, [a[i] for a, i in zip(axes, worst, strict=True)], mean[worst], modes, worst, train
+        ),
     }
+
+
+def worst_voxel(spec: RegionSpec, at, mean, modes, index, train) -> str:
+    """Where the map is furthest above the bound, what flies there, and the rows of that
+    class within 3 km horizontally and 700 m vertically: what the map answers it from."""
+    speeds = np.hypot(modes.mean[index][:, 0], modes.mean[index][:, 1])
+    speeds = np.where(modes.share[index] >= MODE_SHARE, speeds, 0.0)
+    c = int(np.argmax(speeds))
+    text = f"({at[0] / 1e3:.1f}, {at[1] / 1e3:.1f}) km at {at[2]:.0f} m: "
+    if speeds[c] <= np.hypot(mean[0], mean[1]):
+        return text + f"the mean, {np.hypot(mean[0], mean[1]):.0f} m/s"
+    near = (np.abs(train.X[:, :2] - at[:2]).max(axis=1) < 3000) & (np.abs(train.X[:, 2] - at[2]) < 700)
+    near &= spec.sectors.classify(train.V) == c
+    row_speed = np.hypot(train.V[near, 0], train.V[near, 1])
+    text += (
+        f"the mode of class {c} ({speeds[c]:.0f} m/s, share {modes.share[index][c]:.2f}, "
+        f"data weight {modes.weight[index][c]:.1f}); its {near.sum()} rows near: "
+    )
+    if not near.any():
+        return text + "none"
+    z = train.X[near, 2]
+    return text + f"{row_speed.min():.0f}-{row_speed.max():.0f} m/s at {z.min():.0f}-{z.max():.0f} m"
 
 
 def held_out(spec: RegionSpec, rmap: RegionMap, train, test) -> dict:
@@ -308,7 +334,8 @@ def main():
         lines += ["", "Sweep (the library's path, raw rows with their track columns):"]
         spacings = [float(km) for km in args.spacings.split(",")]
         lines.append(rows_table(sweep(train, test, lower, upper, spacings)))
-    command = "python bench/bench_tracks.py" + (f" --sweep --spacings {args.spacings}" if args.sweep else "")
+    command = "python bench/bench_tracks.py" + (" --no-http" if args.no_http else "")
+    command += f" --sweep --spacings {args.spacings}" if args.sweep else ""
     publish([f"\n## Raw tracks in ({time.strftime('%Y-%m-%d')}, `{command}`)\n", *lines], append=args.publish)
 
 

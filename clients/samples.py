@@ -113,8 +113,8 @@ def paris_region(
             "spacing_m": spacing.tolist(),
             "gamma": gamma.tolist(),
             "directions": directions,
-            "model_directions": model_directions,
             "cutoff": cutoff,
+            **({} if model_directions is None else {"model_directions": model_directions}),
         }
     )
 

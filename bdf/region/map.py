@@ -298,5 +298,5 @@ class RegionMap:
     def _answered(self, modes: Modes) -> Modes:
         """A region of one class whose model is a mixture answers its moments as one mode."""
         if self.spec.directions == 1 and modes.share.shape[-1] > 1:
-            return modes.as_one_class(self.spec.model_sectors)
+            return modes.as_one_class()
         return modes

@@ -177,22 +177,14 @@ class RegionSpec(BaseModel):
     #: stacked a few hundred metres apart that fly opposite ways (it swings between them to
     #: several times the fastest traffic: ``bench/bench_one_class.py``); 1 is the paper's
     #: model of one field.
-    model_directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] | None = None
+    model_directions: Annotated[
+        int, Field(ge=1, le=MAX_DIRECTIONS, default_factory=lambda spec: _model_for(spec["directions"]))
+    ]
     slow_mps: Positive = 5.0
     #: The longest time a row of a track stands for (its tracks' sampling interval, at most:
     #: :func:`bdf.ingest.track_weights`); sparser tracks count for less than they carry.
     track_interval_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 1.0
     envelope: Envelope = Envelope()
-
-    @model_validator(mode="before")
-    @classmethod
-    def _model_directions(cls, data):
-        """The model's sectors written out (a stored spec says what its evidence holds)."""
-        if isinstance(data, dict) and data.get("model_directions") is None:
-            directions = data.get("directions", 1)
-            one = directions == 1 or directions == "1"  # as the field reads it (lax)
-            data = {**data, "model_directions": ONE_CLASS_MODEL_DIRECTIONS if one else directions}
-        return data
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -391,6 +383,12 @@ class RegionSpec(BaseModel):
             ):
                 raise ValueError(f"grid axis {d} must be finite, non-empty and inside region {self.name!r}")
         return axes
+
+
+def _model_for(directions: int) -> int:
+    """The model's sectors of a spec that does not name them: written out, so that a
+    stored spec says what its evidence holds."""
+    return ONE_CLASS_MODEL_DIRECTIONS if directions == 1 else directions
 
 
 @functools.lru_cache(maxsize=64)

@@ -348,23 +348,27 @@ def test_server_killed_during_an_upload_storm_applies_every_acknowledged_upload_
     assert_stored(store_url, acked)
 
 
+def raw_connection(store_url: str):
+    """An autocommit connection to the store's own tables, beside the store (what an older
+    version left), and its parameter mark."""
+    if store_url.startswith("sqlite"):
+        import sqlite3
+
+        path = store_url.removeprefix("sqlite:///") + f"/{FILE_NAME}"
+        return sqlite3.connect(path, isolation_level=None), "?"
+    import psycopg
+
+    base, _, schema = store_url.partition("?schema=")
+    return psycopg.connect(base, autocommit=True, options=f"-c search_path={schema}"), "%s"
+
+
 def test_a_schema_2_store_is_upgraded_with_checksums_and_loses_nothing(store_url):
     with TestClient(create_app(Settings(store_url=store_url))) as c:
         assert c.post("/v1/regions", json=SPEC).status_code == 201
         assert upload(c, "a", 1).status_code == 200
-    if store_url.startswith("sqlite"):
-        import sqlite3
-
-        conn = sqlite3.connect(store_url.removeprefix("sqlite:///") + f"/{FILE_NAME}", isolation_level=None)
-        execute = conn.execute
-    else:
-        import psycopg
-
-        base, _, schema = store_url.partition("?schema=")
-        conn = psycopg.connect(base, autocommit=True, options=f"-c search_path={schema}")
-        execute = conn.execute
-    execute("ALTER TABLE tiles DROP COLUMN checksum")
-    execute("UPDATE meta SET value = '2' WHERE key = 'schema_version'")
+    conn, _ = raw_connection(store_url)
+    conn.execute("ALTER TABLE tiles DROP COLUMN checksum")
+    conn.execute("UPDATE meta SET value = '2' WHERE key = 'schema_version'")
     conn.close()
 
     store = open_store(store_url)
@@ -384,22 +388,12 @@ def test_a_schema_5_store_keeps_its_one_class_regions_on_the_model_their_evidenc
         assert upload(c, "a", 1).status_code == 200
         before = c.post(QUERY, json={"points": data(2, n=20)[0].tolist()}).json()
         assert len(before["mean"]) == 20
-    if store_url.startswith("sqlite"):
-        import sqlite3
-
-        conn = sqlite3.connect(store_url.removeprefix("sqlite:///") + f"/{FILE_NAME}", isolation_level=None)
-        execute, mark = conn.execute, "?"
-    else:
-        import psycopg
-
-        base, _, schema = store_url.partition("?schema=")
-        conn = psycopg.connect(base, autocommit=True, options=f"-c search_path={schema}")
-        execute, mark = conn.execute, "%s"
-    (text,) = execute("SELECT spec FROM regions").fetchone()
+    conn, mark = raw_connection(store_url)
+    (text,) = conn.execute("SELECT spec FROM regions").fetchone()
     old = json.loads(text)
     del old["model_directions"]  # as schema 5 stored it
-    execute(f"UPDATE regions SET spec = {mark}", (json.dumps(old),))
-    execute("UPDATE meta SET value = '5' WHERE key = 'schema_version'")
+    conn.execute(f"UPDATE regions SET spec = {mark}", (json.dumps(old),))
+    conn.execute("UPDATE meta SET value = '5' WHERE key = 'schema_version'")
     conn.close()
 
     store = open_store(store_url)
