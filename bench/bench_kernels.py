@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_city
 
 from bdf import hyperparameters, sparse
-from bdf.posterior import _layer_prior
+from bdf.posterior import _local_prior
 from bdf.region.evidence import increments, region_total
 from bdf.region.spec import RegionSpec
 from service import formats
@@ -133,7 +133,7 @@ def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
     grid, gamma, stencil = spec.grid, np.array(spec.gamma), sparse.stencil_on(spec.grid, spec.kernel)
     band = evidence.gram_band(stencil)
     # the statistics the search sees, with the mode's prior mean (bdf.posterior.Posterior)
-    w0 = _layer_prior(evidence, grid, gamma)
+    w0 = _local_prior(evidence, grid, gamma)
     Gw0 = sparse.band_product(stencil, band, w0)
     proj = evidence.proj - Gw0
     v_sq = evidence.v_sq - 2 * np.einsum("mc,mc->c", w0, evidence.proj) + np.einsum("mc,mc->c", w0, Gw0)

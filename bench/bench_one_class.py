@@ -9,8 +9,8 @@ between two hinge layers, and those swing far past the data beside them. Variant
 judged on the held-out flights and over the box, with its log evidence:
 
 * ``served``: the evidence maximum (what the service serves);
-* ``layer prior``: a prior mean per altitude layer (the class's mean velocity there), as the
-  directional modes have;
+* ``local prior``: a prior mean at each hinge, the class's mean velocity near it in its
+  layer, as the directional modes have (``bdf.posterior._local_prior``);
 * ``roughness prior x rho``: prior precision ``alpha (I + rho L)``, ``L`` the lattice's
   graph Laplacian (neighbouring hinges' weights pulled together), ratio at its evidence
   maximum (a golden-section search on the exact log determinants);
@@ -31,7 +31,7 @@ from bench_tracks import plausibility, split
 
 from bdf import metrics, sparse
 from bdf.hyperparameters import solve
-from bdf.posterior import Posterior, _layer_prior
+from bdf.posterior import Posterior, _local_prior
 from bdf.region.evidence import accepted_increments, region_total
 from bdf.region.map import RegionMap, region_field, speed_bound
 from clients import samples
@@ -133,10 +133,10 @@ def main():
 
     t0 = time.perf_counter()
     judge("served (evidence maximum)", served, float(served.log_evidence.sum()))
-    layer = Posterior(
-        grid, kernel, evidence, "auto", "auto", prior_weights=_layer_prior(evidence, grid, kernel.gamma)
+    local = Posterior(
+        grid, kernel, evidence, "auto", "auto", prior_weights=_local_prior(evidence, grid, kernel.gamma)
     )
-    judge("layer prior", layer, float(layer.log_evidence.sum()))
+    judge("local prior", local, float(local.log_evidence.sum()))
     for rho in (1.0,):
         rough = Posterior(grid, kernel, evidence, served.alpha, served.beta)
         rough.weights, value = roughness_mean(served, evidence, rho)

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_core import publish, rows_table  # bench/ is on the path when run as a script
+from scipy.stats import norm
 
 from bdf import ingest, metrics
 from bdf.region.evidence import accepted_increments, region_total
@@ -129,6 +130,11 @@ def held_out(spec: RegionSpec, rmap: RegionMap, train, test) -> dict:
         if known.any()
         else np.nan,
         "known held-out": float(known.mean()),
+        # what the map itself expects of that interval: its model's mixture of modes (one
+        # Gaussian: 0.95; a mixture's moments cover more where its modes are far apart)
+        "cov95 known, expected": expected_coverage(
+            rmap.posterior.predict_modes(spec.inside_points(test.X[known])), mean[known], std[known]
+        ),
     }
     if spec.directions > 1:
         row["mixture MSLL"] = metrics.mixture_msll(
@@ -140,6 +146,17 @@ def held_out(spec: RegionSpec, rmap: RegionMap, train, test) -> dict:
         slow = spec.sectors.classify(test.V) == spec.sectors.directions
         row["cond. RMSE"] = float(metrics.rmse(test.V, np.where(slow[:, None], modes.mean[:, -1], flown)))
     return row
+
+
+def expected_coverage(modes, mean, std) -> float:
+    """The probability the map's own mixture of modes (share, mean, std per class) gives to
+    ``mean -/+ 1.96 std`` of each component, averaged: what cov95 of that answer is if the
+    map is calibrated."""
+    half = norm.ppf(0.975) * std[:, None, :]
+    inside = norm.cdf((mean[:, None, :] + half - modes.mean) / modes.std) - norm.cdf(
+        (mean[:, None, :] - half - modes.mean) / modes.std
+    )
+    return float(np.mean(np.einsum("nc,ncd->nd", modes.share, inside)))
 
 
 def library_map(spec: RegionSpec, train, tracks: bool) -> RegionMap:

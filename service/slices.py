@@ -103,7 +103,7 @@ def render_slice(
     ``max_std_mps`` and there is data, grey elsewhere; ``share``: the largest class's share
     (1: one direction; low: mixed traffic); ``modes``: an arrow per class with at least
     ``min_share`` of the traffic and data of its own within the kernel's reach (elsewhere a
-    mode is only its prior: the class's mean velocity at that altitude), along its
+    mode is only its prior: the class's mean velocity near there), along its
     horizontal mean, as wide as its share, faint where that share is less than one std above
     ``min_share``, on the horizontal speed of the mixture. ``origin`` (lat, lon): latitude
     and longitude ticks too (:func:`geo_ticks`).

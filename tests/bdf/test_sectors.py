@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
+from bdf.posterior import LOCAL_PRIOR_HINGES, LOCAL_PRIOR_ROWS
 from bdf.region.evidence import decode_tile, encode_tile, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior, region_field
 from bdf.region.spec import RegionSpec
@@ -58,6 +59,24 @@ def test_one_direction_is_the_paper_model_and_its_one_mode(crossing):
     np.testing.assert_array_equal(one.predict(Q, heading_deg=90.0), mean)
 
 
+def test_a_modes_prior_is_how_its_class_flies_nearby_not_its_layers_average():
+    # eastbound at 100 m/s in the west of a wide box and at 200 m/s in its east, a gap far
+    # wider than the kernel's reach between them: in the gap each side's mode reverts to
+    # its own side's speed (a prior per layer made both 150 m/s, half the flows' gap off)
+    rng = np.random.default_rng(5)
+    lower, upper = np.zeros(3), np.array([60.0, 10.0, 4.0])
+    X = rng.uniform(lower, upper, (3000, 3))
+    X = X[(X[:, 0] < 15) | (X[:, 0] > 45)]
+    V = np.zeros_like(X)
+    V[:, 0] = np.where(X[:, 0] < 30, 100.0, 200.0)
+    V += rng.standard_normal(V.shape)
+    mix = BayesianDynamicField(lower, upper, 2.0, 0.25, "auto", "auto", directions=4).fit(X, V)
+    gap = np.array([[22.0, 5.0, 2.0], [38.0, 5.0, 2.0]])
+    modes = mix.predict_modes(gap)
+    assert (modes.weight[:, 1] < 1e-3).all()  # no data of its own within the kernel's reach
+    np.testing.assert_allclose(modes.mean[:, 1, 0], [100.0, 200.0], atol=10.0)
+
+
 def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(crossing):
     X, V = crossing
     w = np.random.default_rng(2).uniform(0.5, 2.0, len(X))
@@ -72,13 +91,19 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
     features_sum = np.prod(np.sqrt(np.pi / (GAMMA * SPACING**2)))
     Q_phi = dense_features(Q, hinges, GAMMA)
     for c in (0, 1, 4):
-        # the prior weights: per layer of hinges, the class's Phi^T v over Phi^T 1 there,
-        # over the features' sum (written out densely here)
+        # the prior weights: at each hinge, the class's Phi^T v over Phi^T 1 over the hinges of
+        # its layer within LOCAL_PRIOR_HINGES horizontally, with LOCAL_PRIOR_ROWS observations
+        # of the layer's mean, over the features' sum (written out densely here)
         Xc, Vc, wc = X[label == c], V[label == c], w[label == c]
         P = dense_features(Xc, hinges, GAMMA)
-        layers = np.unique(hinges[:, 2], return_inverse=True)[1]
-        proj = np.stack([np.bincount(layers, (P.T @ (wc[:, None] * Vc))[:, d]) for d in range(3)], axis=1)
-        w0 = (proj / np.bincount(layers, P.T @ wc)[:, None])[layers] / features_sum
+        pv, p1 = P.T @ (wc[:, None] * Vc), P.T @ wc
+        index = np.round((hinges - hinges.min(axis=0)) / SPACING)
+        same_layer = (index[:, None, 2] == index[None, :, 2]).astype(float)
+        box = np.abs(index[:, None, :2] - index[None, :, :2]).max(axis=-1) <= LOCAL_PRIOR_HINGES
+        layer_mean = (same_layer @ pv) / (same_layer @ p1)[:, None]
+        pseudo = LOCAL_PRIOR_ROWS * features_sum
+        near = same_layer * box
+        w0 = (near @ pv + pseudo * layer_mean) / (near @ p1 + pseudo)[:, None] / features_sum
         # the mode is a field of the class's observations less the prior's field, plus it
         alone = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, post.alpha[1 + c], post.beta[1 + c])
         alone.fit(Xc, Vc - P @ w0, sample_weight=wc)

@@ -53,7 +53,7 @@ def assert_same_map(a: RegionMap, b: RegionMap, rtol: float, ends_m: float = 0.0
 def test_a_track_sampled_1_4_or_16_times_a_second_gives_the_same_map():
     # fixed hyperparameters: the evidence of noise-free data is flat, and its optimum moves
     # by a percent with anything; the statistics are what the rule makes equal (on one
-    # field: a mode's prior mean, its class's mean per altitude, moves with the ends' weights)
+    # field: a mode's prior mean, its class's mean near each hinge, moves with the ends' weights)
     spec = RegionSpec.model_validate({**LINE, "alpha": 1.0, "beta": 4.0, "model_directions": 1})
     maps = []
     for hz in (1, 4, 16):
