@@ -17,10 +17,15 @@ km, ``--spacings``, x vertical 0.5 and 1 km, 1 and 8 sectors, gamma = 1 / spacin
 the same rows and their track columns, through the library's own path (the one function
 uploads learn through).
 
+``--prior-reach`` instead: the 8-sector demo map (the library's path) with a mode's prior
+mean (:func:`bdf.posterior._local_prior`) over each reach of hinges either side, ``layer``
+the whole layer (the prior before 2026-11-28): what the reach trades.
+
 ``--additivity`` instead: the same rows as 1, 10 and 100 uploads cut by time, in shuffled
 orders, through the library's own path: how far each map is from one upload's.
 
     python bench/bench_tracks.py [--chunks 10] [--sweep [--spacings 8,4,2,1]] [--no-http] [--publish]
+    python bench/bench_tracks.py --prior-reach 2,4,8,16,layer [--publish]
     python bench/bench_tracks.py --additivity [--publish]
 """
 
@@ -35,7 +40,7 @@ import numpy as np
 from bench_core import publish, rows_table  # bench/ is on the path when run as a script
 from scipy.stats import norm
 
-from bdf import ingest, metrics
+from bdf import ingest, metrics, posterior
 from bdf.region.evidence import accepted_increments, region_total
 from bdf.region.map import (
     FASTEST_QUANTILE,
@@ -281,6 +286,27 @@ def sweep(train, test, lower, upper, spacings_km=(8.0, 4.0, 2.0, 1.0)) -> list[d
     return rows
 
 
+def prior_reach(train, test, lower, upper, reaches: list[str]) -> list[dict]:
+    """The 8-sector demo map with a mode's prior mean over each reach (hinges either side,
+    or ``layer``: every hinge of the layer)."""
+    rows, kept = [], posterior.LOCAL_PRIOR_HINGES
+    spec = samples.paris_demo_region(lower, upper, directions=8)
+    try:
+        for reach in reaches:
+            posterior.LOCAL_PRIOR_HINGES = max(spec.grid.shape) if reach == "layer" else int(reach)
+            rmap = library_map(spec, train, True)
+            row = {
+                "reach [hinges]": reach,
+                **held_out(spec, rmap, train, test),
+                **plausibility(spec, rmap, train),
+            }
+            print(row, flush=True)
+            rows.append(row)
+    finally:
+        posterior.LOCAL_PRIOR_HINGES = kept
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -293,10 +319,22 @@ def main():
     parser.add_argument(
         "--additivity", action="store_true", help="only: 1, 10 and 100 uploads, the library's path"
     )
+    parser.add_argument(
+        "--prior-reach", help="only: the 8-sector demo map at each reach of a mode's prior (e.g. 2,4,layer)"
+    )
     parser.add_argument("--no-http", action="store_true", help="the library's path only")
     parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
     args = parser.parse_args()
     train, test, lower, upper = split()
+    if args.prior_reach:
+        command = f"python bench/bench_tracks.py --prior-reach {args.prior_reach}"
+        lines = [
+            "Paris flight split, raw rows with track and t, demo lattice, 8 sectors (library path), "
+            "by the reach of a mode's prior mean:",
+            rows_table(prior_reach(train, test, lower, upper, args.prior_reach.split(","))),
+        ]
+        publish([f"\n## A mode's prior ({time.strftime('%Y-%m-%d')}, `{command}`)\n", *lines], args.publish)
+        return
     if args.additivity:
         lines = ["Paris flight split, raw rows with track and t, demo lattice, 1 and 8 sectors:"]
         lines.append(rows_table(additivity(train, test, lower, upper)))

@@ -67,8 +67,6 @@ class RegionMaps:
     """Region maps over a :class:`MapStore`: exactly-once uploads, queries of the region's
     field, maps refreshed in the background (module doc)."""
 
-    #: Commit times of versions kept for the answers' lag (most recent).
-    COMMITTED_TIMES = 256
     #: Points (or grid slabs of about as many voxels) computed between deadline checks.
     CHUNK = 4096
 
@@ -80,8 +78,7 @@ class RegionMaps:
         self.refresher = Refresher(store, cache_mb, isolate, **refresh)
         self.cache, self.stats = self.refresher.cache, self.refresher.stats
         self.open, self.close = self.refresher.open, self.refresher.close
-        self._committed: OrderedDict[tuple, float] = OrderedDict()  # (region_id, version) -> time
-        self._lock = threading.Lock()  # of _committed
+        self._committed = CommittedTimes(store)
         store.on_close(self.refresher.close)
 
     def upload(
@@ -293,17 +290,7 @@ class RegionMaps:
         behind = info.version - state.version if info.region_id == state.region_id else 0
         if behind <= 0:
             return 0, 0.0, 0, gap
-        key = (info.region_id, state.version + 1)
-        since = self._committed.get(key)  # a version's time never changes: read it once
-        if since is None:
-            since = self.store.committed_at(*key)
-            if since is None:  # written before the store kept versions' times
-                since = info.updated_at
-            else:
-                with self._lock:
-                    self._committed[key] = since
-                    while len(self._committed) > self.COMMITTED_TIMES:
-                        self._committed.popitem(last=False)
+        since = self._committed.of(info, state.version + 1)
         # maps without the version after the answer's, finished since it was written
         finished = self.refresher.finished(info)
         refreshes = sum(t > since and version <= state.version for t, version in finished)
@@ -320,6 +307,34 @@ class RegionMaps:
             self.refresher.schedule(region, info.version)
             return newest
         return self.wait_for(info, min_version)
+
+
+class CommittedTimes:
+    """When versions of regions were written, read from the store once each (a version's
+    time never changes), the :data:`KEEP` most recent kept: the answers' lag."""
+
+    KEEP = 256
+
+    def __init__(self, store: MapStore):
+        self.store = store
+        self._times: OrderedDict[tuple, float] = OrderedDict()  # (region_id, version) -> time
+        self._lock = threading.Lock()
+
+    def of(self, info: RegionInfo, version: int) -> float:
+        """When ``version`` of the region ``info`` was written (its ``updated_at`` for a
+        version written before the store kept versions' times)."""
+        key = (info.region_id, version)
+        since = self._times.get(key)
+        if since is not None:
+            return since
+        since = self.store.committed_at(*key)
+        if since is None:
+            return info.updated_at
+        with self._lock:
+            self._times[key] = since
+            while len(self._times) > self.KEEP:
+                self._times.popitem(last=False)
+        return since
 
 
 def _checkpoint(progress: Callable[[float], None] | None) -> Callable[[float], None]:
