@@ -1,7 +1,8 @@
-"""Cross-validation of the kernel (gamma) and the hinge spacing."""
+"""Cross-validation of the kernel (gamma), the hinge spacing and the heading resolution."""
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import numpy as np
@@ -15,6 +16,8 @@ from bdf.statistics import SectorEvidence
 from bdf.validation import as_observations, as_positive, as_sample_weight
 
 log = logging.getLogger(__name__)
+#: ``directions="auto"``: the heading resolutions cross-validated (:func:`cross_validate`)
+AUTO_DIRECTIONS = (8, 16, 24, 32)
 
 
 def cross_validate(
@@ -36,7 +39,8 @@ def cross_validate(
     cutoff=DEFAULT_CUTOFF,
     directions=1,
 ):
-    """Pick ``(spacing, gamma)`` from ``candidates`` by K-fold cross-validation.
+    """Pick ``(spacing, gamma)`` from ``candidates``, and the heading resolution, by K-fold
+    cross-validation.
 
     Evidence is additive, so each candidate builds one increment per fold and trains on
     ``total - fold``: one pass over the data per candidate, whatever ``n_splits``.
@@ -56,16 +60,19 @@ def cross_validate(
         Local noise for every candidate, as in :class:`bdf.BayesianDynamicField`.
     cutoff : float
         The kernel cutoff of every candidate (:mod:`bdf.features`; looser is faster).
-    directions : int
-        Heading sectors of every candidate (:mod:`bdf.sectors`): the MSLL is the
-        mixture's (:func:`bdf.metrics.mixture_msll`), the RMSE its mean's.
+    directions : int, sequence of int, or "auto"
+        Heading sectors (:mod:`bdf.sectors`): each candidate with each count ("auto":
+        :data:`AUTO_DIRECTIONS`). The MSLL is the mixture's
+        (:func:`bdf.metrics.mixture_msll`), the RMSE its mean's; ``cond_rmse`` (reported) is
+        the RMSE of the mode of the heading each held-out row flies.
 
     Returns
     -------
     best : dict
         The winning row of ``table``.
     table : list of dict
-        Per candidate: spacing, gamma, hinges, rmse, msll (means over folds).
+        Per candidate and heading resolution: spacing, gamma, hinges, directions, rmse,
+        msll, cond_rmse (means over folds).
     """
     if score not in ("msll", "rmse"):
         raise ValueError(f"score must be 'msll' or 'rmse', got {score!r}")
@@ -74,7 +81,8 @@ def cross_validate(
     if n_splits < 2:
         raise ValueError(f"n_splits must be at least 2, got {n_splits}")
     lattice = None if noise_spacing is None else noise_lattice(lower, upper, noise_spacing)
-    sectors = Sectors(int(directions))
+    counts = AUTO_DIRECTIONS if isinstance(directions, str) and directions == "auto" else directions
+    resolutions = [Sectors(int(S)) for S in np.atleast_1d(counts)]
     noise_prior = as_positive(noise_prior, "noise_prior")
     rng = np.random.default_rng(seed)
     if groups is None:
@@ -86,7 +94,7 @@ def cross_validate(
         fold = (rng.permutation(len(labels)) % n_splits)[inverse]
 
     table = []
-    for spacing, gamma in candidates:
+    for (spacing, gamma), sectors in itertools.product(candidates, resolutions):
         grid = HingeGrid(lower, upper, spacing)
         kernel = Kernel(tuple(np.broadcast_to(np.asarray(gamma, float), (3,))), cutoff)
         parts = [
@@ -105,7 +113,7 @@ def cross_validate(
         total = parts[0]
         for part in parts[1:]:
             total = total + part
-        rmses, mslls = [], []
+        rmses, mslls, conditional = [], [], []
         for k in range(n_splits):
             test = fold == k
             evidence, rest = total - parts[k], (alpha, beta, lattice, noise_prior)
@@ -117,6 +125,8 @@ def cross_validate(
             mean, _ = modes.answer(sectors)
             train = V[~test]
             rmses.append(metrics.rmse(V[test], mean))
+            heading = np.degrees(np.arctan2(V[test, 0], V[test, 1]))
+            conditional.append(metrics.rmse(V[test], modes.answer(sectors, heading)[0]))
             mslls.append(
                 metrics.mixture_msll(V[test], modes.share, modes.mean, modes.std, train.mean(0), train.std(0))
             )
@@ -128,6 +138,7 @@ def cross_validate(
             "directions": sectors.directions,
             "rmse": float(np.mean(rmses)),
             "msll": float(np.mean(mslls)),
+            "cond_rmse": float(np.mean(conditional)),
         }
         log.info("cross-validation %s", row)
         table.append(row)
