@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
-from bdf.posterior import LOCAL_PRIOR_HINGES, LOCAL_PRIOR_ROWS
+from bdf.posterior import LOCAL_PRIOR_HINGES, LOCAL_PRIOR_ROWS, SHARE_FLOOR
 from bdf.region.evidence import decode_tile, encode_tile, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior, region_field
 from bdf.region.spec import RegionSpec
@@ -134,6 +134,12 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
     # far from the data the shares are the region's overall shares
     overall = np.array([w[label == c].sum() for c in range(5)]) / w.sum()
     np.testing.assert_allclose(mix.predict_modes(UPPER[None] + 100).share[0], overall, atol=1e-9)
+    # a class that flies in the region is nowhere certainly absent (the smoother undershoots
+    # to negative shares beside the eastbound stream: raised to SHARE_FLOOR of the overall)
+    raw = post.prior_share + dense_features(Q, hinges, GAMMA) @ post.share_weights
+    assert (raw[:, overall > 0] < 0).any()
+    floored = np.maximum(raw, SHARE_FLOOR * overall)
+    assert_close(modes.share, floored / floored.sum(axis=1, keepdims=True), 1e-9, "floored shares")
     # where only eastbound traffic flies, the east sector holds nearly all of it
     low = Q[:, 1] < 3
     assert modes.share[low, 1].mean() > 0.85 and modes.share[~low & (Q[:, 1] > 5), 0].mean() > 0.3
