@@ -290,8 +290,9 @@ def _normalised_grid(grid: HingeGrid, gamma, at: np.ndarray, axes) -> np.ndarray
 
 
 #: A mode's share is at least this fraction of its class's overall share (:class:`Mixture`):
-#: on Paris, raising the shares the smoother cuts to 0 gains 0.08 nats of held-out mixture
-#: MSLL at 8 and 16 sectors, at 0.01 of the moments' (``bench/bench_directions.py``)
+#: on Paris at 8 sectors, raising the shares the smoother cut to 0 gains 0.08 nats of
+#: held-out mixture MSLL at 0.01 of the moments' (``bench/bench_directions.py`` against
+#: ``bench/bench_tracks.py --prior-reach 4``)
 SHARE_FLOOR = 0.01
 #: erf(z) is exactly 1 in float64 from here on: no need to evaluate it there.
 ERF_ONE = 6.0
@@ -379,8 +380,8 @@ class Mixture:
     smoother undershoots next to sharp edges, down to negative values) are raised to it and
     the rest renormalised: a class that flies somewhere in the region is never certainly
     absent, or a held-out flight of it where the smoother undershoots has no density. Their
-    epistemic std is
-    ``sqrt(phi^T (G + lam I)^-1 phi / beta_share)``, ``beta_share`` at its evidence maximum.
+    epistemic std is ``sqrt(phi^T (G + lam I)^-1 phi / beta_share)``, ``beta_share`` at its
+    evidence maximum.
 
     Each mode's prior mean is its class's mean velocity near each hinge
     (:func:`_local_prior`), as the shares' is the overall share: away from a class's data

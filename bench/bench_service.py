@@ -210,7 +210,7 @@ async def warm(url: str, body: bytes, timeout_s: float = 600) -> None:
 
 
 async def upload_load(url, obs, uploaders, per_uploader, key="load") -> dict:
-    latencies = []
+    latencies, retried = [], []
     async with httpx.AsyncClient(
         base_url=url, timeout=120, limits=httpx.Limits(max_connections=uploaders)
     ) as c:
@@ -220,11 +220,16 @@ async def upload_load(url, obs, uploaders, per_uploader, key="load") -> dict:
                 rows = slice(1000 * (k * per_uploader + j), 1000 * (k * per_uploader + j + 1))
                 body = arrow_points(obs.X[rows], obs.V[rows])
                 t0 = time.perf_counter()
-                r = await c.post(
-                    "/v1/regions/paris/observations",
-                    content=body,
-                    headers={"Content-Type": ARROW, "Idempotency-Key": f"{key}-{k}-{j}"},
-                )
+                while True:  # as a client should: a 503 says when to retry (same key: once)
+                    r = await c.post(
+                        "/v1/regions/paris/observations",
+                        content=body,
+                        headers={"Content-Type": ARROW, "Idempotency-Key": f"{key}-{k}-{j}"},
+                    )
+                    if r.status_code != 503:
+                        break
+                    retried.append(1)
+                    await asyncio.sleep(float(r.headers.get("Retry-After", 1)))
                 latencies.append(time.perf_counter() - t0)
                 assert r.status_code == 200, r.text
 
@@ -233,6 +238,7 @@ async def upload_load(url, obs, uploaders, per_uploader, key="load") -> dict:
         wall = time.perf_counter() - start
     out = stats(latencies, wall)
     out["rows/s"] = 1000 * len(latencies) / wall
+    out["retried (503)"] = len(retried)
     return out
 
 
