@@ -81,7 +81,9 @@ def cross_validate(
     if n_splits < 2:
         raise ValueError(f"n_splits must be at least 2, got {n_splits}")
     lattice = None if noise_spacing is None else noise_lattice(lower, upper, noise_spacing)
-    counts = AUTO_DIRECTIONS if isinstance(directions, str) and directions == "auto" else directions
+    if isinstance(directions, str) and directions != "auto":
+        raise ValueError(f'directions must be a count, counts or "auto", got {directions!r}')
+    counts = AUTO_DIRECTIONS if isinstance(directions, str) else directions
     resolutions = [Sectors(int(S)) for S in np.atleast_1d(counts)]
     noise_prior = as_positive(noise_prior, "noise_prior")
     rng = np.random.default_rng(seed)

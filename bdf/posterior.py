@@ -291,8 +291,7 @@ def _normalised_grid(grid: HingeGrid, gamma, at: np.ndarray, axes) -> np.ndarray
 
 #: A mode's share is at least this fraction of its class's overall share (:class:`Mixture`):
 #: on Paris at 8 sectors, raising the shares the smoother cut to 0 gains 0.08 nats of
-#: held-out mixture MSLL at 0.01 of the moments' (``bench/bench_directions.py`` against
-#: ``bench/bench_tracks.py --prior-reach 4``)
+#: held-out mixture MSLL at 0.01 of the moments' (``bench/bench_tracks.py --prior-reach 4``)
 SHARE_FLOOR = 0.01
 #: erf(z) is exactly 1 in float64 from here on: no need to evaluate it there.
 ERF_ONE = 6.0

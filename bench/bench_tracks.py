@@ -19,7 +19,8 @@ uploads learn through).
 
 ``--prior-reach`` instead: the 8-sector demo map (the library's path) with a mode's prior
 mean (:func:`bdf.posterior._local_prior`) over each reach of hinges either side, ``layer``
-the whole layer (the prior before 2026-11-28): what the reach trades.
+the whole layer (the prior before 2026-11-28): what the reach trades; the served reach also
+with its shares cut at 0 (before ``SHARE_FLOOR``).
 
 ``--additivity`` instead: the same rows as 1, 10 and 100 uploads cut by time, in shuffled
 orders, through the library's own path: how far each map is from one upload's.
@@ -288,22 +289,26 @@ def sweep(train, test, lower, upper, spacings_km=(8.0, 4.0, 2.0, 1.0)) -> list[d
 
 def prior_reach(train, test, lower, upper, reaches: list[str]) -> list[dict]:
     """The 8-sector demo map with a mode's prior mean over each reach (hinges either side,
-    or ``layer``: every hinge of the layer)."""
-    rows, kept = [], posterior.LOCAL_PRIOR_HINGES
+    or ``layer``: every hinge of the layer); and the served reach's map with its shares cut
+    at 0 instead of raised to :data:`bdf.posterior.SHARE_FLOOR` (the rule before it)."""
+    rows, kept = [], (posterior.LOCAL_PRIOR_HINGES, posterior.SHARE_FLOOR)
     spec = samples.paris_demo_region(lower, upper, directions=8)
+
+    def judged(rmap, **label) -> None:
+        rows.append({**label, **held_out(spec, rmap, train, test), **plausibility(spec, rmap, train)})
+        print(rows[-1], flush=True)
+
     try:
         for reach in reaches:
             posterior.LOCAL_PRIOR_HINGES = max(spec.grid.shape) if reach == "layer" else int(reach)
             rmap = library_map(spec, train, True)
-            row = {
-                "reach [hinges]": reach,
-                **held_out(spec, rmap, train, test),
-                **plausibility(spec, rmap, train),
-            }
-            print(row, flush=True)
-            rows.append(row)
+            judged(rmap, **{"reach [hinges]": reach, "share floor": kept[1]})
+            if posterior.LOCAL_PRIOR_HINGES == kept[0]:
+                posterior.SHARE_FLOOR = 0.0  # shares are made at query time: the same map
+                judged(rmap, **{"reach [hinges]": reach, "share floor": 0.0})
+                posterior.SHARE_FLOOR = kept[1]
     finally:
-        posterior.LOCAL_PRIOR_HINGES = kept
+        posterior.LOCAL_PRIOR_HINGES, posterior.SHARE_FLOOR = kept
     return rows
 
 

@@ -98,14 +98,22 @@ POSTERIOR_NAMES = frozenset(
 )
 
 
+#: The model a stored posterior was computed by: raised whenever a change of the model
+#: changes the map the same evidence gives (2: a mode's local prior mean, 2026-11-28), so
+#: that a map stored by an older code is computed again, not served (:func:`decode_posterior`)
+MODEL_REVISION = 2
+
+
 def encode_posterior(post: Posterior | Mixture) -> bytes:
-    """A computed (compact) posterior as bytes: its arrays and the objects that hold them."""
-    return pickle.dumps(post, protocol=5)
+    """A computed (compact) posterior as bytes: :data:`MODEL_REVISION`, then its arrays and
+    the objects that hold them."""
+    return pickle.dumps((MODEL_REVISION, post), protocol=5)
 
 
 def decode_posterior(blob: bytes) -> Posterior | Mixture:
     """:func:`encode_posterior`'s bytes back, naming only classes of this package and numpy's
-    arrays (a damaged or foreign blob is a ``ValueError``, never code run)."""
+    arrays (a damaged or foreign blob, or one of another :data:`MODEL_REVISION`, is a
+    ``ValueError``, never code run)."""
 
     class Reader(pickle.Unpickler):
         def find_class(self, module: str, name: str):
@@ -115,11 +123,14 @@ def decode_posterior(blob: bytes) -> Posterior | Mixture:
             return found or super().find_class(module, name)
 
     try:
-        post = Reader(io.BytesIO(blob)).load()
+        stored = Reader(io.BytesIO(blob)).load()
     except Exception as exc:
         raise ValueError(f"not a stored posterior: {exc}") from exc
+    revision, post = stored if isinstance(stored, tuple) and len(stored) == 2 else (None, stored)
     if not isinstance(post, Posterior | Mixture):
         raise ValueError(f"not a stored posterior: a {type(post).__name__}")
+    if revision != MODEL_REVISION:
+        raise ValueError(f"a posterior of model revision {revision}, not this code's {MODEL_REVISION}")
     return post
 
 

@@ -57,6 +57,8 @@ def test_cross_validation_rejects_bad_arguments():
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], n_splits=3, groups=np.arange(10) % 2)
     with pytest.raises(ValueError, match="noise_prior must be a positive number"):
         cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], noise_spacing=1.0, noise_prior=-1)
+    with pytest.raises(ValueError, match="directions must be"):
+        cross_validate(X, X, LOWER, UPPER, [(1.0, 1.0)], directions="many")
 
 
 def test_auto_beta_is_bounded_for_a_constant_component():

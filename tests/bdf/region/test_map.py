@@ -122,3 +122,31 @@ def test_one_class_answers_the_moments_of_its_models_mixture(small):
     np.testing.assert_allclose(
         grid_modes.mean[..., 0, :], eight.predict_grid(axes)[0], rtol=1e-12, atol=1e-12
     )
+
+
+def test_a_stored_posterior_is_read_back_only_by_the_model_revision_that_stored_it(small, monkeypatch):
+    """A stored map is the model's at its revision: read back equal by the same code; one
+    stored by another revision (or before revisions were stored) is refused, so the service
+    computes it again instead of serving an older model's map."""
+    import pickle
+
+    from bdf.region import map as region_map
+
+    _, X, V = small
+    spec = RegionSpec.model_validate({**SMALL, "directions": 4})
+    post = compute_posterior(
+        spec, region_total(spec, {k: i.evidence for k, i in increments(spec, X, V).items()})
+    )
+    blob = region_map.encode_posterior(post)
+    Q = np.random.default_rng(5).uniform(spec.lower, spec.upper, (50, 3))
+    for got, want in zip(
+        RegionMap(spec, region_map.decode_posterior(blob)).predict(Q),
+        RegionMap(spec, post).predict(Q),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="model revision None"):
+        region_map.decode_posterior(pickle.dumps(post, protocol=5))  # as stored before revisions
+    monkeypatch.setattr(region_map, "MODEL_REVISION", region_map.MODEL_REVISION + 1)
+    with pytest.raises(ValueError, match="model revision 2, not this code's 3"):
+        region_map.decode_posterior(blob)
