@@ -21,6 +21,7 @@ dense formulas; tests/bdf/test_field.py compares with them to 1e-8 relative.
 from __future__ import annotations
 
 import contextlib
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -33,13 +34,13 @@ from bdf.kernel import DEFAULT_CUTOFF, window
 #: data (radar scans), no wasted window for dense (Paris).
 MIN_POINTS_PER_BLOCK = 32
 #: Gathers of at most this many points run point by point, compiled; more share BLAS
-#: products by blocks, unless the window's rows are short (:data:`SHORT_ROWS`), where the
-#: compiled path is faster at any size (``bench/bench_service.py``, its library rows).
-POINTWISE_MAX_POINTS = 2048
-#: Rows of a window (its z values and channels, contiguous in a table) of at most this many
-#: values are summed in registers, :data:`LANES` at a time (two AVX2 vectors); longer ones
-#: (directional maps: every class side by side) stream through memory.
-SHORT_ROWS, LANES = 32, 8
+#: products by blocks (on the Paris demo's tables, 1 and 9 classes: point by point 1.5-2x
+#: faster at 10,000 points, even at 50,000).
+POINTWISE_MAX_POINTS = 16384
+#: The point-by-point gather sums this many values of a table's rows (a lattice column's z
+#: values and channels) side by side in registers (:func:`_gather_lanes`: four AVX2 vectors;
+#: 8 or 32 are slower on directional maps' tables, ``bench/bench_service.py``'s library rows)
+LANES = 16
 #: Points per BLAS call at most: its temporaries stay in cache (``bench/bench_build.py``).
 CHUNK_POINTS = 2048
 #: The same in a splat, whose operands are wider (``bench/bench_kernels.py``).
@@ -358,14 +359,50 @@ def _splat_rows(t, scale, reach, ratio, cutoff, W, width, xc, yz):  # pragma: no
     return xc, yz
 
 
+class LaneTable(NamedTuple):
+    """Lattice values (nx, ny, nz, C) as :func:`_gather_lanes` reads them: each row (a
+    lattice column's z values and channels, nz C values) cut in chunks of :data:`LANES`, the
+    last padded with zeros, chunk first: ``values`` (chunks, nx, ny, LANES). A chunk of a
+    window's rows is then contiguous along y; in an (nx, ny, nz C) table each row's chunk
+    lies nz C values from the next, a cache miss per row on tables of many channels."""
+
+    values: np.ndarray
+    layers: int
+    channels: int
+
+    @classmethod
+    def of(cls, T) -> LaneTable:
+        T = np.asarray(T, float)
+        nx, ny, nz, C = T.shape
+        chunks = -(-nz * C // LANES)
+        rows = np.zeros((nx, ny, chunks * LANES))
+        rows[..., : nz * C] = T.reshape(nx, ny, nz * C)
+        return cls(np.ascontiguousarray(rows.reshape(nx, ny, chunks, LANES).transpose(2, 0, 1, 3)), nz, C)
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """(nx, ny, nz, C), as the lattice values'."""
+        return (*self.values.shape[1:3], self.layers, self.channels)
+
+    def array(self) -> np.ndarray:
+        """The lattice values (nx, ny, nz, C)."""
+        nx, ny, nz, C = self.shape
+        rows = self.values.transpose(1, 2, 0, 3).reshape(nx, ny, -1)
+        return rows[..., : nz * C].reshape(nx, ny, nz, C)
+
+    @property
+    def nbytes(self) -> int:
+        return self.values.nbytes
+
+
 def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
     """``out[n, c] = sum_g T[g, c] prod_d exp(-k_d (x_nd - g_d)^2)``, shape (N, C).
 
     Each point is summed over its own window by a compiled kernel (:func:`gather_pointwise`)
-    when the window's rows are short (:data:`SHORT_ROWS`: maps of one class) or the points
-    few (:data:`POINTWISE_MAX_POINTS`); else blocks of points share windows and BLAS
-    products (:func:`gather_blocked`), which reuse the table's values across points."""
-    if len(X) <= POINTWISE_MAX_POINTS or _row_values(lattice, T, k, cutoff) <= SHORT_ROWS:
+    when the points are few (:data:`POINTWISE_MAX_POINTS`); more share windows and BLAS
+    products by blocks (:func:`gather_blocked`), which reuse the table's values across
+    points. ``T``: lattice values (nx, ny, nz, C) or their :class:`LaneTable`."""
+    if len(X) <= POINTWISE_MAX_POINTS:
         return gather_pointwise(lattice, X, T, k, cutoff=cutoff)
     return gather_blocked(lattice, X, T, k, cutoff=cutoff, block=block)
 
@@ -373,6 +410,7 @@ def gather(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.n
 @single_threaded
 def gather_blocked(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF, block=1) -> np.ndarray:
     """:func:`gather` by blocks of points and BLAS products (the reference path)."""
+    T = T.array() if isinstance(T, LaneTable) else T
     n_out = T.shape[-1]
     out = np.empty((len(X), n_out))
     if len(X) == 0:
@@ -476,79 +514,73 @@ def _sum_z(factors, width, row, first, out):  # pragma: no cover (compiled)
         out[c] = total
 
 
-@numba.njit(cache=True, nogil=True)  # queries in other threads run meanwhile
-def _gather_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: no cover (compiled)
-    """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz table[i, j, k, c]`` over
+def _gather_lanes(
+    t, scale, reach, ratio, cutoff, table, layers, channels, out
+):  # pragma: no cover (compiled)
+    """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz T[i, j, k, c]`` over
     each point's own window (:func:`_window`). ``t`` (n, 3) positions in lattice steps,
     ``scale`` (1 or n, 3) k in steps^-2 (``reach``: the window's half-width for it,
-    ``ratio``: ``exp(-2 scale)``), ``table`` (nx, ny, nz * C). Each row of the window
-    (z and the channels, contiguous) is added into one running sum per value over y, two
-    rows a pass (half the running sum's loads and stores; four rows gain nothing more), then
-    x: the innermost loop vectorises whatever C is."""
-    nx, ny, nzc = table.shape
-    C = out.shape[1]
-    shape = (nx, ny, nzc // C)
+    ``ratio``: ``exp(-2 scale)``), ``table`` a :class:`LaneTable`'s values. Each chunk of
+    :data:`LANES` values of the window's rows is summed over y, then x, in scalar
+    accumulators that LLVM's SLP vectoriser keeps in vector registers (no store per row;
+    unsigned flat indices, so no negative-index wraparound between the loads); a chunk's
+    rows lie one after the other along y. Then z (:func:`_sum_z`)."""
+    chunks, nx, ny, _ = table.shape
+    flat = table.reshape(-1)
+    shape = (nx, ny, layers)
     factors = np.zeros((3, max(shape)))
     lo, width = np.empty(3, np.int64), np.empty(3, np.int64)
-    acc, acc_i = np.empty(nzc), np.empty(nzc)
+    acc = np.zeros(chunks * LANES)  # by position in the row
     for p in range(t.shape[0]):
         row = min(p, scale.shape[0] - 1)
         if not _window(t[p], scale[row], reach[row], ratio[row], cutoff, shape, lo, width, factors):
             out[p] = 0.0
             continue
-        first, span = lo[2] * C, width[2] * C
-        acc[:span] = 0.0
-        for i in range(width[0]):
-            fi = factors[0, i]
-            acc_i[:span] = 0.0
-            for j in range(0, width[1] - 1, 2):  # two rows a pass: half the loads and stores of acc_i
-                f0, f1 = factors[1, j], factors[1, j + 1]
-                v0 = table[lo[0] + i, lo[1] + j, first : first + span]
-                v1 = table[lo[0] + i, lo[1] + j + 1, first : first + span]
-                for q in range(span):
-                    acc_i[q] += f0 * v0[q] + f1 * v1[q]
-            if width[1] % 2:
-                fj = factors[1, width[1] - 1]
-                values = table[lo[0] + i, lo[1] + width[1] - 1, first : first + span]
-                for q in range(span):
-                    acc_i[q] += fj * values[q]
-            for q in range(span):
-                acc[q] += fi * acc_i[q]
-        _sum_z(factors, width, acc, 0, out[p])
-    return out
-
-
-def _gather_short_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: no cover (compiled)
-    """:func:`_gather_rows` for windows whose rows hold at most :data:`SHORT_ROWS` values
-    (``table``'s rows at least :data:`LANES`): each row is summed :data:`LANES` values at a
-    time over y, then x, in scalar accumulators that LLVM's SLP vectoriser keeps in vector
-    registers (no store per row; unsigned flat indices, so no negative-index wraparound
-    between the loads). A last chunk that would pass the row's end is moved back to end
-    there (it recomputes values, identically). Each value is summed in the same order as
-    in :func:`_gather_rows`: the same rounding."""
-    nx, ny, nzc = table.shape
-    flat, row_step = table.reshape(-1), np.uint64(nzc)
-    C = out.shape[1]
-    shape = (nx, ny, nzc // C)
-    factors = np.zeros((3, max(shape)))
-    lo, width = np.empty(3, np.int64), np.empty(3, np.int64)
-    acc = np.zeros(nzc)  # by position in the row
-    for p in range(t.shape[0]):
-        row = min(p, scale.shape[0] - 1)
-        if not _window(t[p], scale[row], reach[row], ratio[row], cutoff, shape, lo, width, factors):
-            out[p] = 0.0
-            continue
-        first = lo[2] * C
-        for chunk in range(first, first + width[2] * C, LANES):
-            q = min(chunk, nzc - LANES)
-            b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = 0.0
+        first = lo[2] * channels
+        for chunk in range(first // LANES, (first + width[2] * channels + LANES - 1) // LANES):
+            q = chunk * LANES
+            b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15 = (
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            )
             for i in range(width[0]):
                 fi = factors[0, i]
-                a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = 0.0
-                at = np.uint64(((lo[0] + i) * ny + lo[1]) * nzc + q)  # row (i, 0), value q
+                a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15 = (
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                )
+                at = np.uint64(((chunk * nx + lo[0] + i) * ny + lo[1]) * LANES)
                 for j in range(width[1]):
                     fj = factors[1, j]
-                    a0 += fj * flat[at]
+                    a0 += fj * flat[at + np.uint64(0)]
                     a1 += fj * flat[at + np.uint64(1)]
                     a2 += fj * flat[at + np.uint64(2)]
                     a3 += fj * flat[at + np.uint64(3)]
@@ -556,7 +588,15 @@ def _gather_short_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: n
                     a5 += fj * flat[at + np.uint64(5)]
                     a6 += fj * flat[at + np.uint64(6)]
                     a7 += fj * flat[at + np.uint64(7)]
-                    at += row_step
+                    a8 += fj * flat[at + np.uint64(8)]
+                    a9 += fj * flat[at + np.uint64(9)]
+                    a10 += fj * flat[at + np.uint64(10)]
+                    a11 += fj * flat[at + np.uint64(11)]
+                    a12 += fj * flat[at + np.uint64(12)]
+                    a13 += fj * flat[at + np.uint64(13)]
+                    a14 += fj * flat[at + np.uint64(14)]
+                    a15 += fj * flat[at + np.uint64(15)]
+                    at += np.uint64(LANES)
                 b0 += fi * a0
                 b1 += fi * a1
                 b2 += fi * a2
@@ -565,8 +605,30 @@ def _gather_short_rows(t, scale, reach, ratio, cutoff, table, out):  # pragma: n
                 b5 += fi * a5
                 b6 += fi * a6
                 b7 += fi * a7
-            acc[q], acc[q + 1], acc[q + 2], acc[q + 3] = b0, b1, b2, b3
-            acc[q + 4], acc[q + 5], acc[q + 6], acc[q + 7] = b4, b5, b6, b7
+                b8 += fi * a8
+                b9 += fi * a9
+                b10 += fi * a10
+                b11 += fi * a11
+                b12 += fi * a12
+                b13 += fi * a13
+                b14 += fi * a14
+                b15 += fi * a15
+            acc[q + 0] = b0
+            acc[q + 1] = b1
+            acc[q + 2] = b2
+            acc[q + 3] = b3
+            acc[q + 4] = b4
+            acc[q + 5] = b5
+            acc[q + 6] = b6
+            acc[q + 7] = b7
+            acc[q + 8] = b8
+            acc[q + 9] = b9
+            acc[q + 10] = b10
+            acc[q + 11] = b11
+            acc[q + 12] = b12
+            acc[q + 13] = b13
+            acc[q + 14] = b14
+            acc[q + 15] = b15
         _sum_z(factors, width, acc, first, out[p])
     return out
 
@@ -584,18 +646,12 @@ def _slp_vectorised():
 
 
 with _slp_vectorised():  # compiled (or loaded from numba's cache) now, in one thread
-    _gather_short_rows = numba.njit(
-        "f8[:, ::1](f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8, f8[:, :, ::1], f8[:, ::1])",
+    _gather_lanes = numba.njit(
+        "f8[:, ::1](f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8, f8[:, :, :, ::1], i8, i8, "
+        "f8[:, ::1])",
         cache=True,
         nogil=True,
-    )(_gather_short_rows)
-
-
-def _row_values(lattice: Lattice, T, k, cutoff) -> int:
-    """The most values a row of a window can hold: its z extent (the widest reach, the
-    lattice's layers at most) times the table's channels."""
-    k_z = float(np.min(np.asarray(k, float).reshape(-1, 3)[:, 2])) * lattice.step[2] ** 2
-    return T.shape[-1] * min(lattice.shape[2], int(2 * window(k_z, cutoff)) + 1)
+    )(_gather_lanes)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -614,25 +670,26 @@ def _cell_order(t, shape):  # pragma: no cover (compiled)
 def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
     """:func:`gather` compiled point by point (each point's own window, no temporaries): the
     fast path of queries. Equal to :func:`gather_blocked` to rounding
-    (tests/bdf/test_features.py). Long rows (directional maps: tables of megabytes) are
-    visited by lattice cell, so neighbours find most of their window in cache (one class's
-    tables stay in cache anyway, and sorting costs more than it saves)."""
+    (tests/bdf/test_features.py). ``T``: lattice values (nx, ny, nz, C), or the
+    :class:`LaneTable` of them that a posterior keeps. Points are visited by lattice cell,
+    so neighbours find most of their window in cache."""
+    table = T if isinstance(T, LaneTable) else LaneTable.of(T)
     X = np.asarray(X, float)
-    T = np.ascontiguousarray(T, dtype=float)  # a view where it is already (the posteriors' tables)
-    out = np.empty((len(X), T.shape[-1]))
+    out = np.empty((len(X), table.channels))
     if len(X) == 0:
         return out
     scale = np.asarray(k, float).reshape(-1, 3) * lattice.step**2
     t = (X - lattice.origin) / lattice.step
-    table = T.reshape(T.shape[0], T.shape[1], -1)
-    if _row_values(lattice, T, k, cutoff) > SHORT_ROWS:
-        order = _cell_order(t, np.array(lattice.shape))
-        scale = scale[order] if len(scale) > 1 else scale
-        out[order] = _gather_rows(t[order], *_per_scale(scale, cutoff), table, np.empty_like(out))
-        return out
-    if table.shape[2] < LANES:  # rows shorter than a chunk (lattices of a few layers): pad them
-        table = np.concatenate([table, np.zeros((*table.shape[:2], LANES - table.shape[2]))], axis=2)
-    return _gather_short_rows(np.ascontiguousarray(t), *_per_scale(scale, cutoff), table, out)
+    order = _cell_order(t, np.array(lattice.shape))
+    scale = scale[order] if len(scale) > 1 else scale
+    out[order] = _gather_lanes(
+        np.ascontiguousarray(t[order]),
+        *_per_scale(scale, cutoff),
+        table.values,
+        *table.shape[2:],
+        np.empty_like(out),
+    )
+    return out
 
 
 def _per_scale(scale, cutoff) -> tuple:

@@ -10,6 +10,7 @@ import numpy as np
 from scipy import ndimage, special
 
 from bdf import _blas, features, hyperparameters, noise, sparse
+from bdf.features import LaneTable
 from bdf.grid import HingeGrid
 from bdf.kernel import Kernel
 from bdf.sectors import Sectors, mixture_moments, pooled
@@ -143,6 +144,7 @@ class Posterior:
         self.weights = w0 + np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
         self._solutions = sols
         self._variance = None
+        self._mean_table = None  # the weights as the point gather reads them (:meth:`mean`)
 
     def data_weight(self, X: np.ndarray) -> np.ndarray:
         """(n, 1): the data's weight within the kernel's reach of each point,
@@ -157,10 +159,11 @@ class Posterior:
         return data_weight_grid(self.grid, self.gamma, self.cutoff, self._density[..., None], axes)
 
     def mean(self, X: np.ndarray) -> np.ndarray:
-        T = self.weights.reshape(*self.grid.shape, 3)
-        return features.gather(self.grid, X, T, self.gamma, cutoff=self.cutoff)
+        if self._mean_table is None:
+            self._mean_table = LaneTable.of(self.weights.reshape(*self.grid.shape, 3))
+        return features.gather(self.grid, X, self._mean_table, self.gamma, cutoff=self.cutoff)
 
-    def variance_table(self) -> tuple[np.ndarray, list[int]]:
+    def variance_table(self) -> tuple[LaneTable, list[int]]:
         """The variance densities on the midpoint lattice (one per distinct factorisation)
         and the one each component uses; ``phi^T Sigma_c phi`` is their gather over beta_c.
         The data's density is the table's last column (one gather answers both)."""
@@ -168,7 +171,7 @@ class Posterior:
             densities, columns = self._variance_density()
             if self._density is not None:
                 densities = np.concatenate([densities, self._density[..., None]], axis=-1)
-            self._variance = densities, columns
+            self._variance = LaneTable.of(densities), columns
         return self._variance
 
     def _midpoints(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -189,7 +192,7 @@ class Posterior:
             self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma, cutoff=self.cutoff
         )
         var = features.gather_grid(
-            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
+            self.grid.midpoints(), axes, densities.array(), 2.0 * self.gamma, cutoff=self.cutoff
         )[..., columns]
         scatter = self.noise_variance_grid(axes, mean) if include_noise else 0.0
         return mean, np.maximum(var / self.beta, 0.0) + scatter
@@ -240,13 +243,16 @@ class Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
         what a cache keeps (a few times the midpoint lattice)."""
         self.variance_table()
+        self.mean(np.empty((0, 3)))  # its table
         self._solutions = None
         return self
 
     @property
     def nbytes(self) -> int:
         """Memory held by the arrays of this posterior."""
-        held = self.weights.nbytes + sum(a.nbytes for a in (self._density, self._moments) if a is not None)
+        held = self.weights.nbytes + sum(
+            a.nbytes for a in (self._density, self._moments, self._mean_table) if a is not None
+        )
         if self._variance is not None:
             held += self._variance[0].nbytes
         if self._solutions is not None:
@@ -361,9 +367,9 @@ def _per_row(hyper, rows: int) -> list:
 class _MixtureTables(NamedTuple):
     """What a :class:`Mixture`'s queries gather (:meth:`Mixture._gather_tables`)."""
 
-    weights: np.ndarray  # hinge lattice: every mode's mean weights (3 C), then the share weights (C)
-    answer: np.ndarray  # midpoint lattice: the modes' variance densities, then all the data's density
-    modes: np.ndarray  # midpoint lattice: the one-class map's variance densities, each class's data density
+    weights: LaneTable  # hinge lattice: every mode's mean weights (3 C), then the share weights (C)
+    answer: LaneTable  # midpoint lattice: the modes' variance densities, then all the data's density
+    modes: LaneTable  # midpoint lattice: the one-class map's variance densities, each class's data density
     columns: np.ndarray  # (C, 3): each mode's variance column in ``answer``
     total_columns: np.ndarray  # (3,): the map with one class's in ``modes``
 
@@ -522,14 +528,16 @@ class Mixture:
             densities, columns, offset = [], [], 0
             for post in self.modes:
                 d, c = post.variance_table()
-                densities.append(d)
+                densities.append(d.array())
                 columns.append(offset + np.asarray(c))
-                offset += d.shape[-1]
+                offset += d.channels
             total, total_columns = self.total.variance_table()
             self._tables = _MixtureTables(
-                weights.reshape(*self.grid.shape, -1),
-                np.concatenate([*densities, self._densities.sum(axis=-1, keepdims=True)], axis=-1),
-                np.concatenate([total, self._densities], axis=-1),
+                LaneTable.of(weights.reshape(*self.grid.shape, -1)),
+                LaneTable.of(
+                    np.concatenate([*densities, self._densities.sum(axis=-1, keepdims=True)], axis=-1)
+                ),
+                LaneTable.of(np.concatenate([total.array(), self._densities], axis=-1)),
                 np.array(columns),
                 np.asarray(total_columns),
             )
@@ -552,9 +560,13 @@ class Mixture:
         """:meth:`_gather` on the grid ``axes``, the grid's shape first (separable)."""
         tables = self._gather_tables()
         midpoints, k = self.grid.midpoints(), 2.0 * self.gamma
-        at = features.gather_grid(self.grid, axes, tables.weights, self.gamma, cutoff=self.cutoff)
-        var = features.gather_grid(midpoints, axes, tables.answer, k, cutoff=self.cutoff)
-        extra = features.gather_grid(midpoints, axes, tables.modes, k, cutoff=self.cutoff) if modes else None
+        at = features.gather_grid(self.grid, axes, tables.weights.array(), self.gamma, cutoff=self.cutoff)
+        var = features.gather_grid(midpoints, axes, tables.answer.array(), k, cutoff=self.cutoff)
+        extra = (
+            features.gather_grid(midpoints, axes, tables.modes.array(), k, cutoff=self.cutoff)
+            if modes
+            else None
+        )
         return at, var, extra
 
     def _moments(self, at, var, noise_of) -> tuple[np.ndarray, np.ndarray]:

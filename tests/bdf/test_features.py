@@ -14,8 +14,7 @@ from bdf.grid import Lattice
 BOUNDS_CHECKED = {
     name: numba.njit(boundscheck=True)(getattr(features, name).py_func)
     for name in (
-        "_gather_rows",
-        "_gather_short_rows",
+        "_gather_lanes",
         "_sort_blocks",
         "_splat_blocks",
         "_splat_rows",
@@ -94,20 +93,41 @@ def test_splat_equals_the_dense_sum(cutoff, per_point_k, points, block):
     np.testing.assert_allclose(checked, splat, rtol=0, atol=1e-13 * np.abs(dense).max())
 
 
-@pytest.mark.parametrize("channels", [2, 10])  # rows of 12 values (short), of 60 (long)
-def test_gather_takes_the_pointwise_path_for_queries_and_short_rows_and_blocks_above(channels):
+def test_gather_takes_the_pointwise_path_for_queries_and_blocks_above():
     rng = np.random.default_rng(0)
     lattice = Lattice(np.zeros(3), np.ones(3), (12, 12, 6))
-    T = rng.standard_normal((*lattice.shape, channels))
+    T = rng.standard_normal((*lattice.shape, 10))
     k = np.ones(3)
-    short = channels * lattice.shape[2] <= features.SHORT_ROWS
     for n in (features.POINTWISE_MAX_POINTS, features.POINTWISE_MAX_POINTS + 1):
         X = rng.uniform(0, 11, (n, 3))
         got = features.gather(lattice, X, T, k)
-        pointwise = n <= features.POINTWISE_MAX_POINTS or short
-        path = features.gather_pointwise if pointwise else features.gather_blocked
+        path = features.gather_pointwise if n <= features.POINTWISE_MAX_POINTS else features.gather_blocked
         np.testing.assert_array_equal(got, path(lattice, X, T, k))
-    assert features.gather(lattice, np.empty((0, 3)), T, k).shape == (0, channels)
+    assert features.gather(lattice, np.empty((0, 3)), T, k).shape == (0, 10)
+
+
+@pytest.mark.parametrize(("layers", "channels"), [(1, 1), (3, 5), (6, 3), (9, 10)])
+def test_a_lane_table_holds_the_lattice_values_and_gathers_as_they_do(layers, channels):
+    """Rows of 1, 15, 18 (a chunk and two values) and 90 values: the padding of the last
+    chunk never reaches an answer, and the table gives back the values it was made of."""
+    rng = np.random.default_rng(layers)
+    lattice = Lattice(np.zeros(3), np.ones(3), (7, 5, layers))
+    T = rng.standard_normal((*lattice.shape, channels))
+    table = features.LaneTable.of(T)
+    assert table.shape == T.shape and table.values.shape[-1] == features.LANES
+    np.testing.assert_array_equal(table.array(), T)
+    X = rng.uniform(-2, 8, (200, 3))
+    np.testing.assert_array_equal(
+        features.gather_pointwise(lattice, X, table, k=np.ones(3)),
+        features.gather_pointwise(lattice, X, T, k=np.ones(3)),
+    )
+    assert (
+        np.abs(
+            features.gather_pointwise(lattice, X, table, k=np.ones(3))
+            - dense_gather(lattice, X, T, np.ones(3), 1e-12)
+        ).max()
+        <= 1e-12 * np.abs(T).max()
+    )
 
 
 @pytest.mark.parametrize("channels", [1, 3, 36])

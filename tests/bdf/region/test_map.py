@@ -147,6 +147,7 @@ def test_a_stored_posterior_is_read_back_only_by_the_model_revision_that_stored_
         np.testing.assert_array_equal(got, want)
     with pytest.raises(ValueError, match="model revision None"):
         region_map.decode_posterior(pickle.dumps(post, protocol=5))  # as stored before revisions
-    monkeypatch.setattr(region_map, "MODEL_REVISION", region_map.MODEL_REVISION + 1)
-    with pytest.raises(ValueError, match="model revision 2, not this code's 3"):
+    stored = region_map.MODEL_REVISION
+    monkeypatch.setattr(region_map, "MODEL_REVISION", stored + 1)
+    with pytest.raises(ValueError, match=f"model revision {stored}, not this code's {stored + 1}"):
         region_map.decode_posterior(blob)
