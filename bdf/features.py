@@ -444,13 +444,23 @@ def contract(fx, yz, table) -> np.ndarray:
 def gather_grid(lattice: Lattice, axes, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
     """:func:`gather` at every point of the grid ``axes[0] x axes[1] x axes[2]``, shape
     (nx, ny, nz, C). The weight is separable, so this is three small contractions with
-    per-axis kernel matrices instead of one product per point."""
+    per-axis kernel matrices instead of one product per point. ``T``: lattice values
+    (nx, ny, nz, C) or their :class:`LaneTable`, whose rows are contracted over x and y as
+    they lie, then cut back into z and channels."""
     k = np.broadcast_to(np.asarray(k, float), (3,))
-    K = [
+    Kx, Ky, Kz = (
         _cut(np.exp(-k[d] * (np.asarray(axes[d], float)[:, None] - lattice.axis(d)[None, :]) ** 2), cutoff)
         for d in range(3)
-    ]
-    return np.einsum("xi,yj,zk,ijkc->xyzc", *K, np.asarray(T), optimize="optimal")
+    )
+    if not isinstance(T, LaneTable):
+        return np.einsum("xi,yj,zk,ijkc->xyzc", Kx, Ky, Kz, np.asarray(T), optimize="optimal")
+    chunks, nx, ny, lanes = T.values.shape
+    by_x = np.matmul(Kx, T.values.reshape(chunks, nx, ny * lanes)).reshape(chunks, len(Kx), ny, lanes)
+    rows = np.tensordot(Ky, by_x, axes=(1, 2)).transpose(2, 0, 1, 3)  # (x, y, chunks, lanes)
+    rows = rows.reshape(len(Kx), len(Ky), -1)[..., : T.layers * T.channels]
+    out = np.tensordot(rows.reshape(len(Kx), len(Ky), T.layers, T.channels), Kz, axes=(2, 1))
+    # each channel's grid contiguous, as the einsum above lays it out (what follows reads by class)
+    return np.ascontiguousarray(out.transpose(2, 0, 1, 3)).transpose(1, 2, 3, 0)
 
 
 @single_threaded

@@ -192,7 +192,7 @@ class Posterior:
             self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma, cutoff=self.cutoff
         )
         var = features.gather_grid(
-            self.grid.midpoints(), axes, densities.array(), 2.0 * self.gamma, cutoff=self.cutoff
+            self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
         )[..., columns]
         scatter = self.noise_variance_grid(axes, mean) if include_noise else 0.0
         return mean, np.maximum(var / self.beta, 0.0) + scatter
@@ -560,13 +560,9 @@ class Mixture:
         """:meth:`_gather` on the grid ``axes``, the grid's shape first (separable)."""
         tables = self._gather_tables()
         midpoints, k = self.grid.midpoints(), 2.0 * self.gamma
-        at = features.gather_grid(self.grid, axes, tables.weights.array(), self.gamma, cutoff=self.cutoff)
-        var = features.gather_grid(midpoints, axes, tables.answer.array(), k, cutoff=self.cutoff)
-        extra = (
-            features.gather_grid(midpoints, axes, tables.modes.array(), k, cutoff=self.cutoff)
-            if modes
-            else None
-        )
+        at = features.gather_grid(self.grid, axes, tables.weights, self.gamma, cutoff=self.cutoff)
+        var = features.gather_grid(midpoints, axes, tables.answer, k, cutoff=self.cutoff)
+        extra = features.gather_grid(midpoints, axes, tables.modes, k, cutoff=self.cutoff) if modes else None
         return at, var, extra
 
     def _moments(self, at, var, noise_of) -> tuple[np.ndarray, np.ndarray]:

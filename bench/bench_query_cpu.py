@@ -1,15 +1,18 @@
-"""Server CPU per query of this tree against another commit, side by side on one machine
-(these machines are noisy: the ratio is the figure, not either time).
+"""Server CPU per query of this tree against another commit, or against this tree's map of
+another number of sectors, side by side on one machine (these machines are noisy: the ratio
+is the figure, not either time).
 
-    .venv/bin/python bench/bench_query_cpu.py --against 9d1bbb5 [--directions 1]
-        [--model-directions M] [--seconds 8] [--connections 4] [--rounds 2] [--profile] [--no-append]
+    .venv/bin/python bench/bench_query_cpu.py (--against 9d1bbb5 | --against-directions 8)
+        [--directions 1] [--model-directions M] [--seconds 8] [--connections 4] [--rounds 2]
+        [--profile] [--no-append]
 
 Each side is ``bdf serve`` (2 uvicorn workers, SQLite) of its own checkout (the other commit
-in a temporary git worktree), holding the demo's Paris map (``paris_demo_region``, fitted
-over HTTP from the flight split's training rows); ``wrk`` POSTs the same 1,000 held-out
-points as Arrow on ``--connections`` for ``--seconds``, the two sides alternating for
-``--rounds``. Reported: requests/s, p50, and the CPU of each server's process tree per
-request (/proc), and their ratio (this tree over the other). ``--profile``: one more run of
+in a temporary git worktree; this tree again with ``--against-directions``), holding the
+demo's Paris map (``paris_demo_region``, fitted over HTTP from the flight split's training
+rows); ``wrk`` POSTs the same 1,000 held-out points as Arrow on ``--connections`` for
+``--seconds``, the two sides alternating for ``--rounds``. Reported: requests/s, p50, and
+the CPU of each server's process tree per request (/proc), and their ratio (this tree over
+the other). ``--profile``: one more run of
 this tree under py-spy (every worker, 200 Hz), and where a query's time goes: the share of
 the samples inside the query's work that lie in each of :data:`PROFILED`.
 """
@@ -89,7 +92,11 @@ def served(checkout: Path, data: Path, body: dict, obs, test):
 
 def main(argv=None) -> int:
     parser = arguments(__doc__.splitlines()[0])
-    parser.add_argument("--against", required=True, help="the other commit (any git revision)")
+    against = parser.add_mutually_exclusive_group(required=True)
+    against.add_argument("--against", help="the other commit (any git revision)")
+    against.add_argument(
+        "--against-directions", type=int, help="the other side: this tree's map of this many sectors"
+    )
     parser.add_argument("--directions", type=int, default=1)
     parser.add_argument(
         "--model-directions",
@@ -106,27 +113,37 @@ def main(argv=None) -> int:
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     spec = paris_demo_region(lower, upper, directions=args.directions, model_directions=args.model_directions)
     here = spec.model_dump(mode="json")
-    older = subprocess.run(
-        ["git", "-C", str(ROOT), "show", f"{args.against}:bdf/region/spec.py"],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout
-    there = (
-        here if "model_directions" in older else {k: v for k, v in here.items() if k != "model_directions"}
-    )
     body = query_body(obs.X[test], "arrow")
     rows = []
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
-        other = Path(tmp) / "other"
-        subprocess.run(
-            ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(other), args.against],
-            check=True,
-        )
-        stack.callback(subprocess.run, ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)])
+        if args.against_directions is not None:
+            other, label = ROOT, f"this tree, {args.against_directions} sectors"
+            there = paris_demo_region(lower, upper, directions=args.against_directions).model_dump(
+                mode="json"
+            )
+        else:
+            other, label = Path(tmp) / "other", args.against
+            older = subprocess.run(
+                ["git", "-C", str(ROOT), "show", f"{args.against}:bdf/region/spec.py"],
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout
+            there = (
+                here
+                if "model_directions" in older
+                else {k: v for k, v in here.items() if k != "model_directions"}
+            )
+            subprocess.run(
+                ["git", "-C", str(ROOT), "worktree", "add", "-q", "--detach", str(other), args.against],
+                check=True,
+            )
+            stack.callback(
+                subprocess.run, ["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)]
+            )
         sides = {
             "this tree": stack.enter_context(served(ROOT, Path(tmp) / "here", here, obs, test)),
-            args.against: stack.enter_context(served(other, Path(tmp) / "there", there, obs, test)),
+            label: stack.enter_context(served(other, Path(tmp) / "there", there, obs, test)),
         }
         for svc in sides.values():  # every worker has the map before the load
             for _ in range(4):
@@ -156,19 +173,24 @@ def main(argv=None) -> int:
                 }
             )
     ratio = rows[0]["server CPU ms/request"] / rows[1]["server CPU ms/request"]
+    other_flag = (
+        f"--against {args.against}"
+        if args.against_directions is None
+        else f"--against-directions {args.against_directions}"
+    )
     publish(
         [
             "",
-            f"## Query CPU against {args.against}, {datetime.date.today()}",
+            f"## Query CPU against {label}, {datetime.date.today()}",
             "",
-            f"`python bench/bench_query_cpu.py --against {args.against} --directions {args.directions} "
+            f"`python bench/bench_query_cpu.py {other_flag} --directions {args.directions} "
             f"--seconds {args.seconds:g} --connections {args.connections} --rounds {args.rounds}"
             f"{' --profile' if args.profile else ''}`: "
             f"1,000-point Arrow queries of the demo's map ({args.directions} class(es)), 2 workers, SQLite.",
             "",
             rows_table(rows),
             "",
-            f"Server CPU per request, this tree / {args.against}: **{ratio:.3f}**.",
+            f"Server CPU per request, this tree / {label}: **{ratio:.3f}**.",
             *(
                 []
                 if shares is None

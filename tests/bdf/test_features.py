@@ -141,3 +141,5 @@ def test_grid_gather_equals_the_dense_sum(channels):
     mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     want = dense_gather(lattice, mesh, T, k, 1e-6).reshape(got.shape)
     assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+    lanes = features.gather_grid(lattice, axes, features.LaneTable.of(T), k, cutoff=1e-6)
+    assert np.abs(lanes - want).max() <= 1e-12 * np.abs(want).max()
