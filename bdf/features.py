@@ -445,22 +445,24 @@ def gather_grid(lattice: Lattice, axes, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.nd
     """:func:`gather` at every point of the grid ``axes[0] x axes[1] x axes[2]``, shape
     (nx, ny, nz, C). The weight is separable, so this is three small contractions with
     per-axis kernel matrices instead of one product per point. ``T``: lattice values
-    (nx, ny, nz, C) or their :class:`LaneTable`, whose rows are contracted over x and y as
-    they lie, then cut back into z and channels."""
+    (nx, ny, nz, C) or their :class:`LaneTable`, contracted as it lies over x and y, then
+    cut back into z and channels (copying it back costs more per slab of a grid in the
+    service than the contraction)."""
     k = np.broadcast_to(np.asarray(k, float), (3,))
-    Kx, Ky, Kz = (
+    K = [
         _cut(np.exp(-k[d] * (np.asarray(axes[d], float)[:, None] - lattice.axis(d)[None, :]) ** 2), cutoff)
         for d in range(3)
-    )
+    ]
     if not isinstance(T, LaneTable):
-        return np.einsum("xi,yj,zk,ijkc->xyzc", Kx, Ky, Kz, np.asarray(T), optimize="optimal")
+        return np.einsum("xi,yj,zk,ijkc->xyzc", *K, np.asarray(T), optimize="optimal")
+    Kx, Ky, Kz = K
     chunks, nx, ny, lanes = T.values.shape
     by_x = np.matmul(Kx, T.values.reshape(chunks, nx, ny * lanes)).reshape(chunks, len(Kx), ny, lanes)
     rows = np.tensordot(Ky, by_x, axes=(1, 2)).transpose(2, 0, 1, 3)  # (x, y, chunks, lanes)
     rows = rows.reshape(len(Kx), len(Ky), -1)[..., : T.layers * T.channels]
-    out = np.tensordot(rows.reshape(len(Kx), len(Ky), T.layers, T.channels), Kz, axes=(2, 1))
-    # each channel's grid contiguous, as the einsum above lays it out (what follows reads by class)
-    return np.ascontiguousarray(out.transpose(2, 0, 1, 3)).transpose(1, 2, 3, 0)
+    rows = rows.reshape(len(Kx), len(Ky), T.layers, T.channels).transpose(3, 0, 1, 2)
+    # each channel's grid contiguous, as the einsum lays it out (what follows reads by class)
+    return np.matmul(np.ascontiguousarray(rows), Kz.T).transpose(1, 2, 3, 0)
 
 
 @single_threaded

@@ -186,7 +186,8 @@ def main(argv=None) -> int:
             f"`python bench/bench_query_cpu.py {other_flag} --directions {args.directions} "
             f"--seconds {args.seconds:g} --connections {args.connections} --rounds {args.rounds}"
             f"{' --profile' if args.profile else ''}`: "
-            f"1,000-point Arrow queries of the demo's map ({args.directions} class(es)), 2 workers, SQLite.",
+            "1,000-point Arrow queries of the demo's map "
+            f"({'one class' if args.directions == 1 else f'{args.directions} sectors'}), 2 workers, SQLite.",
             "",
             rows_table(rows),
             "",
