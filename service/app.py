@@ -212,10 +212,10 @@ class Service:
     lanes: Lanes
     metrics: Metrics
 
-    async def run(self, step, heavy: bool = False):
-        """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy``; a
-        light step that returns :class:`Heavy` goes on in the heavy lane."""
-        return await self.lanes.run(step, heavy)
+    async def run(self, step, heavy: bool = False, write: bool = False):
+        """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy``, one
+        ``write`` at a time; a light step that returns :class:`Heavy` goes on in the heavy lane."""
+        return await self.lanes.run(step, heavy, write)
 
     def limits(self, rows: int) -> formats.Limits:
         """What one request body may decode into: ``rows`` rows at most."""
@@ -464,7 +464,7 @@ async def post_observations(name: RegionName, request: Request, upload_id: Idemp
         _, obs = _observations(svc, name, body, request.headers.get("content-type"))
         return _apply(svc, name, upload_id, obs)
 
-    return await svc.run(work, heavy=_heavy_body(svc, body))
+    return await svc.run(work, heavy=_heavy_body(svc, body), write=True)
 
 
 def _heavy_body(svc: Service, body: bytes) -> bool:
@@ -523,7 +523,7 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     settings = svc.settings
     search = spec.grid.size * spec.model_sectors.classes  # a fit's cost grows with it, whatever the rows
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
-        return await svc.run(fit, heavy=True)
+        return await svc.run(fit, heavy=True, write=True)
     rows = (obs.X, obs.V, obs.input_noise_std, obs.sample_weight, obs.track, obs.time)
     digest = upload_digest(upload_kind(True), *rows)
     # a fit already stored under this key replays (or, with other rows, is a 409) at once
@@ -549,7 +549,7 @@ async def post_retraction(name: RegionName, request: Request, upload_id: Idempot
         _, obs = _observations(svc, name, body, request.headers.get("content-type"))
         return _apply(svc, name, upload_id, obs, retract=True)
 
-    return await svc.run(work, heavy=_heavy_body(svc, body))
+    return await svc.run(work, heavy=_heavy_body(svc, body), write=True)
 
 
 @router.post("/regions/{name}/hyperparameters", response_model=RegionView, **scoped("write"))

@@ -12,6 +12,13 @@ A step that must wait for a map being computed hands the wait to a third bound,
 ``waiting`` (threads that block without CPU, many of them), and steps again when the map
 is ready: a burst of readers of a new region does not fill the heavy lane with waits.
 
+Writes (uploads, retractions, fits) run one at a time per process, and wait for their turn
+before they take a thread at work: the store takes one writer at a time anyway, and a write
+rewrites the tiles it touches whole (seconds on a 16-sector map, however small its body).
+Two small uploads in the light lane held both its threads, one writing and one waiting for
+the store's lock, while queries queued behind them (``bench/bench_service.py --directions
+8,16``: no query answered in 6 s).
+
 Every request has a deadline (:func:`deadline`, set once per request by
 :class:`service.telemetry.RequestMiddleware`). Waiting for a lane or a map, and every long
 loop's checkpoint (:func:`check`), raises :class:`DeadlineExceeded` (503) past it, so the
@@ -123,9 +130,10 @@ class Lane:
         # anyio's own bound only lets every admitted request have a thread to wait in
         self._limiter = anyio.CapacityLimiter(threads + queue)
 
-    async def run(self, fn: Callable[[], Any]) -> Any:
+    async def run(self, fn: Callable[[], Any], gate: threading.Semaphore | None = None) -> Any:
         """``fn()`` in one of the lane's threads: :class:`Overloaded` at once if the lane is
-        full, :class:`DeadlineExceeded` if the deadline passes first."""
+        full, :class:`DeadlineExceeded` if the deadline passes first. With ``gate``, the
+        request holds it before it takes a thread at work (and waits for it as in the queue)."""
         with self._lock:
             if self.stats.admitted >= self.threads + self.queue:
                 self.stats.shed += 1
@@ -143,22 +151,15 @@ class Lane:
                     return None
                 state["started"] = True
             try:
-                if not self._slots.acquire(timeout=wait_timeout()):
+                with self._held(gate), self._held(self._slots):
                     with self._lock:
-                        self.stats.expired += 1
-                    raise DeadlineExceeded(
-                        f"the request's deadline passed while it waited for a {self.name} thread; "
-                        "nothing was done"
-                    )
-                with self._lock:
-                    self.stats.busy += 1
-                try:
-                    check()
-                    return fn()
-                finally:
-                    with self._lock:
-                        self.stats.busy -= 1
-                    self._slots.release()
+                        self.stats.busy += 1
+                    try:
+                        check()
+                        return fn()
+                    finally:
+                        with self._lock:
+                            self.stats.busy -= 1
             finally:
                 with self._lock:
                     self.stats.admitted -= 1
@@ -172,6 +173,24 @@ class Lane:
                     self.stats.admitted -= 1
             raise
 
+    @contextlib.contextmanager
+    def _held(self, semaphore: threading.Semaphore | None):
+        """``semaphore`` held (None: nothing to hold) until the block ends;
+        :class:`DeadlineExceeded` (counted expired) if the request's deadline passes first."""
+        if semaphore is None:
+            yield
+            return
+        if not semaphore.acquire(timeout=wait_timeout()):
+            with self._lock:
+                self.stats.expired += 1
+            raise DeadlineExceeded(
+                f"the request's deadline passed while it waited for a {self.name} thread; nothing was done"
+            )
+        try:
+            yield
+        finally:
+            semaphore.release()
+
 
 def _lower_priority() -> None:
     """This thread at :data:`NICE`, once (where the system allows a thread its own)."""
@@ -184,7 +203,7 @@ def _lower_priority() -> None:
 
 
 class Lanes:
-    """The light and the heavy lane, and the waiters (module doc)."""
+    """The light and the heavy lane, the waiters, and the writes (module doc)."""
 
     def __init__(
         self, light_threads: int, light_queue: int, heavy_threads: int, heavy_queue: int, waiters: int = 64
@@ -193,11 +212,13 @@ class Lanes:
         self.heavy = Lane("heavy", heavy_threads, heavy_queue, retry_after_s=5)
         # a wait for a map takes a thread but no CPU: many may wait, each until its deadline
         self.waiting = Lane("waiting", waiters, 0, retry_after_s=5)
+        self.writes = threading.Semaphore(1)
 
-    async def run(self, fn: Callable[[], Any], heavy: bool = False) -> Any:
-        """``fn()`` in the light lane (the heavy one if ``heavy``); a :class:`Heavy` it
-        returns runs on in the heavy lane, a :class:`Waiting` waits, then steps again."""
-        result = await (self.heavy if heavy else self.light).run(fn)
+    async def run(self, fn: Callable[[], Any], heavy: bool = False, write: bool = False) -> Any:
+        """``fn()`` in the light lane (the heavy one if ``heavy``), one ``write`` at a time;
+        a :class:`Heavy` it returns runs on in the heavy lane, a :class:`Waiting` waits,
+        then steps again."""
+        result = await (self.heavy if heavy else self.light).run(fn, self.writes if write else None)
         while isinstance(result, Heavy | Waiting):
             if isinstance(result, Heavy):
                 result = await self.heavy.run(result.work)

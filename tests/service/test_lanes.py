@@ -142,3 +142,43 @@ def test_a_step_that_must_wait_waits_without_a_lane_thread_then_steps_again():
         return results
 
     assert anyio.run(main) == ["answer"] and steps == [False, True]
+
+
+def test_writes_take_turns_without_holding_a_thread_so_queries_keep_one():
+    """Two writes and a query in a light lane of two threads: the second write waits for its
+    turn without a thread at work, so the query runs while the first write holds."""
+    all_lanes = Lanes(light_threads=2, light_queue=8, heavy_threads=1, heavy_queue=1)
+    release, writing = threading.Event(), threading.Semaphore(0)
+    order = []
+
+    def write(k):
+        def step():
+            order.append(f"write {k}")
+            writing.release()
+            release.wait(10)
+            return k
+
+        return step
+
+    async def main():
+        results = []
+
+        async def call(step, write_):
+            results.append(await all_lanes.run(step, write=write_))
+
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(call, write(1), True)
+            await anyio.to_thread.run_sync(writing.acquire)
+            tg.start_soon(call, write(2), True)
+            await anyio.sleep(0.05)
+            assert (all_lanes.light.stats.admitted, all_lanes.light.stats.busy) == (
+                2,
+                1,
+            )  # 2 waits, no thread
+            assert await all_lanes.run(lambda: "query") == "query"  # the free thread answers it
+            assert order == ["write 1"]
+            release.set()
+        assert sorted(results, key=str) == [1, 2] and order == ["write 1", "write 2"]
+        assert (all_lanes.light.stats.admitted, all_lanes.light.stats.busy) == (0, 0)
+
+    anyio.run(main)
