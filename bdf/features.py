@@ -34,12 +34,13 @@ from bdf.kernel import DEFAULT_CUTOFF, window
 #: data (radar scans), no wasted window for dense (Paris).
 MIN_POINTS_PER_BLOCK = 32
 #: Gathers of at most this many points run point by point, compiled; more share BLAS
-#: products by blocks (on the Paris demo's tables, 1 and 9 classes: point by point 1.5-2x
-#: faster at 10,000 points, even at 50,000).
+#: products by blocks (``bench/bench_service.py``'s library rows, the demo's map: at 10,000
+#: points 42.5 against 56.9 ms with 8 sectors, at 100,000 973.7 against 768.3 with 16).
 POINTWISE_MAX_POINTS = 16384
 #: The point-by-point gather sums this many values of a table's rows (a lattice column's z
-#: values and channels) side by side in registers (:func:`_gather_lanes`: four AVX2 vectors;
-#: 8 or 32 are slower on directional maps' tables, ``bench/bench_service.py``'s library rows)
+#: values and channels) side by side in registers (:func:`_gather_lanes`: four AVX2 or two
+#: AVX-512 vectors; on the demo's 8-sector tables 8 were about 10 % slower and 24 to 64 no
+#: faster, in a comparison of the kernels alone)
 LANES = 16
 #: Points per BLAS call at most: its temporaries stay in cache (``bench/bench_build.py``).
 CHUNK_POINTS = 2048
@@ -551,48 +552,14 @@ def _gather_lanes(
         first = lo[2] * channels
         for chunk in range(first // LANES, (first + width[2] * channels + LANES - 1) // LANES):
             q = chunk * LANES
-            b0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15 = (
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-            )
+            b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = b8 = b9 = b10 = b11 = b12 = b13 = b14 = b15 = 0.0
             for i in range(width[0]):
                 fi = factors[0, i]
-                a0, a1, a2, a3, a4, a5, a6, a7, a8, a9, a10, a11, a12, a13, a14, a15 = (
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                )
+                a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = a12 = a13 = a14 = a15 = 0.0
                 at = np.uint64(((chunk * nx + lo[0] + i) * ny + lo[1]) * LANES)
                 for j in range(width[1]):
                     fj = factors[1, j]
-                    a0 += fj * flat[at + np.uint64(0)]
+                    a0 += fj * flat[at]
                     a1 += fj * flat[at + np.uint64(1)]
                     a2 += fj * flat[at + np.uint64(2)]
                     a3 += fj * flat[at + np.uint64(3)]
@@ -625,22 +592,10 @@ def _gather_lanes(
                 b13 += fi * a13
                 b14 += fi * a14
                 b15 += fi * a15
-            acc[q + 0] = b0
-            acc[q + 1] = b1
-            acc[q + 2] = b2
-            acc[q + 3] = b3
-            acc[q + 4] = b4
-            acc[q + 5] = b5
-            acc[q + 6] = b6
-            acc[q + 7] = b7
-            acc[q + 8] = b8
-            acc[q + 9] = b9
-            acc[q + 10] = b10
-            acc[q + 11] = b11
-            acc[q + 12] = b12
-            acc[q + 13] = b13
-            acc[q + 14] = b14
-            acc[q + 15] = b15
+            acc[q], acc[q + 1], acc[q + 2], acc[q + 3] = b0, b1, b2, b3
+            acc[q + 4], acc[q + 5], acc[q + 6], acc[q + 7] = b4, b5, b6, b7
+            acc[q + 8], acc[q + 9], acc[q + 10], acc[q + 11] = b8, b9, b10, b11
+            acc[q + 12], acc[q + 13], acc[q + 14], acc[q + 15] = b12, b13, b14, b15
         _sum_z(factors, width, acc, first, out[p])
     return out
 
