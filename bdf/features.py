@@ -39,8 +39,7 @@ MIN_POINTS_PER_BLOCK = 32
 POINTWISE_MAX_POINTS = 16384
 #: The point-by-point gather sums this many values of a table's rows (a lattice column's z
 #: values and channels) side by side in registers (:func:`_gather_lanes`: four AVX2 or two
-#: AVX-512 vectors; on the demo's 8-sector tables 8 were about 10 % slower and 24 to 64 no
-#: faster, in a comparison of the kernels alone)
+#: AVX-512 vectors)
 LANES = 16
 #: Points per BLAS call at most: its temporaries stay in cache (``bench/bench_build.py``).
 CHUNK_POINTS = 2048

@@ -144,7 +144,9 @@ class Posterior:
         self.weights = w0 + np.stack([s.weights[:, c] for c, s in enumerate(sols)], axis=1)
         self._solutions = sols
         self._variance = None
-        self._mean_table = None  # the weights as the point gather reads them (:meth:`mean`)
+        # the weights as the point gather reads them, made by the first :meth:`mean` (a
+        # mixture's modes never make theirs: it gathers every mode's weights in one table)
+        self._mean_table = None
 
     def data_weight(self, X: np.ndarray) -> np.ndarray:
         """(n, 1): the data's weight within the kernel's reach of each point,
@@ -243,7 +245,6 @@ class Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
         what a cache keeps (a few times the midpoint lattice)."""
         self.variance_table()
-        self.mean(np.empty((0, 3)))  # its table
         self._solutions = None
         return self
 

@@ -523,7 +523,7 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     settings = svc.settings
     search = spec.grid.size * spec.model_sectors.classes  # a fit's cost grows with it, whatever the rows
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
-        return await svc.run(fit, heavy=True, write=True)
+        return await svc.run(fit, heavy=True)
     rows = (obs.X, obs.V, obs.input_noise_std, obs.sample_weight, obs.track, obs.time)
     digest = upload_digest(upload_kind(True), *rows)
     # a fit already stored under this key replays (or, with other rows, is a 409) at once

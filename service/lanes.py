@@ -12,9 +12,11 @@ A step that must wait for a map being computed hands the wait to a third bound,
 ``waiting`` (threads that block without CPU, many of them), and steps again when the map
 is ready: a burst of readers of a new region does not fill the heavy lane with waits.
 
-Writes (uploads, retractions, fits) run one at a time per process, and wait for their turn
-before they take a thread at work: the store takes one writer at a time anyway, and a write
-rewrites the tiles it touches whole (seconds on a 16-sector map, however small its body).
+Uploads and retractions run one at a time per process, and wait for their turn before
+they take a thread at work: the store takes one writer at a time anyway, and each rewrites
+the tiles it touches whole (seconds on a 16-sector map, however small its body). A fit
+(heavy) does not wait its turn: its map is computed before its one write, and uploads would
+wait that computation out.
 Two small uploads in the light lane held both its threads, one writing and one waiting for
 the store's lock, while queries queued behind them (``bench/bench_service.py --directions
 8,16``: no query answered in 6 s).
@@ -151,7 +153,7 @@ class Lane:
                     return None
                 state["started"] = True
             try:
-                with self._held(gate), self._held(self._slots):
+                with self._held(gate, "its turn to write"), self._held(self._slots, f"a {self.name} thread"):
                     with self._lock:
                         self.stats.busy += 1
                     try:
@@ -174,7 +176,7 @@ class Lane:
             raise
 
     @contextlib.contextmanager
-    def _held(self, semaphore: threading.Semaphore | None):
+    def _held(self, semaphore: threading.Semaphore | None, waited_for: str):
         """``semaphore`` held (None: nothing to hold) until the block ends;
         :class:`DeadlineExceeded` (counted expired) if the request's deadline passes first."""
         if semaphore is None:
@@ -184,7 +186,7 @@ class Lane:
             with self._lock:
                 self.stats.expired += 1
             raise DeadlineExceeded(
-                f"the request's deadline passed while it waited for a {self.name} thread; nothing was done"
+                f"the request's deadline passed while it waited for {waited_for}; nothing was done"
             )
         try:
             yield
