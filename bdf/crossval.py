@@ -11,13 +11,11 @@ from bdf import metrics
 from bdf.grid import HingeGrid, noise_lattice
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
 from bdf.posterior import Mixture, Posterior
-from bdf.sectors import Sectors
+from bdf.sectors import AUTO_DIRECTIONS, Sectors
 from bdf.statistics import SectorEvidence
 from bdf.validation import as_observations, as_positive, as_sample_weight
 
 log = logging.getLogger(__name__)
-#: ``directions="auto"``: the heading resolutions cross-validated (:func:`cross_validate`)
-AUTO_DIRECTIONS = (8, 16, 24, 32)
 
 
 def cross_validate(

@@ -20,6 +20,9 @@ import numpy as np
 
 #: Largest number of heading sectors.
 MAX_DIRECTIONS = 32
+#: ``directions="auto"``: the heading resolutions cross-validated (:func:`bdf.crossval.cross_validate`,
+#: a region's fit: :mod:`bdf.region.resolution`)
+AUTO_DIRECTIONS = (8, 16, 24, 32)
 #: A mode carrying less of the traffic than this is not a flow: tubes, pictures and the
 #: planner ignore it (a near-empty class can look certain, e.g. the slow class fitted as
 #: constant where it has no data).

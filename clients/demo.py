@@ -39,8 +39,9 @@ TUBE_QUANTILE = 0.2
 FLOW_CELL_M = 2000.0
 #: Start and goal: the tube points nearest this far (metres) from the flow, on each side.
 SIDE_OFFSET_M = 15_000.0
-#: Heading sectors of the demo's map: arrivals, departures and cruise traffic cross here.
-DIRECTIONS = 8
+#: Heading sectors of the demo's map: chosen by its fit (arrivals, departures and cruise
+#: traffic cross here, :mod:`bdf.region.resolution`).
+DIRECTIONS = "auto"
 
 
 def run(
@@ -68,6 +69,7 @@ def run(
                 bdf.delete_region(spec.name)
             bdf.create_region(spec)
             _build(bdf, spec, obs, test, report)
+            spec = RegionSpec.model_validate(bdf.region(spec.name).spec)  # with the sectors chosen
         plan = _plan(bdf, spec, busiest_flow(obs.subset(~test), ROUTE_BAND_M), plan_time_s)
         pictures = _pictures(bdf, spec, out, plan.costmap.weights.max_std_mps)
     print("\nrisk-aware route vs shortest path (metres, m/s, seconds)")
@@ -118,6 +120,12 @@ def _build(bdf: BDFClient, spec, obs, test, report: dict) -> None:
         float(metrics.msll(obs.V[test], pred.mean, pred.std, train.mean(0), train.std(0))), 3
     )
     report["95% coverage"] = round(float(metrics.coverage(obs.V[test], pred.mean, pred.std)), 3)
+    chosen = RegionSpec.model_validate(bdf.region(spec.name).spec)
+    for score in chosen.directions_scores or ():
+        report[f"{score.directions} sectors: CV mixture MSLL, cond. RMSE"] = (
+            f"{score.mixture_msll:.3f} +- {score.mixture_msll_se:.3f}, {score.conditional_rmse_mps:.2f}"
+            + ("  (chosen)" if score.chosen else "")
+        )
     _print("Paris velocity map (real ADS-B, OpenSky Network)", report)
 
 

@@ -92,7 +92,7 @@ def paris_region(
     gamma=None,
     *,
     name: str = "paris",
-    directions: int = 1,
+    directions: int | str = 1,
     cutoff: float = DEFAULT_CUTOFF,
     model_directions: int | None = None,
 ):
@@ -119,7 +119,7 @@ def paris_region(
     )
 
 
-def paris_demo_region(lower, upper, directions: int = 1, model_directions: int | None = None):
+def paris_demo_region(lower, upper, directions: int | str = 1, model_directions: int | None = None):
     """The demo's region: :func:`paris_region` on the CV-picked lattice, kernel and cutoff."""
     return paris_region(
         lower,

@@ -320,7 +320,7 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, cr
     lo, hi = box[0].copy(), box[1]
     # on the region's lattice of this step: the same voxels as any other grid of the step
     lo[:2] = spec.lower[:2] + np.floor((lo[:2] - spec.lower[:2]) / step[:2] + 1e-9) * step[:2]
-    directional = spec.directions > 1
+    directional = not spec.one_class
     grid = client.grid(region, step, bbox=[*lo, *hi], modes=directional)
     modes = ModeGrids(grid.share, grid.mode_mean, grid.mode_std, spec.sectors) if directional else None
     costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known, modes=modes)

@@ -411,6 +411,8 @@ async def create_region(request: Request, svc: ServiceDep):
     if formats.media_type(request.headers.get("content-type")) not in (JSON, ""):
         raise Problem(415, f"send the region spec as {JSON}")
     spec = RegionSpec.model_validate_json(formats.json_body(body, svc.limits(0)))
+    if spec.directions_scores is not None:
+        raise Problem(422, 'directions_scores are written by the fits of a region of "auto" directions')
     budget = svc.settings.map_memory_mb * 2**20
     if spec.map_bytes > budget:
         raise Problem(
@@ -521,7 +523,7 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
         return _apply(svc, name, upload_id, obs, replace=True, progress=progress)
 
     settings = svc.settings
-    search = spec.grid.size * spec.model_sectors.classes  # a fit's cost grows with it, whatever the rows
+    search = spec.grid.size * spec.fit_classes  # a fit's cost grows with it, whatever the rows
     if len(obs.X) <= settings.fit_job_points and search <= settings.fit_job_hinges:
         return await svc.run(fit, heavy=True)
     rows = (obs.X, obs.V, obs.input_noise_std, obs.sample_weight, obs.track, obs.time)
@@ -911,7 +913,7 @@ async def flows(
         X = X[inside]
 
         def work():
-            pred = svc.maps.predict(name, X, info, min_version, modes=info.spec.directions > 1)
+            pred = svc.maps.predict(name, X, info, min_version, modes=not info.spec.one_class)
             body = webmap.flows_geojson(info.spec, X, pred, min_share, arrow_s)
             return JSONResponse(body, media_type=GEOJSON, headers=answer.headers(pred))
 

@@ -252,7 +252,7 @@ class PointQuery:
 
 def class_headings(spec: RegionSpec) -> list[float | None]:
     """The centre heading of each traffic class of ``spec`` (None: the slow class)."""
-    if spec.directions == 1:
+    if spec.one_class:
         return [None]
     return [*spec.sectors.centres_deg.tolist(), None]
 

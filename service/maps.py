@@ -22,13 +22,16 @@ import numpy as np
 
 from bdf.posterior import Modes
 from bdf.region.evidence import accepted_rows_increments, checked_rows, region_total
+from bdf.region.resolution import choose_directions
 from bdf.region.route import assess as assess_route
 from bdf.region.spec import RegionSpec
 from service import lanes
 from service.refresh import MapState, Refresher, fitted, serves
-from service.store import MapStore, RegionChanged, RegionInfo, payload_digest
+from service.store import MapStore, RegionChanged, RegionInfo, ResolutionChanged, payload_digest
 
 log = logging.getLogger(__name__)
+#: Times an upload is computed again when fits keep choosing other heading sectors meanwhile.
+RESOLUTION_RETRIES = 3
 
 
 class Unprocessable(ValueError):
@@ -107,23 +110,41 @@ class RegionMaps:
         without waiting for its map (a refresh is scheduled). Returns the ledger result:
         accepted, rejected (by reason), tiles_updated, region_version, replayed.
         ``progress(fraction)`` follows the per-tile work. With no row accepted it raises
-        :class:`Unprocessable` and stores nothing.
+        :class:`Unprocessable` and stores nothing. A fit of a region of ``directions:
+        "auto"`` chooses its heading sectors (:mod:`bdf.region.resolution`) and stores the
+        choice with its tiles; an upload computed meanwhile for the sectors before is
+        computed again (:data:`RESOLUTION_RETRIES` times at most, then 409).
         """
         rows = checked_rows(X, V, input_noise_std, sample_weight, track, time)
         digest = payload_digest(upload_kind(replace), *rows)
         first = self.store.upload_result(region, upload_id, digest)
         if first is not None:
             return first
+        attempts = RESOLUTION_RETRIES
+        while True:
+            try:
+                return self._apply_rows(region, upload_id, digest, rows, replace, progress)
+            except ResolutionChanged:  # a fit chose other sectors while these were computed
+                attempts -= 1
+                if attempts == 0:
+                    raise
+
+    def _apply_rows(self, region, upload_id, digest, rows, replace, progress) -> dict:
+        """:meth:`upload` of checked rows not in the ledger: the region's spec read once."""
         info = self.store.region(region)
-        spec = info.spec
-        increments, summary = _accepted(spec, rows, _checkpoint(progress))
+        spec, chosen = info.spec, None
+        started = perf_counter()
+        if replace and spec.directions == "auto":  # the fit chooses the heading resolution
+            spec, increments, summary, post = choose_directions(spec, rows, _checkpoint(progress))
+            chosen = spec
+        else:
+            increments, summary = accepted_rows_increments(spec, *rows, progress=_checkpoint(progress))
+        _log_warnings(spec, summary)
         require_accepted(summary, "fit" if replace else "upload")
-        post = None
-        if replace:
+        if replace and chosen is None:
             evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
-            started = perf_counter()
             post = self.refresher.posterior(spec, evidence, self.refresher.start(info), stored=False)
-            seconds = perf_counter() - started
+        seconds = perf_counter() - started
         result = self.store.apply(
             region,
             info.region_id,
@@ -133,9 +154,10 @@ class RegionMaps:
             observations=summary["accepted"],
             replace=replace,
             summary=summary,
-            hyper=None if post is None else fitted(post),
+            hyper=fitted(post) if replace else None,
+            spec=chosen,
         )
-        if post is not None and not result["replayed"]:  # the map of exactly this version
+        if replace and not result["replayed"]:  # the map of exactly this version
             state = MapState(spec, info.region_id, result["region_version"], post)
             self.refresher.publish(state)
             self.refresher.store_map(state, seconds)
@@ -160,7 +182,8 @@ class RegionMaps:
         ``retract``); once per upload id, a retry replays the result."""
         rows = checked_rows(X, V, input_noise_std, sample_weight, track, time)
         info = self.store.region(region)
-        increments, summary = _accepted(info.spec, rows, _checkpoint(None))
+        increments, summary = accepted_rows_increments(info.spec, *rows, progress=_checkpoint(None))
+        _log_warnings(info.spec, summary)
         result = self.store.retract(
             region,
             info.region_id,
@@ -368,13 +391,10 @@ def upload_digest(kind: str, X, V, input_noise_std=None, sample_weight=None, tra
     return payload_digest(kind, *checked_rows(X, V, input_noise_std, sample_weight, track, time))
 
 
-def _accepted(spec: RegionSpec, rows: tuple, progress) -> tuple[dict, dict]:
-    """:func:`bdf.region.evidence.accepted_increments` of checked rows, and the log line for
-    rows without a track id (an answer carries the warning too)."""
-    tile_increments, summary = accepted_rows_increments(spec, *rows, progress=progress)
+def _log_warnings(spec: RegionSpec, summary: dict) -> None:
+    """The log line for rows without a track id (an answer carries the warning too)."""
     for warning in summary.get("warnings", []):
         log.warning("%s: %d %s", spec.name, summary["untracked"], warning)
-    return tile_increments, summary
 
 
 def require_accepted(summary: dict, what: str) -> None:

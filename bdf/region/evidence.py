@@ -238,6 +238,40 @@ def accepted_increments(
 
 def accepted_rows_increments(spec: RegionSpec, X, V, noise, weight, track=None, time=None, *, progress=None):
     """:func:`accepted_increments` of arrays :func:`checked_rows` has passed."""
+    keep, weight, counts, tracked = accepted_rows(spec, X, V, noise, weight, track, time)
+    every = keep.all()
+
+    def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
+        return a if a is None or every else np.compress(keep, a, axis=0)
+
+    tile_increments = (
+        {}
+        if not keep.any()
+        else increments(
+            spec,
+            kept(X),
+            kept(V),
+            input_noise_std=kept(noise),
+            sample_weight=kept(weight),
+            progress=None if progress is None else (lambda f: progress(0.9 * f)),
+        )
+    )
+    untracked = int((keep & ~tracked).sum())
+    summary = {
+        "accepted": int(keep.sum()),
+        "rejected": {reason: int(c.sum()) for reason, c in zip(REJECTED, counts, strict=True)},
+        "untracked": untracked,
+    }
+    if untracked:
+        summary["warnings"] = [UNTRACKED_WARNING]
+    return tile_increments, summary
+
+
+def accepted_rows(spec: RegionSpec, X, V, noise, weight, track=None, time=None) -> tuple:
+    """Which rows the region accepts (:func:`accepted_increments`), ``(keep, weight, counts,
+    tracked)``: ``keep`` (n,), each row's likelihood weight (None: 1 each; the rows of a
+    track weigh what they carry), the rejected rows per reason of :data:`REJECTED`, and
+    which rows belong to a track."""
     finite = rows_all(np.isfinite(X)) & rows_all(np.isfinite(V))
     if noise is not None:
         finite &= rows_all(np.isfinite(noise))
@@ -257,30 +291,5 @@ def accepted_rows_increments(spec: RegionSpec, X, V, noise, weight, track=None, 
         on = np.where(keep, track, -1)  # rejected rows are no neighbours
         carried = ingest.track_weights(on, time, V, spec.gamma, max_interval_s=spec.track_interval_s)
         weight = carried if weight is None else weight * carried
-    every = keep.all()
-
-    def kept(a):  # compress: a tenth of a boolean index's time on (n, 3) rows
-        return a if a is None or every else np.compress(keep, a, axis=0)
-
-    tile_increments = (
-        {}
-        if not keep.any()
-        else increments(
-            spec,
-            kept(X),
-            kept(V),
-            input_noise_std=kept(noise),
-            sample_weight=kept(weight),
-            progress=None if progress is None else (lambda f: progress(0.9 * f)),
-        )
-    )
     counts = (~finite, finite & ~inside, inside & ~speed, speed & ~noise_ok, noise_ok & ~keep)
-    untracked = int((keep & ~tracked).sum())
-    summary = {
-        "accepted": int(keep.sum()),
-        "rejected": {reason: int(c.sum()) for reason, c in zip(REJECTED, counts, strict=True)},
-        "untracked": untracked,
-    }
-    if untracked:
-        summary["warnings"] = [UNTRACKED_WARNING]
-    return tile_increments, summary
+    return keep, weight, counts, tracked

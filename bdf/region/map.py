@@ -207,7 +207,7 @@ def plausibility(rmap: RegionMap) -> dict:
     finest = np.array([JUDGE_STEP_M[0], JUDGE_STEP_M[0], JUDGE_STEP_M[1]])
     step = np.maximum(np.minimum(finest, extent / 2), extent / JUDGE_CELLS)  # a small box: 2 cells
     axes = [np.arange(lo + h / 2, hi, h) for lo, hi, h in zip(spec.lower, spec.upper, step, strict=True)]
-    if spec.directions == 1:
+    if spec.one_class:
         mean, _, _ = rmap.predict_grid(axes)
         fastest = np.hypot(mean[..., 0], mean[..., 1])
     else:
@@ -261,7 +261,7 @@ class RegionMap:
         X = self.spec.inside_points(X)
         if heading_deg is not None:
             heading_deg = as_headings(heading_deg, len(X))
-        if modes is None and (heading_deg is None or self.spec.directions == 1):
+        if modes is None and (heading_deg is None or self.spec.one_class):
             mean, std, weight = self.posterior.answer(X)  # without the modes' arrays
         else:
             modes = self.posterior.predict_modes(X) if modes is None else modes
@@ -309,6 +309,6 @@ class RegionMap:
 
     def _answered(self, modes: Modes) -> Modes:
         """A region of one class whose model is a mixture answers its moments as one mode."""
-        if self.spec.directions == 1 and modes.share.shape[-1] > 1:
+        if self.spec.one_class and modes.share.shape[-1] > 1:
             return modes.as_one_class()
         return modes

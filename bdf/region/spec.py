@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from bdf.frames import ENUFrame
 from bdf.grid import HingeGrid, Lattice, bounded_counts, noise_lattice
 from bdf.kernel import DEFAULT_CUTOFF, NOISE_CUTOFF, Kernel
-from bdf.sectors import MAX_DIRECTIONS, Sectors
+from bdf.sectors import AUTO_DIRECTIONS, MAX_DIRECTIONS, Sectors
 from bdf.validation import as_points, bad_rows, rows_all
 
 if TYPE_CHECKING:  # the schema loads no numerics (numba, scipy): a client or planner may use it
@@ -52,6 +52,11 @@ MAP_BYTES_PER_COUPLING = 250
 MAP_BYTES_PER_CLASS_HINGE = 1000
 #: The model behind a region that answers one class (:attr:`RegionSpec.model_directions`).
 ONE_CLASS_MODEL_DIRECTIONS = 8
+#: The model of a region of ``directions: "auto"`` until a fit chooses (uploads before one
+#: are split into these sectors).
+AUTO_FIRST_DIRECTIONS = 16
+#: Folds of the flight-grouped cross-validation by which a fit chooses (:mod:`bdf.region.resolution`).
+CHOICE_FOLDS = 3
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -148,6 +153,23 @@ class Envelope(BaseModel):
         return out
 
 
+class DirectionsScore(BaseModel):
+    """How one heading resolution scored when a fit chose among them (``directions: "auto"``,
+    :mod:`bdf.region.resolution`): flight-grouped cross-validation of the fit's rows."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    directions: int
+    #: held-out mixture MSLL (the density of the velocity, :func:`bdf.metrics.mixture_msll`),
+    #: mean over the folds and its standard error
+    mixture_msll: float
+    mixture_msll_se: float
+    #: held-out MSLL of the answer without a heading (the mixture's moments)
+    msll: float
+    #: RMSE of the mode of the heading each held-out row flies (m/s)
+    conditional_rmse_mps: float
+    chosen: bool
+
+
 class RegionSpec(BaseModel):
     """A named city region: geodetic origin, ENU box, tiling and model settings (metres, 1/m^2).
 
@@ -169,17 +191,21 @@ class RegionSpec(BaseModel):
     #: a solve; looser values trade exactness for speed.
     cutoff: Annotated[float, Field(gt=0, lt=1)] = DEFAULT_CUTOFF
     #: Heading sectors the region answers (1: one velocity per point; more: a mixture of
-    #: traffic classes, :mod:`bdf.sectors`, and the mode of a heading).
-    directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] = 1
+    #: traffic classes, :mod:`bdf.sectors`, and the mode of a heading); "auto": as many as
+    #: the region's fits choose (:mod:`bdf.region.resolution`), ``model_directions`` until then.
+    directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] | Literal["auto"] = 1
     #: Heading sectors of the model behind the answers (:data:`ONE_CLASS_MODEL_DIRECTIONS`
-    #: when one class is answered, else ``directions``): a region of one class answers the
-    #: moments of a directional mixture, since one smooth field cannot represent flows
-    #: stacked a few hundred metres apart that fly opposite ways (it swings between them to
-    #: several times the fastest traffic: ``bench/bench_one_class.py``); 1 is the paper's
-    #: model of one field.
+    #: when one class is answered, :data:`AUTO_FIRST_DIRECTIONS` for "auto" until a fit
+    #: chooses, else ``directions``): a region of one class answers the moments of a
+    #: directional mixture, since one smooth field cannot represent flows stacked a few
+    #: hundred metres apart that fly opposite ways (it swings between them to several times
+    #: the fastest traffic: ``bench/bench_one_class.py``); 1 is the paper's model of one field.
     model_directions: Annotated[
         int, Field(ge=1, le=MAX_DIRECTIONS, default_factory=lambda spec: _model_for(spec["directions"]))
     ]
+    #: ``directions: "auto"``: the scores of each candidate (:data:`bdf.sectors.AUTO_DIRECTIONS`)
+    #: when the region's last fit chose ``model_directions`` (written by the fit, not sent).
+    directions_scores: tuple[DirectionsScore, ...] | None = None
     slow_mps: Positive = 5.0
     #: The longest time a row of a track stands for (its tracks' sampling interval, at most:
     #: :func:`bdf.ingest.track_weights`); sparser tracks count for less than they carry.
@@ -190,11 +216,16 @@ class RegionSpec(BaseModel):
     def _consistent(self):
         """Refuse a spec that could not be served: every accepted one takes uploads and
         answers queries, grids and slices (a property test, tests/service/test_hostile.py)."""
-        if self.directions > 1 and self.model_directions != self.directions:
+        if self.directions == "auto":
+            if self.model_directions == 1:
+                raise ValueError('directions "auto" needs a model of heading sectors: model_directions > 1')
+        elif self.directions > 1 and self.model_directions != self.directions:
             raise ValueError(
                 f"model_directions {self.model_directions} must equal directions {self.directions} (or be "
                 "left out): only a region of one class answers from another model"
             )
+        if self.directions_scores is not None and self.directions != "auto":
+            raise ValueError('directions_scores are written by the fit of a region of directions "auto"')
         lower, upper, spacing = self.lower, self.upper, np.array(self.spacing_m)
         extent = upper - lower
         if np.abs(np.r_[lower, upper]).max() > MAX_EXTENT_M:
@@ -246,10 +277,13 @@ class RegionSpec(BaseModel):
 
     @property
     def map_bytes(self) -> float:
-        """The most memory computing its map may take (data over the whole lattice)."""
+        """The most memory computing its map may take (data over the whole lattice; of
+        ``directions: "auto"``, at the most sectors a fit may choose)."""
+        most = Sectors(max(AUTO_DIRECTIONS)) if self.directions == "auto" else self.model_sectors
+        classes = most.classes
         return (
             float(self.couplings) * MAP_BYTES_PER_COUPLING
-            + float(self.grid.size * self.model_sectors.classes) * MAP_BYTES_PER_CLASS_HINGE
+            + float(self.grid.size * classes) * MAP_BYTES_PER_CLASS_HINGE
         )
 
     # -- geometry ---------------------------------------------------------------------------
@@ -302,8 +336,29 @@ class RegionSpec(BaseModel):
 
     @property
     def sectors(self) -> Sectors:
-        """The traffic classes the region answers."""
-        return Sectors(self.directions, self.slow_mps)
+        """The traffic classes the region answers (of "auto": its model's)."""
+        return Sectors(self.model_directions if self.directions == "auto" else self.directions, self.slow_mps)
+
+    @property
+    def one_class(self) -> bool:
+        """The region answers one velocity per point (the moments of its model, if directional)."""
+        return self.directions == 1
+
+    @property
+    def fit_classes(self) -> int:
+        """Traffic classes a fit of this region computes maps of: its model's, or
+        (``directions: "auto"``) each candidate's, once on all the rows and once per fold
+        (:mod:`bdf.region.resolution`)."""
+        if self.directions != "auto":
+            return self.model_sectors.classes
+        return (1 + CHOICE_FOLDS) * sum(Sectors(S).classes for S in AUTO_DIRECTIONS)
+
+    def with_directions(
+        self, directions: int, scores: tuple[DirectionsScore, ...] | None = None
+    ) -> RegionSpec:
+        """This spec of ``directions: "auto"`` with the model a fit chose (and its scores)."""
+        update = {"model_directions": directions, "directions_scores": scores}
+        return RegionSpec.model_validate({**self.model_dump(), **update})
 
     @property
     def model_sectors(self) -> Sectors:
@@ -385,9 +440,11 @@ class RegionSpec(BaseModel):
         return axes
 
 
-def _model_for(directions: int) -> int:
+def _model_for(directions: int | str) -> int:
     """The model's sectors of a spec that does not name them: written out, so that a
     stored spec says what its evidence holds."""
+    if directions == "auto":
+        return AUTO_FIRST_DIRECTIONS
     return ONE_CLASS_MODEL_DIRECTIONS if directions == 1 else directions
 
 

@@ -113,6 +113,11 @@ class RegionChanged(StoreError):
     """The region a write read was deleted (or re-created) before the write committed."""
 
 
+class ResolutionChanged(RegionChanged):
+    """A fit chose another heading resolution (``directions: "auto"``) after a write's
+    evidence was split into the sectors before it: the write is computed again."""
+
+
 class CorruptTile(StoreError):
     """A tile's stored statistics do not match their checksum (or cannot be decoded)."""
 
@@ -490,24 +495,35 @@ class MapStore(ABC):
         replace: bool = False,
         summary: Mapping | None = None,
         hyper: Mapping | None = None,
+        spec: RegionSpec | None = None,
     ) -> dict:
         """Add ``increments`` to their tiles (``replace``: drop every tile first, a fit),
         bump the version and record ``upload_id`` in the ledger, all in one transaction, if
         the region is still the instance ``region_id`` (else :class:`RegionChanged`).
         ``hyper``: the hyperparameters a fit found (module doc; ``evidence_version`` is
-        filled in); a fit without them clears the record.
+        filled in); a fit without them clears the record. ``spec``: the region's spec with
+        the heading resolution a fit chose (``directions: "auto"``); increments split into
+        other sectors than the spec's raise :class:`ResolutionChanged`.
 
         Returns the result recorded in the ledger (``summary`` plus upload_id,
         region_version, tiles_updated, replayed); a replay returns the first one.
         """
         check_upload_id(upload_id)
         with self._write() as q:
-            version, spec, hyper_text = self._locked(q, name, region_id, "version, spec, hyper")
+            version, stored, hyper_text = self._locked(q, name, region_id, "version, spec, hyper")
             now = time.time()  # with the write lock won: a writer that waited is not older
-            version, spec = int(version) + 1, _spec(spec)
+            version, stored = int(version) + 1, _spec(stored)
             first = self._ledger(q, region_id, upload_id, digest)
             if first is not None:
                 return first
+            if spec is not None and not replace:
+                raise ValueError("only a fit chooses the region's heading resolution")
+            spec = stored if spec is None else spec
+            classes = spec.model_sectors.classes
+            if any(len(inc.evidence.classes) != classes for inc in increments.values()):
+                raise ResolutionChanged(
+                    f"region {name!r} now splits its evidence into {spec.model_directions} heading sectors"
+                )
             if replace:
                 q("DELETE FROM tiles WHERE region_id = ?", (region_id,))
             keys = sorted(increments)
@@ -538,6 +554,8 @@ class MapStore(ABC):
                 f" observations = {'' if replace else 'observations + '}? WHERE region_id = ?",
                 (version, now, hyper_text, int(observations), region_id),
             )
+            if spec is not stored:
+                q("UPDATE regions SET spec = ? WHERE region_id = ?", (spec.model_dump_json(), region_id))
             q(
                 "INSERT INTO uploads (region_id, upload_id, kind, digest, result, applied_at)"
                 " VALUES (?, ?, ?, ?, ?, ?)",

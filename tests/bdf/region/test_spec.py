@@ -17,6 +17,7 @@ def test_spec_json_is_the_service_body():
         "cutoff": 1e-12,
         "directions": 1,
         "model_directions": 8,  # one class answered from the moments of 8 sectors
+        "directions_scores": None,  # written by the fits of a region of "auto" directions
         "slow_mps": 5.0,
         "track_interval_s": 1.0,
         "envelope": {  # aircraft

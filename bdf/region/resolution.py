@@ -1,0 +1,151 @@
+"""A region's heading resolution chosen by its data (``directions: "auto"``).
+
+A fit of such a region (all its rows at once: ``POST /v1/regions/{name}/fit``, the demo)
+cross-validates each count of :data:`bdf.sectors.AUTO_DIRECTIONS` on its rows, in
+:data:`bdf.region.spec.CHOICE_FOLDS` folds grouped by track (a held-out flight is traffic
+the map has not seen, not the next second of a flight it has), and keeps the fewest
+sectors whose held-out mixture MSLL is within one standard error of the best (the
+one-standard-error rule: Hastie, Tibshirani and Friedman, *The Elements of Statistical
+Learning*, 7.10): a query costs in proportion to the classes, so finer sectors must earn
+it. Each count's map of all the rows is computed once (the folds start their evidence
+search at its optimum), and the chosen one is the fit's map.
+
+Uploads before any fit are split into :data:`bdf.region.spec.AUTO_FIRST_DIRECTIONS`
+sectors: the store keeps no rows, so evidence is binned once, by the count in force.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+
+from bdf import metrics
+from bdf.posterior import Mixture, Posterior
+from bdf.region.evidence import accepted_rows, accepted_rows_increments, increments, region_total
+from bdf.region.map import RegionMap, compute_posterior, region_field
+from bdf.region.spec import CHOICE_FOLDS, DirectionsScore, RegionSpec
+from bdf.sectors import AUTO_DIRECTIONS
+
+log = logging.getLogger(__name__)
+#: The folds are drawn with this seed: the same rows choose the same way.
+CHOICE_SEED = 0
+
+
+class Choice(NamedTuple):
+    """A fit of a region of ``directions: "auto"``: the spec with the chosen model and
+    scores, and what the fit stores and serves for it."""
+
+    spec: RegionSpec
+    increments: dict
+    summary: dict
+    posterior: Posterior | Mixture
+
+
+def choose_directions(
+    spec: RegionSpec, rows: tuple, progress: Callable[[float], None] | None = None
+) -> Choice:
+    """The heading resolution of ``rows`` (:func:`bdf.region.evidence.checked_rows`) for a
+    region of ``directions: "auto"``, with that resolution's map of all of them. Rows in
+    fewer than :data:`CHOICE_FOLDS` tracks (an untracked row is its own) cannot be
+    cross-validated: they keep the spec's model."""
+    X, V, noise, weight, *tracks = rows
+    keep, weights, _, _ = accepted_rows(spec, X, V, noise, weight, *tracks)
+    fold = _folds(tracks[0] if tracks else None, keep)
+    counts = AUTO_DIRECTIONS if fold is not None else (spec.model_directions,)
+    steps, done = len(counts) * (1 + (CHOICE_FOLDS if fold is not None else 0)), 0
+    fits, scores = {}, []
+    for S in counts:
+        candidate = spec.with_directions(S)
+        tiles, summary = accepted_rows_increments(candidate, *rows)
+        total = region_total(candidate, {k: inc.evidence for k, inc in tiles.items()})
+        full = compute_posterior(candidate, total, stored=False)
+        fits[S] = (candidate, tiles, summary, full)
+        done += 1
+        _report(progress, done / steps)
+        if fold is None:
+            break
+        held_out = []
+        for k in range(CHOICE_FOLDS):
+            test = fold == k
+            part = increments(
+                candidate,
+                X[test],
+                V[test],
+                input_noise_std=None if noise is None else noise[test],
+                sample_weight=None if weights is None else weights[test],
+            )
+            train = total - region_total(candidate, {key: inc.evidence for key, inc in part.items()})
+            post = region_field(candidate).set_evidence(train, start=full.next_start, settle=False)
+            held_out.append(
+                _scores(RegionMap(candidate, post.posterior_.compact()), X[test], V[test], V[keep & ~test])
+            )
+            done += 1
+            _report(progress, done / steps)
+        scores.append((S, np.array(held_out)))
+    if fold is None:
+        candidate, tiles, summary, full = fits[spec.model_directions]
+        return Choice(spec.with_directions(spec.model_directions), tiles, summary, full)
+    chosen = _fewest_within_one_se(scores)
+    table = tuple(
+        DirectionsScore(
+            directions=S,
+            mixture_msll=float(s[:, 0].mean()),
+            mixture_msll_se=float(s[:, 0].std(ddof=1) / np.sqrt(len(s))),
+            msll=float(s[:, 1].mean()),
+            conditional_rmse_mps=float(s[:, 2].mean()),
+            chosen=S == chosen,
+        )
+        for S, s in scores
+    )
+    log.info("region %s: %d heading sectors chosen, %s", spec.name, chosen, [t.model_dump() for t in table])
+    _, tiles, summary, full = fits[chosen]
+    return Choice(spec.with_directions(chosen, table), tiles, summary, full)
+
+
+def _folds(track: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None:
+    """Each row's fold (rows of one track together), or None if the accepted rows lie in
+    fewer tracks than folds."""
+    group = (
+        np.where(track >= 0, track, -1 - np.arange(len(keep)))
+        if track is not None
+        else -1 - np.arange(len(keep))
+    )
+    labels, inverse = np.unique(group[keep], return_inverse=True)
+    if len(labels) < CHOICE_FOLDS:
+        return None
+    fold = np.full(len(keep), -1)
+    fold[keep] = (np.random.default_rng(CHOICE_SEED).permutation(len(labels)) % CHOICE_FOLDS)[inverse]
+    return fold
+
+
+def _scores(rmap: RegionMap, X: np.ndarray, V: np.ndarray, V_train: np.ndarray) -> tuple[float, float, float]:
+    """Held-out mixture MSLL, MSLL of the answer without a heading, and RMSE of the mode
+    of each row's own heading, at the rows ``(X, V)``."""
+    modes = rmap.predict_modes(X)
+    mean, std, _ = rmap.predict(X, modes=modes)
+    mu, sd = V_train.mean(0), V_train.std(0)
+    heading = np.degrees(np.arctan2(V[:, 0], V[:, 1]))
+    own, _ = modes.answer(rmap.spec.sectors, heading)
+    return (
+        float(metrics.mixture_msll(V, modes.share, modes.mean, modes.std, mu, sd)),
+        float(metrics.msll(V, mean, std, mu, sd)),
+        float(metrics.rmse(V, own)),
+    )
+
+
+def _fewest_within_one_se(scores: list[tuple[int, np.ndarray]]) -> int:
+    """The fewest sectors whose mean held-out mixture MSLL (first column, per fold) is within
+    one standard error of the best's."""
+    means = {S: s[:, 0].mean() for S, s in scores}
+    best = min(means, key=means.get)
+    folds = dict(scores)[best][:, 0]
+    bar = means[best] + folds.std(ddof=1) / np.sqrt(len(folds))
+    return min(S for S, m in means.items() if m <= bar)
+
+
+def _report(progress: Callable[[float], None] | None, fraction: float) -> None:
+    if progress is not None:
+        progress(fraction)

@@ -1,0 +1,80 @@
+"""A region of ``directions: "auto"`` in the service: its fit chooses and stores the heading
+sectors with its tiles; writes split into the sectors before are computed again."""
+
+import numpy as np
+import pytest
+
+from bdf.region.evidence import accepted_increments, checked_rows
+from bdf.region.resolution import choose_directions
+from bdf.region.spec import RegionSpec
+from service.maps import RegionMaps
+from service.store import ResolutionChanged
+from tests.bdf.region.test_resolution import CROSSING, crossing_flows
+
+TRACKS_M = np.arange(-3500, 3501, 1000)
+
+
+@pytest.fixture
+def crossing(store):
+    """The crossing flows' region, its model at 8 sectors until a fit chooses."""
+    spec = RegionSpec.model_validate({**CROSSING, "model_directions": 8})
+    store.create_region(spec)
+    return spec
+
+
+def test_a_fit_chooses_the_sectors_stores_them_with_its_tiles_and_uploads_then_use_them(store, crossing):
+    maps = RegionMaps(store)
+    X, V, track, t = crossing_flows(TRACKS_M, seed=0)
+    early = maps.upload("crossing", "early", X[:500], V[:500], track=track[:500], time=t[:500])
+    assert store.region("crossing").spec.model_directions == 8
+    fit = maps.upload("crossing", "fit", X, V, track=track, time=t, replace=True)
+    assert fit["kind"] == "fit" and fit["region_version"] == early["region_version"] + 1
+    info = store.region("crossing")
+    expected = choose_directions(crossing, checked_rows(X, V, track=track, time=t)).spec
+    assert info.spec == expected and info.spec.model_directions >= 12 and info.spec.directions == "auto"
+    assert [s.chosen for s in info.spec.directions_scores].count(True) == 1
+    # the stored tiles hold the chosen sectors' classes, and the map answers every class
+    snapshot = store.snapshot("crossing")
+    classes = info.spec.model_sectors.classes
+    assert {len(ev.classes) for ev in snapshot.evidence.values()} == {classes}
+    pred = maps.predict("crossing", X[:10], info, modes=True)
+    assert pred.version == fit["region_version"] and pred.modes.share.shape == (10, classes)
+    # a later upload is split into them, and a replayed fit changes nothing
+    Xl, Vl, tl, ttl = crossing_flows([0.0], seed=2)
+    later = maps.upload("crossing", "later", Xl, Vl, track=tl, time=ttl)
+    assert later["region_version"] == fit["region_version"] + 1
+    assert maps.upload("crossing", "fit", X, V, track=track, time=t, replace=True)["replayed"]
+    assert store.region("crossing").spec == info.spec
+
+
+def test_a_write_split_into_the_sectors_before_a_fit_chose_stores_nothing_and_is_computed_again(
+    store, crossing
+):
+    maps = RegionMaps(store)
+    X, V, track, t = crossing_flows(TRACKS_M, seed=0)
+    before = store.region("crossing")
+    stale, summary = accepted_increments(crossing, X[:300], V[:300], track=track[:300], time=t[:300])
+    maps.upload("crossing", "fit", X, V, track=track, time=t, replace=True)
+    info = store.region("crossing")
+    assert info.spec.model_directions != before.spec.model_directions == 8
+    with pytest.raises(ResolutionChanged, match=f"{info.spec.model_directions} heading sectors"):
+        store.apply("crossing", info.region_id, "stale", "d", stale, observations=summary["accepted"])
+    assert store.region("crossing").version == info.version  # nothing stored
+    assert store.upload_result("crossing", "stale", "d") is None
+
+    # an upload that read the spec before the fit committed is computed again with the new one
+    reads = iter([before, None])
+    real = store.region
+
+    def region(name):
+        info = next(reads, None)
+        return real(name) if info is None else info
+
+    store.region = region
+    try:
+        result = maps.upload("crossing", "raced", X[:300], V[:300], track=track[:300], time=t[:300])
+    finally:
+        store.region = real
+    assert result["region_version"] == info.version + 1 and not result["replayed"]
+    classes = info.spec.model_sectors.classes
+    assert {len(ev.classes) for ev in store.snapshot("crossing").evidence.values()} == {classes}
