@@ -124,7 +124,7 @@ def score(store, spec: RegionSpec, seed: int = 99, n: int = 50_000) -> dict:
             "rmse_climatology": float(np.sqrt(np.mean((truth - V.mean(axis=0)) ** 2))),
             "coverage": float(np.mean(np.abs(V - pred.mean) <= 1.96 * pred.std)),
         }
-        if spec.directions > 1:
+        if not spec.one_class:
             velocity = np.array([make_city.lane_velocity(lane) for lane in make_city.LANES])[lane]
             heading = np.degrees(np.arctan2(velocity[:, 0], velocity[:, 1])) % 360
             cond = maps.predict(spec.name, X, heading_deg=heading)

@@ -11,7 +11,11 @@ blend of the two modes (weights linear in angle, moments of the blend) for refer
 the map over its box as traffic can fly it (:func:`bench_tracks.plausibility`), and a
 1,000-point query with the modes, in the library.
 
-    python bench/bench_directions.py [--directions 8,16,24,32] [--publish]
+    python bench/bench_directions.py [--directions 8,16,24,32,auto] [--publish]
+
+``auto``: the region's fit chooses among 8, 16, 24 and 32 by flight-grouped cross-validation
+of the training rows (``bdf.region.resolution``); its build is the choice's, and its row
+shows the scores that chose.
 """
 
 from __future__ import annotations
@@ -57,19 +61,37 @@ def conditional(sectors, test, modes, mu, sd) -> dict:
     return out
 
 
-def one(directions: int) -> dict:
-    """The figures of the map with ``directions`` sectors (run in its own process)."""
+def one(directions: int | str) -> dict:
+    """The figures of the map with ``directions`` sectors (run in its own process); "auto":
+    the sectors the region's fit chooses (:mod:`bdf.region.resolution`), with its scores."""
     import resource
 
     from bench_tracks import library_map, plausibility, split
 
     from bdf import metrics
+    from bdf.region.evidence import checked_rows
+    from bdf.region.map import RegionMap
+    from bdf.region.resolution import choose_directions
     from clients import samples
 
     train, test, lower, upper = split()
     spec = samples.paris_demo_region(lower, upper, directions=directions)
     t0 = time.perf_counter()
-    rmap = library_map(spec, train, True)
+    chose = {}
+    if directions == "auto":
+        choice = choose_directions(spec, checked_rows(train.X, train.V, track=train.flight, time=train.time))
+        spec, rmap = choice.spec, RegionMap(choice.spec, choice.posterior)
+        chose = {
+            "chosen": spec.model_directions,
+            "CV mixture MSLL +- se (8/16/24/32)": " / ".join(
+                f"{s.mixture_msll:.3f} +- {s.mixture_msll_se:.3f}" for s in spec.directions_scores
+            ),
+            "CV conditional RMSE (8/16/24/32)": " / ".join(
+                f"{s.conditional_rmse_mps:.2f}" for s in spec.directions_scores
+            ),
+        }
+    else:
+        rmap = library_map(spec, train, True)
     build_s = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     modes = rmap.predict_modes(test.X)
@@ -84,6 +106,7 @@ def one(directions: int) -> dict:
     judged = plausibility(spec, rmap, train)
     return {
         "sectors": directions,
+        **chose,
         "build [s]": build_s,
         "peak RSS [GB]": peak / 1e9,
         "held-out MSLL": float(metrics.msll(test.V, mean, std, mu, sd)),
@@ -100,16 +123,16 @@ def main():
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--directions", default="8,16,24,32")
-    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a child: one map, JSON out
+    parser.add_argument("--one", help=argparse.SUPPRESS)  # a child: one map, JSON out
     parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(one(args.one)))
+        print(json.dumps(one(args.one if args.one == "auto" else int(args.one))))
         return
     from bench_core import publish, rows_table
 
     rows = []
-    for directions in (int(d) for d in args.directions.split(",")):
+    for directions in args.directions.split(","):
         out = subprocess.run(
             [sys.executable, __file__, "--one", str(directions)], capture_output=True, text=True, cwd=ROOT
         )

@@ -279,7 +279,7 @@ def library_rows(spec, obs, test, X) -> list[dict]:
         RegionMap(spec, post).predict_grid(axes)
         times.append(time.perf_counter() - t0)
     rows.append({"what": "grid 100x100x30, library (no HTTP)", "p50 ms": 1e3 * float(np.median(times))})
-    if spec.directions > 1:  # what a grid request with modes computes: the modes, then their moments
+    if not spec.one_class:  # what a grid request with modes computes: the modes, then their moments
         times = []
         for _ in range(5):
             t0 = time.perf_counter()

@@ -91,7 +91,7 @@ def held_out(spec, post, train, test) -> dict:
         "cov95 u": cov[2],
         "MSLL": float(metrics.msll(test.V, mean, std, train.V.mean(0), train.V.std(0))),
     }
-    if spec.directions > 1:
+    if not spec.one_class:
         own = spec.sectors.classify(test.V)
         rows = np.arange(len(test.V))
         row["mixture MSLL"] = metrics.mixture_msll(

@@ -147,7 +147,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         # plausibility and seams on the 500 m grid at 500-5,500 m
         axes = [np.arange(spec.lower[d], spec.upper[d] + 1, 500.0) for d in (0, 1)]
         axes.append(np.arange(500.0, 5501.0, 500.0))
-        grid = maps.predict_grid(spec.name, axes, modes=spec.directions > 1)
+        grid = maps.predict_grid(spec.name, axes, modes=not spec.one_class)
         speed = np.hypot(grid.mean[..., 0], grid.mean[..., 1])
         observed = np.hypot(train.V[:, 0], train.V[:, 1])
         band = np.floor(train.X[:, 2] / 1000.0)
@@ -156,7 +156,7 @@ def run(spacing, cutoff, obs, test, rate, directions=1) -> dict:
         ratio = speed / limit
         row["max speed / fastest in band"] = float(ratio.max())
         row["voxels above 1.0x the fastest [%]"] = 100 * float((ratio > 1.0).mean())
-        if spec.directions > 1:  # every mode with at least 5 % of the traffic
+        if not spec.one_class:  # every mode with at least 5 % of the traffic
             m = grid.modes
             mode_ratio = np.hypot(m.mean[..., 0], m.mean[..., 1]) / limit[None, None, :, None]
             mode_ratio = np.where(m.share > 0.05, mode_ratio, 0.0).max(axis=-1)

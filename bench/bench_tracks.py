@@ -85,7 +85,7 @@ def plausibility(spec: RegionSpec, rmap: RegionMap, train) -> dict:
     modes = rmap.predict_grid_modes(axes)
     mean, _, known = rmap.predict_grid(axes, modes=modes)
     fastest = np.hypot(mean[..., 0], mean[..., 1])
-    if spec.directions > 1:
+    if not spec.one_class:
         mode_speed = np.hypot(modes.mean[..., 0], modes.mean[..., 1])
         fastest = np.maximum(fastest, np.where(modes.share >= MODE_SHARE, mode_speed, 0.0).max(axis=-1))
     bound = speed_bound(train, axes[2], spec.envelope.max_horizontal_speed_mps)[None, None, :]
@@ -142,7 +142,7 @@ def held_out(spec: RegionSpec, rmap: RegionMap, train, test) -> dict:
             rmap.posterior.predict_modes(spec.inside_points(test.X[known])), mean[known], std[known]
         ),
     }
-    if spec.directions > 1:
+    if not spec.one_class:
         row["mixture MSLL"] = metrics.mixture_msll(
             test.V, modes.share, modes.mean, modes.std, train.V.mean(0), train.V.std(0)
         )

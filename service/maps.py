@@ -22,7 +22,6 @@ import numpy as np
 
 from bdf.posterior import Modes
 from bdf.region.evidence import accepted_rows_increments, checked_rows, region_total
-from bdf.region.resolution import choose_directions
 from bdf.region.route import assess as assess_route
 from bdf.region.spec import RegionSpec
 from service import lanes
@@ -135,7 +134,7 @@ class RegionMaps:
         spec, chosen = info.spec, None
         started = perf_counter()
         if replace and spec.directions == "auto":  # the fit chooses the heading resolution
-            spec, increments, summary, post = choose_directions(spec, rows, _checkpoint(progress))
+            spec, increments, summary, post = self.refresher.choose(spec, rows, _checkpoint(progress))
             chosen = spec
         else:
             increments, summary = accepted_rows_increments(spec, *rows, progress=_checkpoint(progress))

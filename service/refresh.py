@@ -40,9 +40,11 @@ import threading
 import time
 import uuid
 from collections import OrderedDict, deque
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -50,6 +52,7 @@ from bdf import hyperparameters
 from bdf.posterior import Mixture, Posterior
 from bdf.region.evidence import region_total
 from bdf.region.map import RegionMap, compute_posterior, decode_posterior, encode_posterior
+from bdf.region.resolution import Choice, choose_directions
 from bdf.region.spec import RegionSpec
 from service import lanes
 from service.store import CorruptTile, MapStore, RegionChanged, RegionInfo, RegionNotFound, StoreUnavailable
@@ -189,10 +192,12 @@ class Refresher:
         self.cache = PosteriorCache(cache_mb)
         self.stats = RefreshStats()
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
-        #: the settling pass a newer version abandons (its job number; shared with the child)
-        self._abandon = multiprocessing.get_context("spawn").Value("q", 0, lock=False)
+        #: the settling pass a newer version abandons (its job number), and how far the child's
+        #: work is (a fraction): shared with the child
+        self._shared = _Shared(*(multiprocessing.get_context("spawn").Value(t, 0, lock=False) for t in "qd"))
+        self._abandon = self._shared.abandon
         self._jobs = itertools.count(1)
-        self._spawner = _Spawner(self._abandon) if isolate else None
+        self._spawner = _Spawner(self._shared) if isolate else None
         self._lock = threading.Lock()
         self._done = threading.Condition(self._lock)  # a refresh ended (waiters look again)
         self._regions: dict[str, RegionRefresh] = {}
@@ -210,7 +215,7 @@ class Refresher:
         with self._lock:
             self._closed = False
             if self._isolate and not (self._spawner and self._spawner.alive):
-                self._spawner = _Spawner(self._abandon)  # posterior processes run at this thread's priority
+                self._spawner = _Spawner(self._shared)  # posterior processes run at this thread's priority
 
     def close(self) -> None:
         """Stop the background refreshes (after the ones under way): the store closes next."""
@@ -556,14 +561,29 @@ class Refresher:
         :class:`bdf.hyperparameters.Abandoned` once a newer version abandons it."""
         if not self._isolate:
             return _compute_posterior(spec, evidence, start, stored, settle, job, self._abandon)
+        return self._in_child(_compute_posterior, (spec, evidence, start, stored, settle, job))
+
+    def choose(
+        self, spec: RegionSpec, rows: tuple, progress: Callable[[float], None] | None = None
+    ) -> Choice:
+        """:func:`bdf.region.resolution.choose_directions` (a fit of a region of
+        ``directions: "auto"``), in the child process if isolated, ``progress`` followed."""
+        if not self._isolate:
+            return choose_directions(spec, rows, progress)
+        return self._in_child(_choose_directions, (spec, rows), progress)
+
+    def _in_child(self, fn, args: tuple, progress: Callable[[float], None] | None = None):
+        """``fn(*args)`` in the posterior process, within the request's deadline; its
+        progress (:data:`_PROGRESS`) reported to ``progress`` while it runs."""
         for attempt in range(2):
             with self._lock:
                 if self._pool is None:
                     self._pool = self._spawner.start()
                 pool = self._pool
             try:
-                future = pool.submit(_compute_posterior, spec, evidence, start, stored, settle, job)
-                return future.result(timeout=lanes.wait_timeout())
+                if progress is not None:  # the work of a caller that follows it starts
+                    self._shared.progress.value = 0.0
+                return _followed(pool.submit(fn, *args), progress, self._shared.progress)
             except concurrent.futures.TimeoutError:
                 raise lanes.DeadlineExceeded(
                     "the request's deadline passed while its map was computed; nothing was stored"
@@ -664,24 +684,58 @@ def _compute_posterior(spec: RegionSpec, evidence, start, stored, settle, job=0,
         return compute_posterior(spec, evidence, start, stored=stored, settle=settle)
 
 
-#: In the posterior process: the number of the settling pass its parent abandons.
+def _choose_directions(spec: RegionSpec, rows: tuple) -> Choice:
+    """:func:`bdf.region.resolution.choose_directions` in the posterior process, its progress
+    in :data:`_PROGRESS`."""
+    _PROGRESS.value = 0.0
+    return choose_directions(spec, rows, lambda fraction: setattr(_PROGRESS, "value", fraction))
+
+
+def _followed(future: concurrent.futures.Future, progress, shared):
+    """``future``'s result within the request's deadline (``TimeoutError`` past it), reporting
+    ``shared.value`` to ``progress`` every :data:`PROGRESS_POLL_S` meanwhile."""
+    left = lanes.wait_timeout()
+    end = None if left is None else time.monotonic() + left
+    while True:
+        wait = PROGRESS_POLL_S if end is None else min(PROGRESS_POLL_S, max(end - time.monotonic(), 0.0))
+        try:
+            return future.result(timeout=wait)
+        except concurrent.futures.TimeoutError:
+            if end is not None and time.monotonic() >= end:
+                raise
+            if progress is not None:
+                progress(shared.value)
+
+
+class _Shared(NamedTuple):
+    """What the posterior process shares with its parent."""
+
+    abandon: object  # the number of the settling pass its parent abandons (:data:`_ABANDON`)
+    progress: object  # how far its work is, a fraction (:data:`_PROGRESS`)
+
+
+#: In the posterior process: the number of the settling pass its parent abandons, and how
+#: far its work is.
 _ABANDON = None
+_PROGRESS = None
+#: How often a wait for the posterior process reports its progress (s).
+PROGRESS_POLL_S = 0.5
 
 
 #: How often the posterior process checks that the process that started it lives (s).
 PARENT_CHECK_S = 1.0
 
 
-def _posterior_process(abandon) -> ProcessPoolExecutor:
+def _posterior_process(shared: _Shared) -> ProcessPoolExecutor:
     """One child process for posteriors (spawned: this process runs threads), sharing
-    ``abandon`` (:data:`_ABANDON`). It leaves when this process dies: killed, a pool cannot
-    tell its child, which would wait for work forever, holding its memory (a quarter of a GB
-    on the demo's map)."""
+    ``shared`` (:data:`_ABANDON`, :data:`_PROGRESS`). It leaves when this process dies:
+    killed, a pool cannot tell its child, which would wait for work forever, holding its
+    memory (a quarter of a GB on the demo's map)."""
     return ProcessPoolExecutor(
         1,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=_posterior_child,
-        initargs=(os.getpid(), abandon),
+        initargs=(os.getpid(), shared),
     )
 
 
@@ -690,8 +744,8 @@ class _Spawner:
     inherits the priority of the thread that starts it, and the lanes' threads run at a
     lower one (:data:`service.lanes.NICE`) so that maps are computed first."""
 
-    def __init__(self, abandon):
-        self._abandon = abandon
+    def __init__(self, shared: _Shared):
+        self._shared = shared
         self._asked: queue.SimpleQueue = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name="posterior-spawner", daemon=True)
         self._thread.start()
@@ -717,18 +771,18 @@ class _Spawner:
             if started is None:
                 return
             try:
-                pool = _posterior_process(self._abandon)
+                pool = _posterior_process(self._shared)
                 pool.submit(os.getpid)  # the child is spawned now, by this thread
                 started.set_result(pool)
             except Exception as exc:
                 started.set_exception(exc)
 
 
-def _posterior_child(parent: int, abandon) -> None:
-    """In the posterior process: keep ``abandon`` (:data:`_ABANDON`); exit once ``parent``
-    is no longer its parent."""
-    global _ABANDON
-    _ABANDON = abandon
+def _posterior_child(parent: int, shared: _Shared) -> None:
+    """In the posterior process: keep ``shared`` (:data:`_ABANDON`, :data:`_PROGRESS`); exit
+    once ``parent`` is no longer its parent."""
+    global _ABANDON, _PROGRESS
+    _ABANDON, _PROGRESS = shared
 
     def watch():
         while os.getppid() == parent:

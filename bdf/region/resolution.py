@@ -41,7 +41,7 @@ class Choice(NamedTuple):
     spec: RegionSpec
     increments: dict
     summary: dict
-    posterior: Posterior | Mixture
+    posterior: Posterior | Mixture | None  # None: no row accepted
 
 
 def choose_directions(
@@ -50,23 +50,22 @@ def choose_directions(
     """The heading resolution of ``rows`` (:func:`bdf.region.evidence.checked_rows`) for a
     region of ``directions: "auto"``, with that resolution's map of all of them. Rows in
     fewer than :data:`CHOICE_FOLDS` tracks (an untracked row is its own) cannot be
-    cross-validated: they keep the spec's model."""
+    cross-validated: they keep the spec's model, and no scores."""
     X, V, noise, weight, *tracks = rows
     keep, weights, _, _ = accepted_rows(spec, X, V, noise, weight, *tracks)
     fold = _folds(tracks[0] if tracks else None, keep)
-    counts = AUTO_DIRECTIONS if fold is not None else (spec.model_directions,)
-    steps, done = len(counts) * (1 + (CHOICE_FOLDS if fold is not None else 0)), 0
-    fits, scores = {}, []
-    for S in counts:
+    if fold is None:
+        kept = spec.with_directions(spec.model_directions)
+        return Choice(kept, *_fit(kept, rows))
+    steps = len(AUTO_DIRECTIONS) * (1 + CHOICE_FOLDS) + 1
+    starts, scores = {}, []
+    for i, S in enumerate(AUTO_DIRECTIONS):
         candidate = spec.with_directions(S)
-        tiles, summary = accepted_rows_increments(candidate, *rows)
-        total = region_total(candidate, {k: inc.evidence for k, inc in tiles.items()})
-        full = compute_posterior(candidate, total, stored=False)
-        fits[S] = (candidate, tiles, summary, full)
-        done += 1
-        _report(progress, done / steps)
-        if fold is None:
-            break
+        tiles, _, full = _fit(candidate, rows)
+        total = region_total(candidate, {key: inc.evidence for key, inc in tiles.items()})
+        starts[S] = full.next_start
+        del tiles, full  # one candidate's evidence and maps alive at a time
+        _report(progress, (i * (1 + CHOICE_FOLDS) + 1) / steps)
         held_out = []
         for k in range(CHOICE_FOLDS):
             test = fold == k
@@ -78,16 +77,11 @@ def choose_directions(
                 sample_weight=None if weights is None else weights[test],
             )
             train = total - region_total(candidate, {key: inc.evidence for key, inc in part.items()})
-            post = region_field(candidate).set_evidence(train, start=full.next_start, settle=False)
-            held_out.append(
-                _scores(RegionMap(candidate, post.posterior_.compact()), X[test], V[test], V[keep & ~test])
-            )
-            done += 1
-            _report(progress, done / steps)
+            post = region_field(candidate).set_evidence(train, start=starts[S], settle=False)
+            rmap = RegionMap(candidate, post.posterior_.compact())
+            held_out.append(_scores(rmap, X[test], V[test], V[keep & ~test]))
+            _report(progress, (i * (1 + CHOICE_FOLDS) + 2 + k) / steps)
         scores.append((S, np.array(held_out)))
-    if fold is None:
-        candidate, tiles, summary, full = fits[spec.model_directions]
-        return Choice(spec.with_directions(spec.model_directions), tiles, summary, full)
     chosen = _fewest_within_one_se(scores)
     table = tuple(
         DirectionsScore(
@@ -101,18 +95,32 @@ def choose_directions(
         for S, s in scores
     )
     log.info("region %s: %d heading sectors chosen, %s", spec.name, chosen, [t.model_dump() for t in table])
-    _, tiles, summary, full = fits[chosen]
-    return Choice(spec.with_directions(chosen, table), tiles, summary, full)
+    spec = spec.with_directions(chosen, table)
+    choice = Choice(spec, *_fit(spec, rows, starts[chosen]))  # its map again, from its optimum
+    _report(progress, 1.0)
+    return choice
+
+
+def _fit(spec: RegionSpec, rows: tuple, start=None) -> tuple[dict, dict, Posterior | Mixture | None]:
+    """The tile increments of ``rows``, their summary, and the map of them (its search of
+    "auto" hyperparameters from ``start``; None: no row accepted)."""
+    tiles, summary = accepted_rows_increments(spec, *rows)
+    if summary["accepted"] == 0:
+        return tiles, summary, None
+    return (
+        tiles,
+        summary,
+        compute_posterior(
+            spec, region_total(spec, {k: i.evidence for k, i in tiles.items()}), start, stored=False
+        ),
+    )
 
 
 def _folds(track: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None:
     """Each row's fold (rows of one track together), or None if the accepted rows lie in
     fewer tracks than folds."""
-    group = (
-        np.where(track >= 0, track, -1 - np.arange(len(keep)))
-        if track is not None
-        else -1 - np.arange(len(keep))
-    )
+    own = -1 - np.arange(len(keep))  # an untracked row is a group of its own
+    group = own if track is None else np.where(track >= 0, track, own)
     labels, inverse = np.unique(group[keep], return_inverse=True)
     if len(labels) < CHOICE_FOLDS:
         return None

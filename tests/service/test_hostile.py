@@ -23,6 +23,7 @@ from hypothesis import strategies as st
 import service.maps
 from bdf.region.evidence import increments
 from bdf.region.spec import RegionSpec
+from bdf.sectors import AUTO_DIRECTIONS
 from service import slices
 from service.app import create_app
 from service.maps import RegionMaps
@@ -592,7 +593,7 @@ specs = st.builds(
     reach=st.tuples(*[st.floats(0.3, 4.0)] * 3),
     tiles=st.tuples(*[st.floats(0.5, 6.0)] * 3),
     cutoff=st.sampled_from([1e-12, 1e-9, 1e-6]),
-    directions=st.sampled_from([1, 8, 32]),
+    directions=st.sampled_from([1, 8, 32, "auto"]),
     corner=st.tuples(*[st.floats(-5e5, 5e5)] * 3),
 )
 
@@ -606,7 +607,7 @@ def test_every_accepted_spec_takes_an_upload_and_answers_a_query_a_grid_and_a_sl
         assume(False)  # refused with a reason (the 422s above); accepted ones must be served
     # small maps here (a second each: a factor per class); the largest a spec may have is
     # bounded by MAX_COUPLINGS, and what it costs is the isolation issue's memory budget
-    assume(spec.couplings * spec.sectors.classes <= 1e7)
+    assume(spec.couplings * spec.fit_classes <= 1e7)
     assume(np.prod(spec.tile_counts) <= 1000)
     with tempfile.TemporaryDirectory() as tmp:
         store = open_store(f"sqlite:///{tmp}")
@@ -618,8 +619,15 @@ def test_every_accepted_spec_takes_an_upload_and_answers_a_query_a_grid_and_a_sl
             V = rng.uniform(-50, 50, (50, 3))
             assert maps.upload(spec.name, "u", X, V)["accepted"] == 50
             assert_serves(maps, spec)
+            if spec.directions == "auto":  # a fit chooses the sectors (rows: 50 groups)
+                assert maps.upload(spec.name, "f", X, V, replace=True)["accepted"] == 50
+                spec = maps.store.region(spec.name).spec
+                assert spec.directions_scores is not None and spec.model_directions in AUTO_DIRECTIONS
+                assert_serves(maps, spec)
             x, y = slices.slice_axes(spec.lower, spec.upper, spec.spacing_m, None, None)
-            cut = maps.predict_grid(spec.name, [x, y, spec.lower[2:]], min_version=1)
+            cut = maps.predict_grid(
+                spec.name, [x, y, spec.lower[2:]], min_version=maps.store.region(spec.name).version
+            )
             assert np.isfinite(cut.mean).all()
         finally:
             store.close()

@@ -78,3 +78,32 @@ def test_a_write_split_into_the_sectors_before_a_fit_chose_stores_nothing_and_is
     assert result["region_version"] == info.version + 1 and not result["replayed"]
     classes = info.spec.model_sectors.classes
     assert {len(ev.classes) for ev in store.snapshot("crossing").evidence.values()} == {classes}
+
+
+@pytest.mark.slow
+def test_over_http_a_fit_job_chooses_in_the_posterior_process_and_the_region_view_says_what_and_why(
+    live_server,
+):
+    from clients.sdk import BDFClient
+
+    X, V, track, t = crossing_flows(TRACKS_M, seed=0)
+    server = live_server()
+    with BDFClient(server.url) as bdf:
+        bdf.create_region(CROSSING)
+        job = bdf.fit("crossing", X, V, track=track, t=t, key="fit", wait=False)
+        seen = []
+        while job["state"] not in ("succeeded", "failed"):
+            seen.append(job["progress"])
+            job = bdf.job(job["id"])
+        assert job["state"] == "succeeded", job
+        assert seen == sorted(seen) and job["progress"] == 1.0
+        spec = RegionSpec.model_validate(bdf.region("crossing").spec)
+        expected = choose_directions(
+            RegionSpec.model_validate(CROSSING), checked_rows(X, V, track=track, time=t)
+        )
+        assert spec == expected.spec and spec.directions == "auto"
+        # the mode of a heading, from the chosen sectors' map
+        Xt, Vt, _, _ = crossing_flows([0.0], seed=1)
+        heading = np.degrees(np.arctan2(Vt[:, 0], Vt[:, 1]))
+        pred = bdf.query("crossing", Xt, heading_deg=heading)
+        assert np.sqrt(np.mean((pred.mean - Vt) ** 2)) < 5.0
