@@ -192,9 +192,8 @@ class Refresher:
         self.cache = PosteriorCache(cache_mb)
         self.stats = RefreshStats()
         self._isolate, self._pool = isolate, None  # the child starts with the first posterior
-        #: the settling pass a newer version abandons (its job number), and how far the child's
-        #: work is (a fraction): shared with the child
-        self._shared = _Shared(*(multiprocessing.get_context("spawn").Value(t, 0, lock=False) for t in "qd"))
+        #: the settling pass a newer version abandons (its job number; shared with the child)
+        self._shared = _shared()
         self._abandon = self._shared.abandon
         self._jobs = itertools.count(1)
         self._spawner = _Spawner(self._shared) if isolate else None
@@ -561,29 +560,14 @@ class Refresher:
         :class:`bdf.hyperparameters.Abandoned` once a newer version abandons it."""
         if not self._isolate:
             return _compute_posterior(spec, evidence, start, stored, settle, job, self._abandon)
-        return self._in_child(_compute_posterior, (spec, evidence, start, stored, settle, job))
-
-    def choose(
-        self, spec: RegionSpec, rows: tuple, progress: Callable[[float], None] | None = None
-    ) -> Choice:
-        """:func:`bdf.region.resolution.choose_directions` (a fit of a region of
-        ``directions: "auto"``), in the child process if isolated, ``progress`` followed."""
-        if not self._isolate:
-            return choose_directions(spec, rows, progress)
-        return self._in_child(_choose_directions, (spec, rows), progress)
-
-    def _in_child(self, fn, args: tuple, progress: Callable[[float], None] | None = None):
-        """``fn(*args)`` in the posterior process, within the request's deadline; its
-        progress (:data:`_PROGRESS`) reported to ``progress`` while it runs."""
         for attempt in range(2):
             with self._lock:
                 if self._pool is None:
                     self._pool = self._spawner.start()
                 pool = self._pool
             try:
-                if progress is not None:  # the work of a caller that follows it starts
-                    self._shared.progress.value = 0.0
-                return _followed(pool.submit(fn, *args), progress, self._shared.progress)
+                future = pool.submit(_compute_posterior, spec, evidence, start, stored, settle, job)
+                return future.result(timeout=lanes.wait_timeout())
             except concurrent.futures.TimeoutError:
                 raise lanes.DeadlineExceeded(
                     "the request's deadline passed while its map was computed; nothing was stored"
@@ -595,6 +579,25 @@ class Refresher:
                 with self._lock:
                     if self._pool is pool:
                         self._pool = None
+
+    def choose(
+        self, spec: RegionSpec, rows: tuple, progress: Callable[[float], None] | None = None
+    ) -> Choice:
+        """:func:`bdf.region.resolution.choose_directions` (a fit of a region of
+        ``directions: "auto"``), ``progress`` followed; if isolated, in a process of its own:
+        its minutes of cross-validation hold up no other region's refresh."""
+        if not self._isolate:
+            return choose_directions(spec, rows, progress)
+        shared = _shared()
+        pool = self._spawner.start(shared)
+        try:
+            return _followed(pool.submit(_choose_directions, spec, rows), progress, shared.progress)
+        except concurrent.futures.TimeoutError:
+            raise lanes.DeadlineExceeded(
+                "the request's deadline passed while its heading sectors were chosen; nothing was stored"
+            ) from None
+        finally:
+            pool.shutdown(wait=False)
 
     def _snapshot_evidence(self, region: str, region_id: str):
         """The region's snapshot and every tile's evidence, decoding only the tiles whose
@@ -685,9 +688,8 @@ def _compute_posterior(spec: RegionSpec, evidence, start, stored, settle, job=0,
 
 
 def _choose_directions(spec: RegionSpec, rows: tuple) -> Choice:
-    """:func:`bdf.region.resolution.choose_directions` in the posterior process, its progress
-    in :data:`_PROGRESS`."""
-    _PROGRESS.value = 0.0
+    """:func:`bdf.region.resolution.choose_directions` in a child process, its progress in
+    :data:`_PROGRESS`."""
     return choose_directions(spec, rows, lambda fraction: setattr(_PROGRESS, "value", fraction))
 
 
@@ -708,17 +710,22 @@ def _followed(future: concurrent.futures.Future, progress, shared):
 
 
 class _Shared(NamedTuple):
-    """What the posterior process shares with its parent."""
+    """What a child process shares with its parent."""
 
     abandon: object  # the number of the settling pass its parent abandons (:data:`_ABANDON`)
     progress: object  # how far its work is, a fraction (:data:`_PROGRESS`)
 
 
-#: In the posterior process: the number of the settling pass its parent abandons, and how
-#: far its work is.
+def _shared() -> _Shared:
+    """Fresh values to share with a child process (spawned)."""
+    return _Shared(*(multiprocessing.get_context("spawn").Value(t, 0, lock=False) for t in "qd"))
+
+
+#: In a child process: the number of the settling pass its parent abandons, and how far
+#: its work is.
 _ABANDON = None
 _PROGRESS = None
-#: How often a wait for the posterior process reports its progress (s).
+#: How often a wait for a child process reports its progress (s).
 PROGRESS_POLL_S = 0.5
 
 
@@ -754,11 +761,12 @@ class _Spawner:
     def alive(self) -> bool:
         return self._thread.is_alive()
 
-    def start(self) -> ProcessPoolExecutor:
+    def start(self, shared: _Shared | None = None) -> ProcessPoolExecutor:
+        """A child process sharing ``shared`` (the posterior process's if None)."""
         if not self.alive:
             raise lanes.Overloaded("the service is shutting down: no map is computed now", 5)
         started: concurrent.futures.Future = concurrent.futures.Future()
-        self._asked.put(started)
+        self._asked.put((started, shared or self._shared))
         return started.result()
 
     def stop(self) -> None:
@@ -767,11 +775,12 @@ class _Spawner:
 
     def _run(self) -> None:
         while True:
-            started = self._asked.get()
-            if started is None:
+            asked = self._asked.get()
+            if asked is None:
                 return
+            started, shared = asked
             try:
-                pool = _posterior_process(self._shared)
+                pool = _posterior_process(shared)
                 pool.submit(os.getpid)  # the child is spawned now, by this thread
                 started.set_result(pool)
             except Exception as exc:
@@ -779,7 +788,7 @@ class _Spawner:
 
 
 def _posterior_child(parent: int, shared: _Shared) -> None:
-    """In the posterior process: keep ``shared`` (:data:`_ABANDON`, :data:`_PROGRESS`); exit
+    """In a child process: keep ``shared`` (:data:`_ABANDON`, :data:`_PROGRESS`); exit
     once ``parent`` is no longer its parent."""
     global _ABANDON, _PROGRESS
     _ABANDON, _PROGRESS = shared
