@@ -7,8 +7,9 @@ the map has not seen, not the next second of a flight it has), and keeps the few
 sectors whose held-out mixture MSLL is within one standard error of the best (the
 one-standard-error rule: Hastie, Tibshirani and Friedman, *The Elements of Statistical
 Learning*, 7.10): a query costs in proportion to the classes, so finer sectors must earn
-it. Each count's map of all the rows is computed once (the folds start their evidence
-search at its optimum), and the chosen one is the fit's map.
+it. Each count's map of all the rows is computed first (the folds start their evidence
+search at its optimum) and dropped, so that one count's evidence and maps are alive at a
+time; the chosen count's map is computed again from its optimum and is the fit's map.
 
 Uploads before any fit are split into :data:`bdf.region.spec.AUTO_FIRST_DIRECTIONS`
 sectors: the store keeps no rows, so evidence is binned once, by the count in force.
