@@ -234,7 +234,7 @@ def test_rows_05_06_a_request_with_no_accepted_row_changes_nothing(client, route
 # -- 7: a region deleted and re-created while a write runs --------------------------------------
 @pytest.mark.parametrize("spacing", [[25, 25, 20], [30, 30, 20]])
 def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, monkeypatch, spacing):
-    evidence = service.maps._accepted
+    evidence = service.maps.accepted_rows_increments
     new_spec = {**SPEC, "spacing_m": spacing}
 
     def recreate_then(*args, **kw):
@@ -243,10 +243,10 @@ def test_row_07_a_write_to_a_region_recreated_meanwhile_is_a_409(client, app, mo
         app.state.service.maps.store.create_region(RegionSpec.model_validate(new_spec))
         return out
 
-    monkeypatch.setattr(service.maps, "_accepted", recreate_then)
+    monkeypatch.setattr(service.maps, "accepted_rows_increments", recreate_then)
     X, V = data(4, n=50)
     problem(post_obs(client, rows(X, V), "racing"), 409, "re-created", "nothing was stored")
-    monkeypatch.setattr(service.maps, "_accepted", evidence)
+    monkeypatch.setattr(service.maps, "accepted_rows_increments", evidence)
     view = client.get(f"/v1/regions/{NAME}", headers=READ).json()
     assert view["version"] == 0 and view["observations"] == 0 and view["tiles"] == 0
     assert app.state.service.maps.store.verify() == {NAME: []}
