@@ -68,8 +68,7 @@ def run(
             if existing:  # the demo's own store, from an earlier run
                 bdf.delete_region(spec.name)
             bdf.create_region(spec)
-            _build(bdf, spec, obs, test, report)
-            spec = RegionSpec.model_validate(bdf.region(spec.name).spec)  # with the sectors chosen
+            spec = _build(bdf, spec, obs, test, report)
         plan = _plan(bdf, spec, busiest_flow(obs.subset(~test), ROUTE_BAND_M), plan_time_s)
         pictures = _pictures(bdf, spec, out, plan.costmap.weights.max_std_mps)
     print("\nrisk-aware route vs shortest path (metres, m/s, seconds)")
@@ -101,9 +100,9 @@ def _command() -> str:
     return "bdf"
 
 
-def _build(bdf: BDFClient, spec, obs, test, report: dict) -> None:
+def _build(bdf: BDFClient, spec, obs, test, report: dict) -> RegionSpec:
     """Learn the map from the training flights over HTTP, score it on the held-out
-    flights, print both."""
+    flights, print both; the region's spec as its fit stored it (the sectors it chose)."""
     t0 = time.perf_counter()
     # the rows as they come, with their tracks: the service weighs each track's 1 Hz samples
     train = obs.subset(~test)
@@ -127,6 +126,7 @@ def _build(bdf: BDFClient, spec, obs, test, report: dict) -> None:
             + ("  (chosen)" if score.chosen else "")
         )
     _print("Paris velocity map (real ADS-B, OpenSky Network)", report)
+    return chosen
 
 
 def _print(title: str, report: dict) -> None:
