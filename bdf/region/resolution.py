@@ -8,8 +8,8 @@ sectors whose held-out mixture MSLL is within one standard error of the best (th
 one-standard-error rule: Hastie, Tibshirani and Friedman, *The Elements of Statistical
 Learning*, 7.10): a query costs in proportion to the classes, so finer sectors must earn
 it. Each count's map of all the rows is computed first (the folds start their evidence
-search at its optimum) and dropped, so that one count's evidence and maps are alive at a
-time; the chosen count's map is computed again from its optimum and is the fit's map.
+search at its optimum) and kept on disk, so that one count's evidence and maps are in
+memory at a time; the chosen count's is the fit's map.
 
 Uploads before any fit are split into :data:`bdf.region.spec.AUTO_FIRST_DIRECTIONS`
 sectors: the store keeps no rows, so evidence is binned once, by the count in force.
@@ -17,7 +17,9 @@ sectors: the store keeps no rows, so evidence is binned once, by the count in fo
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import tempfile
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -26,7 +28,7 @@ import numpy as np
 from bdf import metrics
 from bdf.posterior import Mixture, Posterior
 from bdf.region.evidence import accepted_rows, accepted_rows_increments, increments, region_total
-from bdf.region.map import RegionMap, compute_posterior, region_field
+from bdf.region.map import RegionMap, compute_posterior, decode_posterior, encode_posterior, region_field
 from bdf.region.spec import CHOICE_FOLDS, DirectionsScore, RegionSpec
 from bdf.sectors import AUTO_DIRECTIONS
 
@@ -58,32 +60,38 @@ def choose_directions(
     if fold is None:
         kept = spec.with_directions(spec.model_directions)
         return Choice(kept, *_fit(kept, rows))
-    steps = len(AUTO_DIRECTIONS) * (1 + CHOICE_FOLDS) + 1
-    starts, scores = {}, []
-    for i, S in enumerate(AUTO_DIRECTIONS):
-        candidate = spec.with_directions(S)
-        tiles, _, full = _fit(candidate, rows)
-        total = region_total(candidate, {key: inc.evidence for key, inc in tiles.items()})
-        starts[S] = full.next_start
-        del tiles, full  # one candidate's evidence and maps alive at a time
-        _report(progress, (i * (1 + CHOICE_FOLDS) + 1) / steps)
-        held_out = []
-        for k in range(CHOICE_FOLDS):
-            test = fold == k
-            part = increments(
-                candidate,
-                X[test],
-                V[test],
-                input_noise_std=None if noise is None else noise[test],
-                sample_weight=None if weights is None else weights[test],
-            )
-            train = total - region_total(candidate, {key: inc.evidence for key, inc in part.items()})
-            post = region_field(candidate).set_evidence(train, start=starts[S], settle=False)
-            rmap = RegionMap(candidate, post.posterior_.compact())
-            held_out.append(_scores(rmap, X[test], V[test], V[keep & ~test]))
-            _report(progress, (i * (1 + CHOICE_FOLDS) + 2 + k) / steps)
-        scores.append((S, np.array(held_out)))
-    chosen = _fewest_within_one_se(scores)
+    steps = len(AUTO_DIRECTIONS) * (1 + CHOICE_FOLDS)
+    spilled, scores = {}, []
+    with contextlib.ExitStack() as files:
+        for i, S in enumerate(AUTO_DIRECTIONS):
+            candidate = spec.with_directions(S)
+            tiles, _, full = _fit(candidate, rows)
+            total = region_total(candidate, {key: inc.evidence for key, inc in tiles.items()})
+            start = full.next_start
+            # one candidate's evidence and maps in memory at a time: its map waits on disk
+            spilled[S] = files.enter_context(tempfile.TemporaryFile())
+            spilled[S].write(encode_posterior(full))
+            del tiles, full
+            _report(progress, (i * (1 + CHOICE_FOLDS) + 1) / steps)
+            held_out = []
+            for k in range(CHOICE_FOLDS):
+                test = fold == k
+                part = increments(
+                    candidate,
+                    X[test],
+                    V[test],
+                    input_noise_std=None if noise is None else noise[test],
+                    sample_weight=None if weights is None else weights[test],
+                )
+                train = total - region_total(candidate, {key: inc.evidence for key, inc in part.items()})
+                post = region_field(candidate).set_evidence(train, start=start, settle=False)
+                rmap = RegionMap(candidate, post.posterior_.compact())
+                held_out.append(_scores(rmap, X[test], V[test], V[keep & ~test]))
+                _report(progress, (i * (1 + CHOICE_FOLDS) + 2 + k) / steps)
+            scores.append((S, np.array(held_out)))
+        chosen = _fewest_within_one_se(scores)
+        spilled[chosen].seek(0)
+        post = decode_posterior(spilled[chosen].read())
     table = tuple(
         DirectionsScore(
             directions=S,
@@ -97,23 +105,20 @@ def choose_directions(
     )
     log.info("region %s: %d heading sectors chosen, %s", spec.name, chosen, [t.model_dump() for t in table])
     spec = spec.with_directions(chosen, table)
-    choice = Choice(spec, *_fit(spec, rows, starts[chosen]))  # its map again, from its optimum
-    _report(progress, 1.0)
-    return choice
+    tiles, summary = accepted_rows_increments(spec, *rows)  # what the fit stores: cheap to redo
+    return Choice(spec, tiles, summary, post)
 
 
-def _fit(spec: RegionSpec, rows: tuple, start=None) -> tuple[dict, dict, Posterior | Mixture | None]:
-    """The tile increments of ``rows``, their summary, and the map of them (its search of
-    "auto" hyperparameters from ``start``; None: no row accepted)."""
+def _fit(spec: RegionSpec, rows: tuple) -> tuple[dict, dict, Posterior | Mixture | None]:
+    """The tile increments of ``rows``, their summary, and the map of them (None: no row
+    accepted)."""
     tiles, summary = accepted_rows_increments(spec, *rows)
     if summary["accepted"] == 0:
         return tiles, summary, None
     return (
         tiles,
         summary,
-        compute_posterior(
-            spec, region_total(spec, {k: i.evidence for k, i in tiles.items()}), start, stored=False
-        ),
+        compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tiles.items()}), stored=False),
     )
 
 
