@@ -10,7 +10,7 @@ import numpy as np
 from bdf import metrics
 from bdf.grid import HingeGrid, noise_lattice
 from bdf.kernel import DEFAULT_CUTOFF, Kernel
-from bdf.posterior import Mixture, Posterior
+from bdf.posterior import Mixture, Modes, Posterior
 from bdf.sectors import AUTO_DIRECTIONS, Sectors
 from bdf.statistics import SectorEvidence
 from bdf.validation import as_observations, as_positive, as_sample_weight
@@ -84,14 +84,7 @@ def cross_validate(
     counts = AUTO_DIRECTIONS if isinstance(directions, str) else directions
     resolutions = [Sectors(int(S)) for S in np.atleast_1d(counts)]
     noise_prior = as_positive(noise_prior, "noise_prior")
-    rng = np.random.default_rng(seed)
-    if groups is None:
-        fold = rng.permutation(len(X)) % n_splits
-    else:
-        labels, inverse = np.unique(np.asarray(groups), return_inverse=True)
-        if len(labels) < n_splits:
-            raise ValueError(f"{len(labels)} groups cannot fill {n_splits} folds")
-        fold = (rng.permutation(len(labels)) % n_splits)[inverse]
+    fold = folds(len(X), n_splits, groups, seed)
 
     table = []
     for (spacing, gamma), sectors in itertools.product(candidates, resolutions):
@@ -121,15 +114,10 @@ def cross_validate(
                 post = Posterior(grid, kernel, evidence.classes[0], *rest)
             else:
                 post = Mixture(grid, kernel, evidence, *rest, sectors)
-            modes = post.predict_modes(X[test])
-            mean, _ = modes.answer(sectors)
-            train = V[~test]
-            rmses.append(metrics.rmse(V[test], mean))
-            heading = np.degrees(np.arctan2(V[test, 0], V[test, 1]))
-            conditional.append(metrics.rmse(V[test], modes.answer(sectors, heading)[0]))
-            mslls.append(
-                metrics.mixture_msll(V[test], modes.share, modes.mean, modes.std, train.mean(0), train.std(0))
-            )
+            scores = held_out_scores(post.predict_modes(X[test]), sectors, V[test], V[~test])
+            rmses.append(scores["rmse"])
+            conditional.append(scores["cond_rmse"])
+            mslls.append(scores["mixture_msll"])
         row = {
             "spacing": np.broadcast_to(spacing, (3,)).tolist(),
             "gamma": list(kernel.gamma),
@@ -144,3 +132,31 @@ def cross_validate(
         table.append(row)
     best = min(table, key=lambda r: r[score])
     return best, table
+
+
+def folds(n: int, n_splits: int, groups=None, seed: int = 0) -> np.ndarray:
+    """The fold (0 to ``n_splits`` - 1) of each of ``n`` rows: rows at random, or whole
+    ``groups`` (n,) at random (``ValueError`` if there are fewer groups than folds)."""
+    rng = np.random.default_rng(seed)
+    if groups is None:
+        return rng.permutation(n) % n_splits
+    labels, inverse = np.unique(np.asarray(groups), return_inverse=True)
+    if len(labels) < n_splits:
+        raise ValueError(f"{len(labels)} groups cannot fill {n_splits} folds")
+    return (rng.permutation(len(labels)) % n_splits)[inverse]
+
+
+def held_out_scores(modes: Modes, sectors: Sectors, V: np.ndarray, V_train: np.ndarray) -> dict:
+    """How a map's :class:`~bdf.posterior.Modes` at held-out rows predict their velocities
+    ``V``: RMSE and MSLL of the mixture's moments, the mixture's MSLL
+    (:func:`bdf.metrics.mixture_msll`), and the RMSE of the mode of each row's own heading;
+    the MSLLs against the training rows' ``V_train`` mean and std."""
+    mean, std = modes.answer(sectors)
+    mu, sd = V_train.mean(0), V_train.std(0)
+    heading = np.degrees(np.arctan2(V[:, 0], V[:, 1]))
+    return {
+        "rmse": float(metrics.rmse(V, mean)),
+        "msll": float(metrics.msll(V, mean, std, mu, sd)),
+        "mixture_msll": float(metrics.mixture_msll(V, modes.share, modes.mean, modes.std, mu, sd)),
+        "cond_rmse": float(metrics.rmse(V, modes.answer(sectors, heading)[0])),
+    }

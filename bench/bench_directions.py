@@ -61,9 +61,10 @@ def conditional(sectors, test, modes, mu, sd) -> dict:
     return out
 
 
-def one(directions: int | str) -> dict:
+def one(directions: int | str, spacing: list[float] | None = None) -> dict:
     """The figures of the map with ``directions`` sectors (run in its own process); "auto":
-    the sectors the region's fit chooses (:mod:`bdf.region.resolution`), with its scores."""
+    the sectors the region's fit chooses (:mod:`bdf.region.resolution`), with its scores.
+    ``spacing`` (m, per axis): that lattice, gamma 1 / spacing^2, instead of the demo's."""
     import resource
 
     from bench_tracks import library_map, plausibility, split
@@ -75,7 +76,12 @@ def one(directions: int | str) -> dict:
     from clients import samples
 
     train, test, lower, upper = split()
-    spec = samples.paris_demo_region(lower, upper, directions=directions)
+    if spacing is None:
+        spec = samples.paris_demo_region(lower, upper, directions=directions)
+    else:
+        spec = samples.paris_region(
+            lower, upper, spacing, directions=directions, cutoff=samples.PARIS_REGION_CUTOFF
+        )
     t0 = time.perf_counter()
     chose = {}
     if directions == "auto":
@@ -123,28 +129,42 @@ def main():
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--directions", default="8,16,24,32")
+    parser.add_argument("--spacing", help="a lattice of this spacing (m, x,y,z; gamma 1 / spacing^2)")
     parser.add_argument("--one", help=argparse.SUPPRESS)  # a child: one map, JSON out
     parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
     args = parser.parse_args()
+    spacing = None if args.spacing is None else [float(v) for v in args.spacing.split(",")]
     if args.one:
-        print(json.dumps(one(args.one if args.one == "auto" else int(args.one))))
+        print(json.dumps(one(args.one if args.one == "auto" else int(args.one), spacing)))
         return
     from bench_core import publish, rows_table
 
     rows = []
     for directions in args.directions.split(","):
         out = subprocess.run(
-            [sys.executable, __file__, "--one", str(directions)], capture_output=True, text=True, cwd=ROOT
+            [
+                sys.executable,
+                __file__,
+                "--one",
+                str(directions),
+                *(["--spacing", args.spacing] if spacing else []),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
         )
         if out.returncode:
             raise RuntimeError(out.stderr[-3000:])
         rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
         print(rows[-1], flush=True)
-    command = f"python bench/bench_directions.py --directions {args.directions}"
+    command = f"python bench/bench_directions.py --directions {args.directions}" + (
+        f" --spacing {args.spacing}" if spacing else ""
+    )
     lines = [
         f"\n## Heading resolution ({time.strftime('%Y-%m-%d')}, `{command}`)\n",
-        "Paris flight split, raw rows with track and t (the service's weights), the demo's lattice; "
-        "conditional: the answer at each held-out row's own heading; each map in a fresh process.",
+        "Paris flight split, raw rows with track and t (the service's weights), "
+        + (f"a {args.spacing} m lattice; " if spacing else "the demo's lattice; ")
+        + "conditional: the answer at each held-out row's own heading; each map in a fresh process.",
         rows_table(rows),
     ]
     publish(lines, args.publish)

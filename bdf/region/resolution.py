@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from bdf import metrics
+from bdf.crossval import folds, held_out_scores
 from bdf.posterior import Mixture, Posterior
 from bdf.region.evidence import accepted_rows, accepted_rows_increments, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior, decode_posterior, encode_posterior, region_field
@@ -85,8 +85,9 @@ def choose_directions(
                 )
                 train = total - region_total(candidate, {key: inc.evidence for key, inc in part.items()})
                 post = region_field(candidate).set_evidence(train, start=start, settle=False)
-                rmap = RegionMap(candidate, post.posterior_.compact())
-                held_out.append(_scores(rmap, X[test], V[test], V[keep & ~test]))
+                modes = RegionMap(candidate, post.posterior_.compact()).predict_modes(X[test])
+                scored = held_out_scores(modes, candidate.sectors, V[test], V[keep & ~test])
+                held_out.append([scored[name] for name in ("mixture_msll", "msll", "cond_rmse")])
                 _report(progress, (i * (1 + CHOICE_FOLDS) + 2 + k) / steps)
             scores.append((S, np.array(held_out)))
         chosen = _fewest_within_one_se(scores)
@@ -123,31 +124,15 @@ def _fit(spec: RegionSpec, rows: tuple) -> tuple[dict, dict, Posterior | Mixture
 
 
 def _folds(track: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None:
-    """Each row's fold (rows of one track together), or None if the accepted rows lie in
-    fewer tracks than folds."""
-    own = -1 - np.arange(len(keep))  # an untracked row is a group of its own
-    group = own if track is None else np.where(track >= 0, track, own)
-    labels, inverse = np.unique(group[keep], return_inverse=True)
-    if len(labels) < CHOICE_FOLDS:
+    """Each row's fold (the rows of one track together, an untracked row on its own; -1:
+    not accepted), or None if the accepted rows lie in fewer groups than folds."""
+    own = -1 - np.arange(len(keep))
+    group = (own if track is None else np.where(track >= 0, track, own))[keep]
+    if len(np.unique(group)) < CHOICE_FOLDS:
         return None
     fold = np.full(len(keep), -1)
-    fold[keep] = (np.random.default_rng(CHOICE_SEED).permutation(len(labels)) % CHOICE_FOLDS)[inverse]
+    fold[keep] = folds(len(group), CHOICE_FOLDS, group, CHOICE_SEED)
     return fold
-
-
-def _scores(rmap: RegionMap, X: np.ndarray, V: np.ndarray, V_train: np.ndarray) -> tuple[float, float, float]:
-    """Held-out mixture MSLL, MSLL of the answer without a heading, and RMSE of the mode
-    of each row's own heading, at the rows ``(X, V)``."""
-    modes = rmap.predict_modes(X)
-    mean, std, _ = rmap.predict(X, modes=modes)
-    mu, sd = V_train.mean(0), V_train.std(0)
-    heading = np.degrees(np.arctan2(V[:, 0], V[:, 1]))
-    own, _ = modes.answer(rmap.spec.sectors, heading)
-    return (
-        float(metrics.mixture_msll(V, modes.share, modes.mean, modes.std, mu, sd)),
-        float(metrics.msll(V, mean, std, mu, sd)),
-        float(metrics.rmse(V, own)),
-    )
 
 
 def _fewest_within_one_se(scores: list[tuple[int, np.ndarray]]) -> int:

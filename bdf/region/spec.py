@@ -279,8 +279,7 @@ class RegionSpec(BaseModel):
     def map_bytes(self) -> float:
         """The most memory computing its map may take (data over the whole lattice; of
         ``directions: "auto"``, at the most sectors a fit may choose)."""
-        most = Sectors(max(AUTO_DIRECTIONS)) if self.directions == "auto" else self.model_sectors
-        classes = most.classes
+        classes = (Sectors(max(AUTO_DIRECTIONS)) if self.directions == "auto" else self.model_sectors).classes
         return (
             float(self.couplings) * MAP_BYTES_PER_COUPLING
             + float(self.grid.size * classes) * MAP_BYTES_PER_CLASS_HINGE
