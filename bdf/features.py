@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
+from llvmlite import binding as llvm
 
 from bdf._blas import single_threaded
 from bdf.grid import Lattice
@@ -37,10 +38,16 @@ MIN_POINTS_PER_BLOCK = 32
 #: products by blocks (``bench/bench_service.py``'s library rows, the demo's map: at 10,000
 #: points 42.5 against 56.9 ms with 8 sectors, at 100,000 973.7 against 768.3 with 16).
 POINTWISE_MAX_POINTS = 16384
-#: The point-by-point gather sums this many values of a table's rows (a lattice column's z
-#: values and channels) side by side in registers (:func:`_gather_lanes`: four AVX2 or two
-#: AVX-512 vectors)
-LANES = 16
+#: The point-by-point gather sums a chunk of this many values of a table's rows (a lattice
+#: column's z values and channels) side by side in registers (:func:`_gather_lanes`: two or
+#: four AVX-512 vectors); which one a table uses: :func:`lanes_for`
+LANE_WIDTHS = (16, 32)
+#: ... for each of this many points at a time (neighbours), chunk by chunk
+BLOCK_POINTS = 32
+#: A chunk's plane of a point's window (its x-y columns times the chunk's values) is read
+#: once per point of a block: at most this many bytes of it stay in L1 (48 KiB here) with
+#: the rest of the kernel's data (``bench/bench_service.py``'s library rows)
+L1_PLANE_BYTES = 32 * 1024
 #: Points per BLAS call at most: its temporaries stay in cache (``bench/bench_build.py``).
 CHUNK_POINTS = 2048
 #: The same in a splat, whose operands are wider (``bench/bench_kernels.py``).
@@ -359,25 +366,40 @@ def _splat_rows(t, scale, reach, ratio, cutoff, W, width, xc, yz):  # pragma: no
     return xc, yz
 
 
+def lanes_for(lattice: Lattice, k, cutoff: float) -> int:
+    """The chunk width (:data:`LANE_WIDTHS`) of a :class:`LaneTable` on ``lattice`` that is
+    gathered with ``k`` (3,, or per point (n, 3): the widest window counts): the widest whose plane of a point's window fits
+    :data:`L1_PLANE_BYTES` (the hinge lattice at ``gamma = 1 / spacing^2``: 11 x 11 columns,
+    32 values; its midpoint lattice, whose window has twice the columns: 16)."""
+    k = np.asarray(k, float).reshape(-1, 3).min(axis=0)
+    reach = window(k * lattice.step**2, cutoff)[:2]
+    columns = np.prod(np.minimum(2 * np.floor(reach) + 1, lattice.shape[:2]))
+    fits = [w for w in LANE_WIDTHS if columns * w * 8 <= L1_PLANE_BYTES]
+    return max(fits, default=LANE_WIDTHS[0])
+
+
 class LaneTable(NamedTuple):
     """Lattice values (nx, ny, nz, C) as :func:`_gather_lanes` reads them: each row (a
-    lattice column's z values and channels, nz C values) cut in chunks of :data:`LANES`, the
-    last padded with zeros, chunk first: ``values`` (chunks, nx, ny, LANES). A chunk of a
-    window's rows is then contiguous along y; in an (nx, ny, nz C) table each row's chunk
-    lies nz C values from the next, a cache miss per row on tables of many channels."""
+    lattice column's z values and channels, nz C values) cut in chunks of ``lanes`` values
+    (one of :data:`LANE_WIDTHS`), the last padded with zeros, chunk first: ``values``
+    (chunks, nx, ny, lanes). A chunk of a window's rows is then contiguous along y; in an
+    (nx, ny, nz C) table each row's chunk lies nz C values from the next, a cache miss per
+    row on tables of many channels."""
 
     values: np.ndarray
     layers: int
     channels: int
 
     @classmethod
-    def of(cls, T) -> LaneTable:
+    def of(cls, T, lanes: int) -> LaneTable:
+        if lanes not in LANE_WIDTHS:
+            raise ValueError(f"a lane table's chunks hold one of {LANE_WIDTHS} values, not {lanes}")
         T = np.asarray(T, float)
         nx, ny, nz, C = T.shape
-        chunks = -(-nz * C // LANES)
-        rows = np.zeros((nx, ny, chunks * LANES))
+        chunks = -(-nz * C // lanes)
+        rows = np.zeros((nx, ny, chunks * lanes))
         rows[..., : nz * C] = T.reshape(nx, ny, nz * C)
-        return cls(np.ascontiguousarray(rows.reshape(nx, ny, chunks, LANES).transpose(2, 0, 1, 3)), nz, C)
+        return cls(np.ascontiguousarray(rows.reshape(nx, ny, chunks, lanes).transpose(2, 0, 1, 3)), nz, C)
 
     @property
     def shape(self) -> tuple[int, int, int, int]:
@@ -526,84 +548,201 @@ def _sum_z(factors, width, row, first, out):  # pragma: no cover (compiled)
         out[c] = total
 
 
-def _gather_lanes(
-    t, scale, reach, ratio, cutoff, table, layers, channels, out
-):  # pragma: no cover (compiled)
+@numba.njit(inline="always")
+def _chunk_16(flat, at, stride, fx, fy, wx, wy, acc, q):  # pragma: no cover (compiled)
+    """One chunk of 16 values of a window's rows (:func:`_gather_lanes`): summed over ``wy``
+    columns from ``flat[at]`` along y, then over ``wx`` x steps of ``stride``, into
+    ``acc[q:q + 16]``; the sums in scalars that the SLP vectoriser keeps in registers."""
+    b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = b8 = b9 = b10 = b11 = b12 = b13 = b14 = b15 = 0.0
+    for i in range(wx):
+        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = a12 = a13 = a14 = a15 = 0.0
+        col = at + np.uint64(i) * stride
+        for j in range(wy):
+            fj = fy[j]
+            a0 += fj * flat[col + np.uint64(0)]
+            a1 += fj * flat[col + np.uint64(1)]
+            a2 += fj * flat[col + np.uint64(2)]
+            a3 += fj * flat[col + np.uint64(3)]
+            a4 += fj * flat[col + np.uint64(4)]
+            a5 += fj * flat[col + np.uint64(5)]
+            a6 += fj * flat[col + np.uint64(6)]
+            a7 += fj * flat[col + np.uint64(7)]
+            a8 += fj * flat[col + np.uint64(8)]
+            a9 += fj * flat[col + np.uint64(9)]
+            a10 += fj * flat[col + np.uint64(10)]
+            a11 += fj * flat[col + np.uint64(11)]
+            a12 += fj * flat[col + np.uint64(12)]
+            a13 += fj * flat[col + np.uint64(13)]
+            a14 += fj * flat[col + np.uint64(14)]
+            a15 += fj * flat[col + np.uint64(15)]
+            col += np.uint64(16)
+        fi = fx[i]
+        b0 += fi * a0
+        b1 += fi * a1
+        b2 += fi * a2
+        b3 += fi * a3
+        b4 += fi * a4
+        b5 += fi * a5
+        b6 += fi * a6
+        b7 += fi * a7
+        b8 += fi * a8
+        b9 += fi * a9
+        b10 += fi * a10
+        b11 += fi * a11
+        b12 += fi * a12
+        b13 += fi * a13
+        b14 += fi * a14
+        b15 += fi * a15
+    acc[q + 0], acc[q + 1], acc[q + 2], acc[q + 3] = b0, b1, b2, b3
+    acc[q + 4], acc[q + 5], acc[q + 6], acc[q + 7] = b4, b5, b6, b7
+    acc[q + 8], acc[q + 9], acc[q + 10], acc[q + 11] = b8, b9, b10, b11
+    acc[q + 12], acc[q + 13], acc[q + 14], acc[q + 15] = b12, b13, b14, b15
+
+
+@numba.njit(inline="always")
+def _chunk_32(flat, at, stride, fx, fy, wx, wy, acc, q):  # pragma: no cover (compiled)
+    """One chunk of 32 values of a window's rows (:func:`_gather_lanes`): summed over ``wy``
+    columns from ``flat[at]`` along y, then over ``wx`` x steps of ``stride``, into
+    ``acc[q:q + 32]``; the sums in scalars that the SLP vectoriser keeps in registers."""
+    b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = b8 = b9 = b10 = b11 = b12 = b13 = b14 = b15 = 0.0
+    b16 = b17 = b18 = b19 = b20 = b21 = b22 = b23 = b24 = b25 = b26 = b27 = b28 = b29 = b30 = b31 = 0.0
+    for i in range(wx):
+        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = a12 = a13 = a14 = a15 = 0.0
+        a16 = a17 = a18 = a19 = a20 = a21 = a22 = a23 = a24 = a25 = a26 = a27 = a28 = a29 = a30 = a31 = 0.0
+        col = at + np.uint64(i) * stride
+        for j in range(wy):
+            fj = fy[j]
+            a0 += fj * flat[col + np.uint64(0)]
+            a1 += fj * flat[col + np.uint64(1)]
+            a2 += fj * flat[col + np.uint64(2)]
+            a3 += fj * flat[col + np.uint64(3)]
+            a4 += fj * flat[col + np.uint64(4)]
+            a5 += fj * flat[col + np.uint64(5)]
+            a6 += fj * flat[col + np.uint64(6)]
+            a7 += fj * flat[col + np.uint64(7)]
+            a8 += fj * flat[col + np.uint64(8)]
+            a9 += fj * flat[col + np.uint64(9)]
+            a10 += fj * flat[col + np.uint64(10)]
+            a11 += fj * flat[col + np.uint64(11)]
+            a12 += fj * flat[col + np.uint64(12)]
+            a13 += fj * flat[col + np.uint64(13)]
+            a14 += fj * flat[col + np.uint64(14)]
+            a15 += fj * flat[col + np.uint64(15)]
+            a16 += fj * flat[col + np.uint64(16)]
+            a17 += fj * flat[col + np.uint64(17)]
+            a18 += fj * flat[col + np.uint64(18)]
+            a19 += fj * flat[col + np.uint64(19)]
+            a20 += fj * flat[col + np.uint64(20)]
+            a21 += fj * flat[col + np.uint64(21)]
+            a22 += fj * flat[col + np.uint64(22)]
+            a23 += fj * flat[col + np.uint64(23)]
+            a24 += fj * flat[col + np.uint64(24)]
+            a25 += fj * flat[col + np.uint64(25)]
+            a26 += fj * flat[col + np.uint64(26)]
+            a27 += fj * flat[col + np.uint64(27)]
+            a28 += fj * flat[col + np.uint64(28)]
+            a29 += fj * flat[col + np.uint64(29)]
+            a30 += fj * flat[col + np.uint64(30)]
+            a31 += fj * flat[col + np.uint64(31)]
+            col += np.uint64(32)
+        fi = fx[i]
+        b0 += fi * a0
+        b1 += fi * a1
+        b2 += fi * a2
+        b3 += fi * a3
+        b4 += fi * a4
+        b5 += fi * a5
+        b6 += fi * a6
+        b7 += fi * a7
+        b8 += fi * a8
+        b9 += fi * a9
+        b10 += fi * a10
+        b11 += fi * a11
+        b12 += fi * a12
+        b13 += fi * a13
+        b14 += fi * a14
+        b15 += fi * a15
+        b16 += fi * a16
+        b17 += fi * a17
+        b18 += fi * a18
+        b19 += fi * a19
+        b20 += fi * a20
+        b21 += fi * a21
+        b22 += fi * a22
+        b23 += fi * a23
+        b24 += fi * a24
+        b25 += fi * a25
+        b26 += fi * a26
+        b27 += fi * a27
+        b28 += fi * a28
+        b29 += fi * a29
+        b30 += fi * a30
+        b31 += fi * a31
+    acc[q + 0], acc[q + 1], acc[q + 2], acc[q + 3] = b0, b1, b2, b3
+    acc[q + 4], acc[q + 5], acc[q + 6], acc[q + 7] = b4, b5, b6, b7
+    acc[q + 8], acc[q + 9], acc[q + 10], acc[q + 11] = b8, b9, b10, b11
+    acc[q + 12], acc[q + 13], acc[q + 14], acc[q + 15] = b12, b13, b14, b15
+    acc[q + 16], acc[q + 17], acc[q + 18], acc[q + 19] = b16, b17, b18, b19
+    acc[q + 20], acc[q + 21], acc[q + 22], acc[q + 23] = b20, b21, b22, b23
+    acc[q + 24], acc[q + 25], acc[q + 26], acc[q + 27] = b24, b25, b26, b27
+    acc[q + 28], acc[q + 29], acc[q + 30], acc[q + 31] = b28, b29, b30, b31
+
+
+def _gather_lanes(t, scale, reach, ratio, cutoff, table, layers, channels, out):  # pragma: no cover (compiled)
     """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz T[i, j, k, c]`` over
     each point's own window (:func:`_window`). ``t`` (n, 3) positions in lattice steps,
     ``scale`` (1 or n, 3) k in steps^-2 (``reach``: the window's half-width for it,
-    ``ratio``: ``exp(-2 scale)``), ``table`` a :class:`LaneTable`'s values. Each chunk of
-    :data:`LANES` values of the window's rows is summed over y, then x, in scalar
-    accumulators that LLVM's SLP vectoriser keeps in vector registers (no store per row;
-    unsigned flat indices, so no negative-index wraparound between the loads); a chunk's
-    rows lie one after the other along y. Then z (:func:`_sum_z`)."""
-    chunks, nx, ny, _ = table.shape
+    ``ratio``: ``exp(-2 scale)``), ``table`` a :class:`LaneTable`'s values. Points go by
+    blocks of :data:`BLOCK_POINTS` (neighbours, in lattice-cell order): each chunk of the
+    window's rows is summed for every point of the block before the next chunk
+    (:func:`_chunk_16`, :func:`_chunk_32`), so the chunk's plane of the window is read from
+    L1, not L2 (:func:`lanes_for`). Then z (:func:`_sum_z`). Flat indices are unsigned:
+    no negative-index wraparound between the loads."""
+    chunks, nx, ny, lanes = table.shape
     flat = table.reshape(-1)
     shape = (nx, ny, layers)
-    factors = np.zeros((3, max(shape)))
-    lo, width = np.empty(3, np.int64), np.empty(3, np.int64)
-    acc = np.zeros(chunks * LANES)  # by position in the row
-    for p in range(t.shape[0]):
-        row = min(p, scale.shape[0] - 1)
-        if not _window(t[p], scale[row], reach[row], ratio[row], cutoff, shape, lo, width, factors):
-            out[p] = 0.0
-            continue
-        first = lo[2] * channels
-        for chunk in range(first // LANES, (first + width[2] * channels + LANES - 1) // LANES):
-            q = chunk * LANES
-            b0 = b1 = b2 = b3 = b4 = b5 = b6 = b7 = b8 = b9 = b10 = b11 = b12 = b13 = b14 = b15 = 0.0
-            for i in range(width[0]):
-                fi = factors[0, i]
-                a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = a8 = a9 = a10 = a11 = a12 = a13 = a14 = a15 = 0.0
-                at = np.uint64(((chunk * nx + lo[0] + i) * ny + lo[1]) * LANES)
-                for j in range(width[1]):
-                    fj = factors[1, j]
-                    a0 += fj * flat[at]
-                    a1 += fj * flat[at + np.uint64(1)]
-                    a2 += fj * flat[at + np.uint64(2)]
-                    a3 += fj * flat[at + np.uint64(3)]
-                    a4 += fj * flat[at + np.uint64(4)]
-                    a5 += fj * flat[at + np.uint64(5)]
-                    a6 += fj * flat[at + np.uint64(6)]
-                    a7 += fj * flat[at + np.uint64(7)]
-                    a8 += fj * flat[at + np.uint64(8)]
-                    a9 += fj * flat[at + np.uint64(9)]
-                    a10 += fj * flat[at + np.uint64(10)]
-                    a11 += fj * flat[at + np.uint64(11)]
-                    a12 += fj * flat[at + np.uint64(12)]
-                    a13 += fj * flat[at + np.uint64(13)]
-                    a14 += fj * flat[at + np.uint64(14)]
-                    a15 += fj * flat[at + np.uint64(15)]
-                    at += np.uint64(LANES)
-                b0 += fi * a0
-                b1 += fi * a1
-                b2 += fi * a2
-                b3 += fi * a3
-                b4 += fi * a4
-                b5 += fi * a5
-                b6 += fi * a6
-                b7 += fi * a7
-                b8 += fi * a8
-                b9 += fi * a9
-                b10 += fi * a10
-                b11 += fi * a11
-                b12 += fi * a12
-                b13 += fi * a13
-                b14 += fi * a14
-                b15 += fi * a15
-            acc[q], acc[q + 1], acc[q + 2], acc[q + 3] = b0, b1, b2, b3
-            acc[q + 4], acc[q + 5], acc[q + 6], acc[q + 7] = b4, b5, b6, b7
-            acc[q + 8], acc[q + 9], acc[q + 10], acc[q + 11] = b8, b9, b10, b11
-            acc[q + 12], acc[q + 13], acc[q + 14], acc[q + 15] = b12, b13, b14, b15
-        _sum_z(factors, width, acc, first, out[p])
+    stride = np.uint64(ny * lanes)  # one x step in ``flat``
+    factors = np.zeros((BLOCK_POINTS, 3, max(shape)))
+    lo, width = np.empty((BLOCK_POINTS, 3), np.int64), np.empty((BLOCK_POINTS, 3), np.int64)
+    span = np.empty((BLOCK_POINTS, 2), np.int64)  # the chunks a point's window rows cover
+    acc = np.zeros((BLOCK_POINTS, chunks * lanes))  # by position in the row
+    for start in range(0, t.shape[0], BLOCK_POINTS):
+        m = min(BLOCK_POINTS, t.shape[0] - start)
+        first, end = chunks, 0
+        for b in range(m):
+            p = start + b
+            row = min(p, scale.shape[0] - 1)
+            span[b, 0] = span[b, 1] = 0
+            if _window(t[p], scale[row], reach[row], ratio[row], cutoff, shape, lo[b], width[b], factors[b]):
+                span[b, 0] = lo[b, 2] * channels // lanes
+                span[b, 1] = ((lo[b, 2] + width[b, 2]) * channels + lanes - 1) // lanes
+                first, end = min(first, span[b, 0]), max(end, span[b, 1])
+        for chunk in range(first, end):
+            for b in range(m):
+                if span[b, 0] <= chunk < span[b, 1]:
+                    at = np.uint64(((chunk * nx + lo[b, 0]) * ny + lo[b, 1]) * lanes)
+                    fx, fy, wx, wy = factors[b, 0], factors[b, 1], width[b, 0], width[b, 1]
+                    if lanes == 32:
+                        _chunk_32(flat, at, stride, fx, fy, wx, wy, acc[b], chunk * lanes)
+                    else:
+                        _chunk_16(flat, at, stride, fx, fy, wx, wy, acc[b], chunk * lanes)
+        for b in range(m):
+            if span[b, 1] > span[b, 0]:
+                _sum_z(factors[b], width[b], acc[b], lo[b, 2] * channels, out[start + b])
+            else:
+                out[start + b] = 0.0
     return out
 
 
 @contextlib.contextmanager
 def _slp_vectorised():
     """Compile with LLVM's SLP vectoriser, which numba leaves off by default (numba#8705:
-    miscompilations elsewhere); what is compiled with it is tested equal to the BLAS path
-    and to the dense sums (tests/bdf/test_features.py)."""
+    miscompilations elsewhere), and let it build vectors of 512 bits (LLVM builds 256 on
+    AVX-512 machines unless told; on others the backend splits them): what is compiled with
+    it is tested equal to the BLAS path and to the dense sums (tests/bdf/test_features.py).
+    The LLVM option is process-wide, but only this vectoriser reads it, and numba runs it
+    nowhere else."""
+    llvm.set_option("bdf", "-slp-max-reg-size=512")
     before, numba.config.SLP_VECTORIZE = numba.config.SLP_VECTORIZE, 1
     try:
         yield
@@ -617,6 +756,7 @@ with _slp_vectorised():  # compiled (or loaded from numba's cache) now, in one t
         "f8[:, ::1])",
         cache=True,
         nogil=True,
+        fastmath={"contract"},  # fused multiply-adds: one rounding per term, not two
     )(_gather_lanes)
 
 
@@ -639,7 +779,7 @@ def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.
     (tests/bdf/test_features.py). ``T``: lattice values (nx, ny, nz, C), or the
     :class:`LaneTable` of them that a posterior keeps. Points are visited by lattice cell,
     so neighbours find most of their window in cache."""
-    table = T if isinstance(T, LaneTable) else LaneTable.of(T)
+    table = T if isinstance(T, LaneTable) else LaneTable.of(T, lanes_for(lattice, k, cutoff))
     X = np.asarray(X, float)
     out = np.empty((len(X), table.channels))
     if len(X) == 0:

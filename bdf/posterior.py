@@ -162,7 +162,7 @@ class Posterior:
 
     def mean(self, X: np.ndarray) -> np.ndarray:
         if self._mean_table is None:
-            self._mean_table = LaneTable.of(self.weights.reshape(*self.grid.shape, 3))
+            self._mean_table = LaneTable.of(self.weights.reshape(*self.grid.shape, 3), self._lanes())
         return features.gather(self.grid, X, self._mean_table, self.gamma, cutoff=self.cutoff)
 
     def variance_table(self) -> tuple[LaneTable, list[int]]:
@@ -173,8 +173,14 @@ class Posterior:
             densities, columns = self._variance_density()
             if self._density is not None:
                 densities = np.concatenate([densities, self._density[..., None]], axis=-1)
-            self._variance = LaneTable.of(densities), columns
+            self._variance = LaneTable.of(densities, self._lanes(midpoints=True)), columns
         return self._variance
+
+    def _lanes(self, midpoints=False) -> int:
+        """The chunk width of a query table on the hinge lattice, or on its midpoints."""
+        if midpoints:
+            return features.lanes_for(self.grid.midpoints(), 2.0 * self.gamma, self.cutoff)
+        return features.lanes_for(self.grid, self.gamma, self.cutoff)
 
     def _midpoints(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One gather of the midpoint lattice at ``X``: ``phi(x)^T Sigma_c phi(x)`` per
@@ -533,12 +539,14 @@ class Mixture:
                 columns.append(offset + np.asarray(c))
                 offset += d.channels
             total, total_columns = self.total.variance_table()
+            lanes, midpoint_lanes = self.total._lanes(), self.total._lanes(midpoints=True)
             self._tables = _MixtureTables(
-                LaneTable.of(weights.reshape(*self.grid.shape, -1)),
+                LaneTable.of(weights.reshape(*self.grid.shape, -1), lanes),
                 LaneTable.of(
-                    np.concatenate([*densities, self._densities.sum(axis=-1, keepdims=True)], axis=-1)
+                    np.concatenate([*densities, self._densities.sum(axis=-1, keepdims=True)], axis=-1),
+                    midpoint_lanes,
                 ),
-                LaneTable.of(np.concatenate([total.array(), self._densities], axis=-1)),
+                LaneTable.of(np.concatenate([total.array(), self._densities], axis=-1), midpoint_lanes),
                 np.array(columns),
                 np.asarray(total_columns),
             )

@@ -100,9 +100,10 @@ POSTERIOR_NAMES = frozenset(
 
 #: The model a stored posterior was computed by: raised whenever a change of the model
 #: changes the map the same evidence gives, or of what a stored map holds (2: a mode's local
-#: prior mean; 3: its query tables as :class:`bdf.features.LaneTable`, 2026-11-28), so that
-#: a map stored by an older code is computed again, not served (:func:`decode_posterior`)
-MODEL_REVISION = 3
+#: prior mean; 3: its query tables as :class:`bdf.features.LaneTable`, 2026-11-28; 4: their
+#: chunks as wide as :func:`bdf.features.lanes_for` says, 2026-11-28), so that a map stored
+#: by an older code is computed again, not served (:func:`decode_posterior`)
+MODEL_REVISION = 4
 
 
 def encode_posterior(post: Posterior | Mixture) -> bytes:

@@ -10,9 +10,13 @@ import pytest
 from bdf import features
 from bdf.grid import Lattice
 
-#: The compiled kernels' source with bounds checks: an index that leaves its arrays raises.
+#: The compiled kernels' source with bounds checks (and their other options: the same
+#: rounding): an index that leaves its arrays raises.
 BOUNDS_CHECKED = {
-    name: numba.njit(boundscheck=True)(getattr(features, name).py_func)
+    name: numba.njit(
+        **{k: v for k, v in getattr(features, name).targetoptions.items() if k not in ("nopython", "boundscheck")},
+        boundscheck=True,
+    )(getattr(features, name).py_func)
     for name in (
         "_gather_lanes",
         "_sort_blocks",
@@ -44,7 +48,9 @@ def dense_gather(lattice, X, T, k, cutoff):
 @pytest.mark.parametrize("per_point_k", [False, True])
 @pytest.mark.parametrize("channels", [1, 3, 10])
 @pytest.mark.parametrize("layers", [9, 2])  # 2: rows (z and channels) shorter than the kernel's chunk
-def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, per_point_k, channels, layers):
+@pytest.mark.parametrize("lanes", features.LANE_WIDTHS)
+def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, per_point_k, channels, layers, lanes):
+    """300 points: blocks of :data:`features.BLOCK_POINTS` and a part of one."""
     rng = np.random.default_rng(channels)
     lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (23, 17, layers))
     T = rng.standard_normal((*lattice.shape, channels))
@@ -53,13 +59,14 @@ def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, pe
     X[:5] = lattice.points()[[0, 7, 100, 700, -1]]  # some exactly on lattice points
     X[5:8] = [[-1e4, 100, 50], [200, 1e5, 50], [200, 100, -1e3]]  # beyond every lattice point's reach
     k = (1.0 / lattice.step**2) * (rng.uniform(0.5, 2.0, (len(X), 3)) if per_point_k else 1.0)
-    pointwise = features.gather_pointwise(lattice, X, T, k, cutoff=cutoff)
+    table = features.LaneTable.of(T, lanes)
+    pointwise = features.gather_pointwise(lattice, X, table, k, cutoff=cutoff)
     blocked = features.gather_blocked(lattice, X, T, k, cutoff=cutoff)
     scale = np.abs(blocked).max()
     assert np.abs(pointwise - blocked).max() <= 1e-12 * scale
     assert np.abs(pointwise - dense_gather(lattice, X, T, k, cutoff)).max() <= 1e-12 * scale
     with mock.patch.multiple(features, **BOUNDS_CHECKED):
-        np.testing.assert_array_equal(features.gather_pointwise(lattice, X, T, k, cutoff=cutoff), pointwise)
+        np.testing.assert_array_equal(features.gather_pointwise(lattice, X, table, k, cutoff=cutoff), pointwise)
 
 
 def dense_splat(lattice, X, W, k, cutoff):
@@ -106,15 +113,17 @@ def test_gather_takes_the_pointwise_path_for_queries_and_blocks_above():
     assert features.gather(lattice, np.empty((0, 3)), T, k).shape == (0, 10)
 
 
+@pytest.mark.parametrize("lanes", features.LANE_WIDTHS)
 @pytest.mark.parametrize(("layers", "channels"), [(1, 1), (3, 5), (6, 3), (9, 10)])
-def test_a_lane_table_holds_the_lattice_values_and_gathers_as_they_do(layers, channels):
-    """Rows of 1, 15, 18 (a chunk and two values) and 90 values: the padding of the last
-    chunk never reaches an answer, and the table gives back the values it was made of."""
+def test_a_lane_table_holds_the_lattice_values_and_gathers_as_they_do(layers, channels, lanes):
+    """Rows of 1, 15, 18 and 90 values (one chunk and more, a last chunk of a few values):
+    the padding of the last chunk never reaches an answer, and the table gives back the
+    values it was made of."""
     rng = np.random.default_rng(layers)
     lattice = Lattice(np.zeros(3), np.ones(3), (7, 5, layers))
     T = rng.standard_normal((*lattice.shape, channels))
-    table = features.LaneTable.of(T)
-    assert table.shape == T.shape and table.values.shape[-1] == features.LANES
+    table = features.LaneTable.of(T, lanes)
+    assert table.shape == T.shape and table.values.shape[-1] == lanes
     np.testing.assert_array_equal(table.array(), T)
     X = rng.uniform(-2, 8, (200, 3))
     assert (
@@ -137,5 +146,20 @@ def test_grid_gather_equals_the_dense_sum(channels):
     mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     want = dense_gather(lattice, mesh, T, k, 1e-6).reshape(got.shape)
     assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
-    lanes = features.gather_grid(lattice, axes, features.LaneTable.of(T), k, cutoff=1e-6)
-    assert np.abs(lanes - want).max() <= 1e-12 * np.abs(want).max()
+    for lanes in features.LANE_WIDTHS:
+        got = features.gather_grid(lattice, axes, features.LaneTable.of(T, lanes), k, cutoff=1e-6)
+        assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+
+
+def test_lane_tables_are_as_wide_as_a_window_plane_in_l1_allows():
+    """32 values on the hinge lattice at ``gamma = 1 / spacing^2`` (11 x 11 columns of a
+    window, 31 KB), 16 on its midpoint lattice (15 x 15: 58 KB at 32), 16 for the widest
+    window of per-point scales; a table of another width is refused."""
+    lattice = Lattice(np.zeros(3), np.full(3, 100.0), (41, 41, 8))
+    gamma = 1.0 / lattice.step**2
+    assert features.lanes_for(lattice, gamma, 1e-12) == 32
+    midpoints = Lattice(lattice.origin, lattice.step / 2.0, (81, 81, 15))
+    assert features.lanes_for(midpoints, 2.0 * gamma, 1e-12) == 16
+    assert features.lanes_for(lattice, np.stack([gamma, gamma / 4]), 1e-12) == 16
+    with pytest.raises(ValueError, match="16, 32"):
+        features.LaneTable.of(np.zeros((2, 2, 2, 1)), 8)
