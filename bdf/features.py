@@ -368,9 +368,10 @@ def _splat_rows(t, scale, reach, ratio, cutoff, W, width, xc, yz):  # pragma: no
 
 def lanes_for(lattice: Lattice, k, cutoff: float) -> int:
     """The chunk width (:data:`LANE_WIDTHS`) of a :class:`LaneTable` on ``lattice`` that is
-    gathered with ``k`` (3,, or per point (n, 3): the widest window counts): the widest whose plane of a point's window fits
-    :data:`L1_PLANE_BYTES` (the hinge lattice at ``gamma = 1 / spacing^2``: 11 x 11 columns,
-    32 values; its midpoint lattice, whose window has twice the columns: 16)."""
+    gathered with ``k`` (3,; or per point, (n, 3): the widest window counts): the widest
+    whose plane of a point's window fits :data:`L1_PLANE_BYTES` (the hinge lattice at
+    ``gamma = 1 / spacing^2``: 11 x 11 columns, 32 values; its midpoint lattice, whose
+    window has twice the columns: 16)."""
     k = np.asarray(k, float).reshape(-1, 3).min(axis=0)
     reach = window(k * lattice.step**2, cutoff)[:2]
     columns = np.prod(np.minimum(2 * np.floor(reach) + 1, lattice.shape[:2]))
@@ -688,7 +689,9 @@ def _chunk_32(flat, at, stride, fx, fy, wx, wy, acc, q):  # pragma: no cover (co
     acc[q + 28], acc[q + 29], acc[q + 30], acc[q + 31] = b28, b29, b30, b31
 
 
-def _gather_lanes(t, scale, reach, ratio, cutoff, table, layers, channels, out):  # pragma: no cover (compiled)
+def _gather_lanes(
+    t, scale, reach, ratio, cutoff, table, layers, channels, out
+):  # pragma: no cover (compiled)
     """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz T[i, j, k, c]`` over
     each point's own window (:func:`_window`). ``t`` (n, 3) positions in lattice steps,
     ``scale`` (1 or n, 3) k in steps^-2 (``reach``: the window's half-width for it,

@@ -10,13 +10,15 @@ import pytest
 from bdf import features
 from bdf.grid import Lattice
 
+
+def _options(kernel) -> dict:
+    return {k: v for k, v in kernel.targetoptions.items() if k not in ("nopython", "boundscheck")}
+
+
 #: The compiled kernels' source with bounds checks (and their other options: the same
 #: rounding): an index that leaves its arrays raises.
 BOUNDS_CHECKED = {
-    name: numba.njit(
-        **{k: v for k, v in getattr(features, name).targetoptions.items() if k not in ("nopython", "boundscheck")},
-        boundscheck=True,
-    )(getattr(features, name).py_func)
+    name: numba.njit(**_options(getattr(features, name)), boundscheck=True)(getattr(features, name).py_func)
     for name in (
         "_gather_lanes",
         "_sort_blocks",
@@ -49,7 +51,9 @@ def dense_gather(lattice, X, T, k, cutoff):
 @pytest.mark.parametrize("channels", [1, 3, 10])
 @pytest.mark.parametrize("layers", [9, 2])  # 2: rows (z and channels) shorter than the kernel's chunk
 @pytest.mark.parametrize("lanes", features.LANE_WIDTHS)
-def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, per_point_k, channels, layers, lanes):
+def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(
+    cutoff, per_point_k, channels, layers, lanes
+):
     """300 points: blocks of :data:`features.BLOCK_POINTS` and a part of one."""
     rng = np.random.default_rng(channels)
     lattice = Lattice(np.array([-100.0, 50.0, 0.0]), np.array([40.0, 30.0, 25.0]), (23, 17, layers))
@@ -66,7 +70,8 @@ def test_pointwise_gather_equals_the_blocked_gather_and_the_dense_sum(cutoff, pe
     assert np.abs(pointwise - blocked).max() <= 1e-12 * scale
     assert np.abs(pointwise - dense_gather(lattice, X, T, k, cutoff)).max() <= 1e-12 * scale
     with mock.patch.multiple(features, **BOUNDS_CHECKED):
-        np.testing.assert_array_equal(features.gather_pointwise(lattice, X, table, k, cutoff=cutoff), pointwise)
+        checked = features.gather_pointwise(lattice, X, table, k, cutoff=cutoff)
+    np.testing.assert_array_equal(checked, pointwise)
 
 
 def dense_splat(lattice, X, W, k, cutoff):
