@@ -308,6 +308,13 @@ def _normalised_grid(grid: HingeGrid, gamma, at: np.ndarray, axes) -> np.ndarray
 SHARE_FLOOR = 0.01
 #: erf(z) is exactly 1 in float64 from here on: no need to evaluate it there.
 ERF_ONE = 6.0
+#: A mode's variance gains this fraction of its class's velocity variance, times the share
+#: of its epistemic variance that is the prior's (:class:`Mixture`): chosen by the
+#: flight-grouped CV of the demo's training flights, where 0 / 0.25 / 0.5 / 1 give a mixture
+#: MSLL of -1.143 / -1.268 / -1.290 / -1.276 at 16 sectors (-1.143 / -1.236 / -1.254 /
+#: -1.239 at 8) and shrink its standard error from 0.075 to 0.014
+#: (``bench/bench_directions.py --directions auto``)
+CLASS_SPREAD_SHARE = 0.5
 
 
 def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
@@ -365,6 +372,14 @@ def _local_prior(evidence: Evidence, grid: HingeGrid, gamma) -> np.ndarray:
     return (local / features_sum).reshape(-1, 3)
 
 
+def _velocity_variance(evidence: Evidence) -> np.ndarray:
+    """(3,): the variance of a class's velocities over the region (zero without data)."""
+    if evidence.count <= 0:
+        return np.zeros(3)
+    mean = evidence.v_sum / evidence.count
+    return np.maximum(evidence.v_sq / evidence.count - mean * mean, 0.0)
+
+
 def _per_row(hyper, rows: int) -> list:
     """A hyperparameter for each of ``rows`` posteriors: "auto" for all, or the row of a
     (3,) value broadcast, or of a (rows, 3) one."""
@@ -397,7 +412,15 @@ class Mixture:
 
     Each mode's prior mean is its class's mean velocity near each hinge
     (:func:`_local_prior`), as the shares' is the overall share: away from a class's data
-    its mode reverts to how that class flies there, not to standing still.
+    its mode reverts to how that class flies there, not to standing still. How far the
+    class's flights may lie from that mean there is not the prior's amplitude, which the
+    evidence fits where the class flies (at 16 sectors on Paris, a std of 2-3 m/s about the
+    local mean): a flight unlike the class's others would be predicted with that confidence.
+    So a mode's variance gains :data:`CLASS_SPREAD_SHARE` of its class's velocity variance
+    (over the region, per component) times ``r``, the share of the mode's epistemic variance
+    that is the prior's (``phi^T Sigma phi / beta`` over ``phi^T phi / alpha``, the latter
+    taken inside the lattice; at most 1): nothing where the class's data pin the mode down,
+    the class's spread where they do not.
 
     Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
     shares use) and each mode at its own evidence maximum: traffic classes differ in how
@@ -464,6 +487,11 @@ class Mixture:
         self.modes = [of_class[c] for c in range(C)]
         # the classes' data densities side by side, gathered with the variance densities
         self._densities = np.stack([e.density for e in evidence.classes], axis=-1)
+        # a mode's widening (see the class doc): r = its epistemic variance x ``_reliance``
+        # (at most 1), times ``_spread``
+        features_sq = float(np.prod(np.sqrt(np.pi / (2.0 * self.gamma)) / grid.step))  # phi^T phi inside
+        self._reliance = np.stack([m.alpha for m in self.modes]) / features_sq
+        self._spread = CLASS_SPREAD_SHARE * np.stack([_velocity_variance(e) for e in evidence.classes])
         self.fitted = self.total.fitted
         self.speed_bound = None  # as the Posterior's
         self.plausibility: dict | None = None
@@ -523,6 +551,11 @@ class Mixture:
         raw = np.maximum(self.prior_share + weights_at, SHARE_FLOOR * self.prior_share)
         share = raw / raw.sum(axis=1, keepdims=True)
         return share, np.sqrt(np.maximum(base_variance, 0.0) / self.share_beta)
+
+    def _widened(self, c: int, epistemic: np.ndarray) -> np.ndarray:
+        """Mode ``c``'s epistemic variance (..., 3) with its class's spread where the prior
+        holds it (the class doc)."""
+        return epistemic + np.minimum(epistemic * self._reliance[c], 1.0) * self._spread[c]
 
     def _gather_tables(self):
         """Every mode's weights and the share weights side by side on the hinge lattice; on
@@ -598,6 +631,8 @@ class Mixture:
             SHARE_FLOOR * self.prior_share,
             columns,
             inverse_beta,
+            self._reliance,
+            self._spread,
             noise,
             mean,
             variance,
@@ -611,7 +646,7 @@ class Mixture:
         mean = at[:, : 3 * C].reshape(len(X), C, 3)
         std = np.empty_like(mean)
         for c, mode in enumerate(self.modes):
-            v = np.maximum(var[:, tables.columns[c]] / mode.beta, 0.0)
+            v = self._widened(c, np.maximum(var[:, tables.columns[c]] / mode.beta, 0.0))
             if include_noise:
                 v = v + mode.noise_variance(X, mean[:, c])
             std[:, c] = np.sqrt(v)
@@ -658,8 +693,9 @@ class Mixture:
         std = var[..., tables.columns]  # (nx, ny, nz, C, 3), then in place
         std /= np.stack([m.beta for m in self.modes])
         np.maximum(std, 0.0, out=std)
-        if include_noise:
-            for c, mode in enumerate(self.modes):
+        for c, mode in enumerate(self.modes):
+            std[..., c, :] = self._widened(c, std[..., c, :])
+            if include_noise:
                 std[..., c, :] += mode.noise_variance_grid(axes, mean[..., c, :])
         np.sqrt(std, out=std)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
@@ -687,13 +723,16 @@ class Mixture:
 
 
 @numba.njit(cache=True, nogil=True)
-def _mixture_moments(at, var, prior, floor, columns, inverse_beta, noise, mean, variance):  # pragma: no cover
+def _mixture_moments(
+    at, var, prior, floor, columns, inverse_beta, reliance, spread, noise, mean, variance
+):  # pragma: no cover
     """:func:`bdf.sectors.mixture_moments` of the modes :meth:`Mixture.predict_modes`
     makes, point by point from the gathered tables (no (n, C, 3) temporaries: grids are
     large): the shares (``prior`` plus share weights ``at[:, 3C:]``, at least ``floor``,
     renormalised), each mode's mean ``at[:, 3c:3c+3]`` and variance (its density column
-    over beta, at least 0, plus ``noise[c, 0 or p]``), then the mixture's mean and variance
-    into ``mean`` and ``variance`` (n, 3)."""
+    over beta, at least 0, widened by ``reliance`` and ``spread`` as
+    :meth:`Mixture._widened`, plus ``noise[c, 0 or p]``), then the mixture's mean and
+    variance into ``mean`` and ``variance`` (n, 3)."""
     C = len(prior)
     share = np.empty(C)
     for p in range(at.shape[0]):
@@ -708,7 +747,8 @@ def _mixture_moments(at, var, prior, floor, columns, inverse_beta, noise, mean, 
             first, second = 0.0, 0.0
             for c in range(C):
                 mu = at[p, 3 * c + d]
-                v = max(var[p, columns[c, d]] * inverse_beta[c, d], 0.0) + noise[c, row, d]
+                v = max(var[p, columns[c, d]] * inverse_beta[c, d], 0.0)
+                v += min(v * reliance[c, d], 1.0) * spread[c, d] + noise[c, row, d]
                 first += share[c] * mu
                 second += share[c] * (v + mu * mu)
             mean[p, d] = first

@@ -101,9 +101,11 @@ POSTERIOR_NAMES = frozenset(
 #: The model a stored posterior was computed by: raised whenever a change of the model
 #: changes the map the same evidence gives, or of what a stored map holds (2: a mode's local
 #: prior mean; 3: its query tables as :class:`bdf.features.LaneTable`, 2026-11-28; 4: their
-#: chunks as wide as :func:`bdf.features.lanes_for` says, 2026-11-28), so that a map stored
-#: by an older code is computed again, not served (:func:`decode_posterior`)
-MODEL_REVISION = 4
+#: chunks as wide as :func:`bdf.features.lanes_for` says; 5: a mode's variance widened by
+#: its class's spread where its prior holds it, :data:`bdf.posterior.CLASS_SPREAD_SHARE`;
+#: both 2026-11-28), so that a map stored by an older code is computed again, not served
+#: (:func:`decode_posterior`)
+MODEL_REVISION = 5
 
 
 def encode_posterior(post: Posterior | Mixture) -> bytes:
