@@ -308,12 +308,13 @@ def _normalised_grid(grid: HingeGrid, gamma, at: np.ndarray, axes) -> np.ndarray
 SHARE_FLOOR = 0.01
 #: erf(z) is exactly 1 in float64 from here on: no need to evaluate it there.
 ERF_ONE = 6.0
-#: A mode's variance gains this fraction of its class's velocity variance, times the share
-#: of its epistemic variance that is the prior's (:class:`Mixture`): chosen by the
-#: flight-grouped CV of the demo's training flights, where 0 / 0.25 / 0.5 / 1 give a mixture
-#: MSLL of -1.143 / -1.268 / -1.290 / -1.276 at 16 sectors (-1.143 / -1.236 / -1.254 /
-#: -1.239 at 8) and shrink its standard error from 0.075 to 0.014
-#: (``bench/bench_directions.py --directions auto``)
+#: A mode's variance gains this fraction of its class's velocity variance, times the square
+#: of the share of its epistemic variance that is the prior's (:class:`Mixture`). Chosen on
+#: the folds of the demo's choice (3, by flight; 16 sectors): with the share itself, 0.25 /
+#: 0.5 / 1 give a held-out mixture MSLL of -1.268 / -1.290 / -1.276 (-1.143 without), and
+#: with its square 0.5 gives -1.290 but widens the modes less where data are (conditional
+#: cov95 0.945 on the folds, 0.976 on the flight split's held-out flights, against 0.958 and
+#: 0.982; RESULTS, "A mode's spread")
 CLASS_SPREAD_SHARE = 0.5
 
 
@@ -417,10 +418,10 @@ class Mixture:
     evidence fits where the class flies (at 16 sectors on Paris, a std of 2-3 m/s about the
     local mean): a flight unlike the class's others would be predicted with that confidence.
     So a mode's variance gains :data:`CLASS_SPREAD_SHARE` of its class's velocity variance
-    (over the region, per component) times ``r``, the share of the mode's epistemic variance
-    that is the prior's (``phi^T Sigma phi / beta`` over ``phi^T phi / alpha``, the latter
-    taken inside the lattice; at most 1): nothing where the class's data pin the mode down,
-    the class's spread where they do not.
+    (over the region, per component) times ``r^2``, ``r`` the share of the mode's epistemic
+    variance that is the prior's (``phi^T Sigma phi / beta`` over ``phi^T phi / alpha``, the
+    latter taken inside the lattice; at most 1): next to nothing where the class's data pin
+    the mode down, the class's spread where they do not.
 
     Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
     shares use) and each mode at its own evidence maximum: traffic classes differ in how
@@ -488,7 +489,7 @@ class Mixture:
         # the classes' data densities side by side, gathered with the variance densities
         self._densities = np.stack([e.density for e in evidence.classes], axis=-1)
         # a mode's widening (see the class doc): r = its epistemic variance x ``_reliance``
-        # (at most 1), times ``_spread``
+        # (at most 1), r^2 times ``_spread``
         features_sq = float(np.prod(np.sqrt(np.pi / (2.0 * self.gamma)) / grid.step))  # phi^T phi inside
         self._reliance = np.stack([m.alpha for m in self.modes]) / features_sq
         self._spread = CLASS_SPREAD_SHARE * np.stack([_velocity_variance(e) for e in evidence.classes])
@@ -555,7 +556,7 @@ class Mixture:
     def _widened(self, c: int, epistemic: np.ndarray) -> np.ndarray:
         """Mode ``c``'s epistemic variance (..., 3) with its class's spread where the prior
         holds it (the class doc)."""
-        return epistemic + np.minimum(epistemic * self._reliance[c], 1.0) * self._spread[c]
+        return epistemic + np.minimum(epistemic * self._reliance[c], 1.0) ** 2 * self._spread[c]
 
     def _gather_tables(self):
         """Every mode's weights and the share weights side by side on the hinge lattice; on
@@ -748,7 +749,7 @@ def _mixture_moments(
             for c in range(C):
                 mu = at[p, 3 * c + d]
                 v = max(var[p, columns[c, d]] * inverse_beta[c, d], 0.0)
-                v += min(v * reliance[c, d], 1.0) * spread[c, d] + noise[c, row, d]
+                v += min(v * reliance[c, d], 1.0) ** 2 * spread[c, d] + noise[c, row, d]
                 first += share[c] * mu
                 second += share[c] * (v + mu * mu)
             mean[p, d] = first

@@ -115,7 +115,7 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
         v_mean = wc @ Vc / wc.sum()
         spread = CLASS_SPREAD_SHARE * (wc @ (Vc - v_mean) ** 2 / wc.sum())
         assert_close(modes.mean[:, c], mean + Q_phi @ w0, 1e-9, f"mode {c} mean")
-        assert_close(modes.std[:, c], np.sqrt(std**2 + prior_share * spread), 1e-9, f"mode {c} std")
+        assert_close(modes.std[:, c], np.sqrt(std**2 + prior_share**2 * spread), 1e-9, f"mode {c} std")
         # each mode at its own evidence maximum (to the search's tolerance in nats)
         best = alone.log_evidence_.sum()
         for f in (0.5, 2.0):
