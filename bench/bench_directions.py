@@ -11,11 +11,14 @@ blend of the two modes (weights linear in angle, moments of the blend) for refer
 the map over its box as traffic can fly it (:func:`bench_tracks.plausibility`), and a
 1,000-point query with the modes, in the library.
 
-    python bench/bench_directions.py [--directions 8,16,24,32,auto] [--publish]
+    python bench/bench_directions.py [--directions 8,16,24,32,auto] [--spread-share 0.5]
+        [--publish]
 
 ``auto``: the region's fit chooses among 8, 16, 24 and 32 by flight-grouped cross-validation
 of the training rows (``bdf.region.resolution``); its build is the choice's, and its row
-shows the scores that chose.
+shows the scores that chose. ``--spread-share``: each map with these values of
+:data:`bdf.posterior.CLASS_SPREAD_SHARE` (how much of its class's spread a mode gains where
+its prior holds it; 0: none) instead of the library's.
 """
 
 from __future__ import annotations
@@ -61,15 +64,19 @@ def conditional(sectors, test, modes, mu, sd) -> dict:
     return out
 
 
-def one(directions: int | str, spacing: list[float] | None = None) -> dict:
+def one(directions: int | str, spacing: list[float] | None = None, spread_share: float | None = None) -> dict:
     """The figures of the map with ``directions`` sectors (run in its own process); "auto":
     the sectors the region's fit chooses (:mod:`bdf.region.resolution`), with its scores.
-    ``spacing`` (m, per axis): that lattice, gamma 1 / spacing^2, instead of the demo's."""
+    ``spacing`` (m, per axis): that lattice, gamma 1 / spacing^2, instead of the demo's;
+    ``spread_share``: :data:`bdf.posterior.CLASS_SPREAD_SHARE`, instead of the library's."""
     import resource
 
     from bench_tracks import library_map, plausibility, split
 
-    from bdf import metrics
+    from bdf import metrics, posterior
+
+    if spread_share is not None:
+        posterior.CLASS_SPREAD_SHARE = spread_share
     from bdf.region.evidence import checked_rows
     from bdf.region.map import RegionMap
     from bdf.region.resolution import choose_directions
@@ -112,6 +119,7 @@ def one(directions: int | str, spacing: list[float] | None = None) -> dict:
     judged = plausibility(spec, rmap, train)
     return {
         "sectors": directions,
+        "spread share": posterior.CLASS_SPREAD_SHARE,
         **chose,
         "build [s]": build_s,
         "peak RSS [GB]": peak / 1e9,
@@ -130,35 +138,44 @@ def main():
     )
     parser.add_argument("--directions", default="8,16,24,32")
     parser.add_argument("--spacing", help="a lattice of this spacing (m, x,y,z; gamma 1 / spacing^2)")
+    parser.add_argument(
+        "--spread-share", help="values of bdf.posterior.CLASS_SPREAD_SHARE to run (comma-separated)"
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)  # a child: one map, JSON out
     parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
     args = parser.parse_args()
     spacing = None if args.spacing is None else [float(v) for v in args.spacing.split(",")]
+    shares = [None] if args.spread_share is None else [float(v) for v in args.spread_share.split(",")]
     if args.one:
-        print(json.dumps(one(args.one if args.one == "auto" else int(args.one), spacing)))
+        directions = args.one if args.one == "auto" else int(args.one)
+        print(json.dumps(one(directions, spacing, shares[0])))
         return
     from bench_core import publish, rows_table
 
     rows = []
-    for directions in args.directions.split(","):
-        out = subprocess.run(
-            [
-                sys.executable,
-                __file__,
-                "--one",
-                str(directions),
-                *(["--spacing", args.spacing] if spacing else []),
-            ],
-            capture_output=True,
-            text=True,
-            cwd=ROOT,
-        )
-        if out.returncode:
-            raise RuntimeError(out.stderr[-3000:])
-        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
-        print(rows[-1], flush=True)
-    command = f"python bench/bench_directions.py --directions {args.directions}" + (
-        f" --spacing {args.spacing}" if spacing else ""
+    for share in shares:
+        for directions in args.directions.split(","):
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    __file__,
+                    "--one",
+                    str(directions),
+                    *(["--spacing", args.spacing] if spacing else []),
+                    *(["--spread-share", str(share)] if share is not None else []),
+                ],
+                capture_output=True,
+                text=True,
+                cwd=ROOT,
+            )
+            if out.returncode:
+                raise RuntimeError(out.stderr[-3000:])
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(rows[-1], flush=True)
+    command = (
+        f"python bench/bench_directions.py --directions {args.directions}"
+        + (f" --spacing {args.spacing}" if spacing else "")
+        + (f" --spread-share {args.spread_share}" if args.spread_share else "")
     )
     lines = [
         f"\n## Heading resolution ({time.strftime('%Y-%m-%d')}, `{command}`)\n",
