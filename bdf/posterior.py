@@ -309,12 +309,13 @@ SHARE_FLOOR = 0.01
 #: erf(z) is exactly 1 in float64 from here on: no need to evaluate it there.
 ERF_ONE = 6.0
 #: A mode's variance gains this fraction of its class's velocity variance, times the square
-#: of the share of its epistemic variance that is the prior's (:class:`Mixture`). Chosen on
-#: the folds of the demo's choice (3, by flight; 16 sectors): with the share itself, 0.25 /
-#: 0.5 / 1 give a held-out mixture MSLL of -1.268 / -1.290 / -1.276 (-1.143 without), and
-#: with its square 0.5 gives -1.290 but widens the modes less where data are (conditional
-#: cov95 0.945 on the folds, 0.976 on the flight split's held-out flights, against 0.958 and
-#: 0.982; RESULTS, "A mode's spread")
+#: of the share of its epistemic variance that is the prior's (:class:`Mixture`). On the
+#: folds of the demo's choice (3, grouped by flight) it takes the held-out mixture MSLL at
+#: 16 sectors from -1.143 +- 0.075 to -1.292 +- 0.022, and at 24 from -1.133 +- 0.105 to
+#: -1.332 +- 0.021 (``bench/bench_directions.py --directions auto --spread-share 0.5,0``).
+#: Tried on those folds at 16 sectors (throwaway, the 2026-11-28 note): the share times
+#: 0.25 / 0.5 / 1: -1.268 / -1.290 / -1.276; its square times 0.25 / 0.5: -1.258 / -1.290,
+#: the latter widening least where data are (conditional cov95 0.945 against 0.958)
 CLASS_SPREAD_SHARE = 0.5
 
 
