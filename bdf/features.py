@@ -46,9 +46,10 @@ LANE_WIDTHS = (16, 32)
 BLOCK_POINTS = 32
 #: A chunk's plane of a point's window (its x-y columns times the chunk's values) is read
 #: once per point of a block: at most this many bytes of it stay in L1 (48 KiB here) with
-#: the rest of the kernel's data. On the demo's 8-sector tables, chunks of 32 values take
-#: 0.69x the time of 16 on the hinge lattice (11 x 11 columns: 31 KB) and 1.19x on its
-#: midpoints (15 x 15: 58 KB); a throwaway comparison, in the 2026-11-28 note
+#: the rest of the kernel's data. At gamma = 1 / spacing^2, chunks of 32 values take
+#: 0.69-0.91x the time of 16 on the hinge lattice (9 x 9 columns at the demo's cutoff, 11 x
+#: 11 at the default: 21 and 31 KB) and 1.07-1.37x on its midpoints (13 x 13 and 15 x 15:
+#: 43 and 58 KB), in five of six runs each (``bench/bench_kernels.py --parts lanes``)
 L1_PLANE_BYTES = 32 * 1024
 #: Points per BLAS call at most: its temporaries stay in cache (``bench/bench_build.py``).
 CHUNK_POINTS = 2048
@@ -372,8 +373,8 @@ def lanes_for(lattice: Lattice, k, cutoff: float) -> int:
     """The chunk width (:data:`LANE_WIDTHS`) of a :class:`LaneTable` on ``lattice`` that is
     gathered with ``k`` (3,; or per point, (n, 3): the widest window counts): the widest
     whose plane of a point's window fits :data:`L1_PLANE_BYTES` (the hinge lattice at
-    ``gamma = 1 / spacing^2``: 11 x 11 columns, 32 values; its midpoint lattice, whose
-    window has twice the columns: 16)."""
+    ``gamma = 1 / spacing^2`` and the default cutoff: 11 x 11 columns, 32 values; its
+    midpoint lattice, whose window has twice the columns: 16)."""
     k = np.asarray(k, float).reshape(-1, 3).min(axis=0)
     reach = window(k * lattice.step**2, cutoff)[:2]
     columns = np.prod(np.minimum(2 * np.floor(reach) + 1, lattice.shape[:2]))

@@ -1,6 +1,6 @@
 """In-process figures behind the build and service readings of bench/RESULTS.md (2026-11-25).
 
-    python bench/bench_kernels.py            # evidence, digests, Arrow bodies, the search's floor
+    python bench/bench_kernels.py [--parts evidence,digests,arrow,floor,lanes]
 
 * evidence: ``bdf.region.evidence.increments`` of 200,000 synthetic-city points (``make_city``), in
   microseconds a point, best of 5, with 1 and 8 heading sectors;
@@ -11,13 +11,19 @@
   into ``bytes`` (before), median of 10;
 * the evidence search's floor: one heading class of the 8-sector city (1 million points),
   its log evidence at ``lam`` = 1e-10 and 1e-3 x mean(diag G), from the factorisation and
-  from a dense eigendecomposition, and ``G``'s smallest eigenvalue over mean(diag G).
+  from a dense eigendecomposition, and ``G``'s smallest eigenvalue over mean(diag G);
+* lanes: the point-by-point gather (``features.gather_pointwise``) of 1,000 random points
+  from tables of the demo's 8-sector shapes (its hinge lattice, 41 x 41 x 8 at gamma =
+  1 / spacing^2, 36 channels; its midpoint lattice, 10 channels), at the demo's cutoff and
+  the default one, in chunks of 32 values against 16 (the median ratio of 30 pairs), and
+  the width ``features.lanes_for`` gives.
 
 Medians or best of several runs; prints a table (not appended: the readings quote it).
 """
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import sys
 import tempfile
@@ -30,10 +36,12 @@ import pyarrow as pa
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import make_city
 
-from bdf import hyperparameters, sparse
+from bdf import features, hyperparameters, sparse
+from bdf.grid import Lattice
 from bdf.posterior import _local_prior
 from bdf.region.evidence import increments, region_total
 from bdf.region.spec import RegionSpec
+from clients.samples import PARIS_REGION_CUTOFF
 from service import formats
 
 
@@ -168,8 +176,50 @@ def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
     return rows
 
 
+def lane_rows(pairs: int = 30) -> list[tuple[str, str]]:
+    rng = np.random.default_rng(0)
+    step = np.array([2000.0, 2000.0, 1000.0])
+    hinge = Lattice(np.zeros(3), step, (41, 41, 8))
+    midpoints = Lattice(np.zeros(3), step / 2.0, (81, 81, 15))
+    X = rng.uniform(0.0, 1.0, (1000, 3)) * step * (np.array(hinge.shape) - 1)
+    rows = []
+    cases = (("hinge", hinge, 36, 1.0 / step**2), ("midpoint", midpoints, 10, 2.0 / step**2))
+    for cutoff in (PARIS_REGION_CUTOFF, features.DEFAULT_CUTOFF):
+        for name, lattice, channels, k in cases:
+            T = rng.standard_normal((*lattice.shape, channels))
+            tables = {lanes: features.LaneTable.of(T, lanes) for lanes in (32, 16)}
+            seconds = {32: [], 16: []}
+            for _ in range(pairs):
+                for lanes, table in tables.items():
+                    t0 = time.perf_counter()
+                    features.gather_pointwise(lattice, X, table, k, cutoff=cutoff)
+                    seconds[lanes].append(time.perf_counter() - t0)
+            ratios = np.array(seconds[32]) / np.array(seconds[16])
+            rows.append(
+                (
+                    f"gather of 1,000 points, {name} lattice ({channels} channels), cutoff {cutoff:g}: "
+                    "32-value chunks over 16",
+                    f"{np.median(ratios):.2f} (lanes_for: {features.lanes_for(lattice, k, cutoff)})",
+                )
+            )
+    return rows
+
+
+PARTS = {
+    "evidence": evidence_rows,
+    "digests": digest_rows,
+    "arrow": arrow_rows,
+    "floor": floor_rows,
+    "lanes": lane_rows,
+}
+
+
 def main() -> int:
-    rows = [*evidence_rows(), *digest_rows(), *arrow_rows(), *floor_rows()]
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--parts", default=",".join(PARTS), help="which figures (comma-separated)")
+    rows = [row for part in parser.parse_args().parts.split(",") for row in PARTS[part]()]
     print("| figure | value |\n|---|---|")
     for name, value in rows:
         print(f"| {name} | {value} |")
