@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import functools
+import math
 from typing import NamedTuple
 
 import numba
 import numpy as np
-from scipy import ndimage, special
+from scipy import ndimage
 
 from bdf import _blas, features, hyperparameters, noise, sparse
 from bdf.features import LaneTable
@@ -122,6 +123,9 @@ class Posterior:
             G_w0 = sparse.band_product(self.stencil, band, w0)
             v_sq = v_sq - 2.0 * np.einsum("mc,mc->c", w0, proj) + np.einsum("mc,mc->c", w0, G_w0)
             proj = proj - G_w0
+        #: (3,) the data's mean square difference from the prior mean's field (zero without
+        #: data): how far they lie from what the prior expects (:class:`Mixture`'s widening)
+        self.prior_misfit = np.maximum(v_sq, 0.0) / evidence.count if evidence.count > 0 else np.zeros(3)
         fit = hyperparameters.fit_evidence(
             self.stencil, band, proj, v_sq, evidence.count, alpha, beta, start, anchor, settle
         )
@@ -285,7 +289,8 @@ def _normalised(grid: HingeGrid, gamma, at: np.ndarray, X: np.ndarray) -> np.nda
     with the same kernel (``at``): each pair of an observation and ``x`` meets at their
     midpoint with the lattice's sum of ``exp(-4 gamma (g - midpoint)^2)``, which
     :func:`_lattice_sum` divides out (near ``x``: it falls to half at the lattice's edge)."""
-    norm = np.prod([_lattice_sum(grid, gamma, d, X[:, d]) for d in range(3)], axis=0)[:, None]
+    norm = (_lattice_sum(grid, gamma, 0, X[:, 0]) * _lattice_sum(grid, gamma, 1, X[:, 1]))[:, None]
+    norm *= _lattice_sum(grid, gamma, 2, X[:, 2])[:, None]
     return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)  # 0 far outside
 
 
@@ -308,15 +313,16 @@ def _normalised_grid(grid: HingeGrid, gamma, at: np.ndarray, axes) -> np.ndarray
 SHARE_FLOOR = 0.01
 #: erf(z) is exactly 1 in float64 from here on: no need to evaluate it there.
 ERF_ONE = 6.0
-#: A mode's variance gains this fraction of its class's velocity variance, times the square
-#: of the share of its epistemic variance that is the prior's (:class:`Mixture`). On the
-#: folds of the demo's choice (3, grouped by flight) it takes the held-out mixture MSLL at
-#: 16 sectors from -1.143 +- 0.075 to -1.292 +- 0.022, and at 24 from -1.133 +- 0.105 to
-#: -1.332 +- 0.021 (``bench/bench_directions.py --directions auto --spread-share 0.5,0``).
-#: Tried on those folds at 16 sectors (throwaway, the 2026-11-28 note): the share times
-#: 0.25 / 0.5 / 1: -1.268 / -1.290 / -1.276; its square times 0.25 / 0.5: -1.258 / -1.290,
-#: the latter widening least where data are (conditional cov95 0.945 against 0.958)
-CLASS_SPREAD_SHARE = 0.5
+#: A mode's variance gains this fraction of its class's mean square misfit about its prior
+#: mean (:attr:`Posterior.prior_misfit`), times the square of the share of its epistemic
+#: variance that is the prior's (:class:`Mixture`). On the Paris flight split
+#: (``bench/bench_directions.py --directions 16,auto --spread-share 0.5,1``): at 16 sectors
+#: held-out MSLL -1.007 / -1.002 and conditional cov95 0.969 / 0.973 with 0.5 / 1; the
+#: choice's folds keep 8 sectors with 0.5 (their scores within a standard error), 16 with 1.
+#: Half the class's velocity variance over the region instead (the rule before) kept 24, whose
+#: map widened too much where the local prior mean already knows the flow (held-out MSLL
+#: -0.980, cov95 0.977); none: 8 (the folds could not tell 8 from 32)
+CLASS_SPREAD_SHARE = 1.0
 
 
 def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
@@ -327,11 +333,20 @@ def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
     g = float(np.broadcast_to(np.asarray(gamma, float), (3,))[d])
     h = grid.step[d] / 2.0
     lo, hi = grid.origin[d] - h / 2, grid.origin[d] + (grid.shape[d] - 1) * grid.step[d] + h / 2
-    root = 2.0 * np.sqrt(g)
-    x = np.asarray(x, float)
-    out = np.full(x.shape, np.sqrt(np.pi / (4.0 * g)) / h)  # the sum inside, where both erf are 1
-    near = (root * (hi - x) < ERF_ONE) | (root * (x - lo) < ERF_ONE)  # an edge within 6 widths
-    out[near] *= 0.5 * (special.erf(root * (hi - x[near])) + special.erf(root * (x[near] - lo)))
+    x = np.ascontiguousarray(x, float)
+    inside = np.sqrt(np.pi / (4.0 * g)) / h  # the sum where both edges are beyond ERF_ONE widths
+    return _edge_integral(x.ravel(), 2.0 * np.sqrt(g), lo, hi, inside).reshape(x.shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge_integral(x, root, lo, hi, inside):  # pragma: no cover (compiled)
+    """:func:`_lattice_sum` at each of ``x``: ``inside`` times the share of the Gaussian of
+    width ``1 / root`` about ``x`` that lies in ``[lo, hi]`` (erf only within
+    :data:`ERF_ONE` widths of an edge: one pass, no temporaries; a query's points are many)."""
+    out = np.empty_like(x)
+    for p in range(len(x)):
+        a, b = root * (hi - x[p]), root * (x[p] - lo)
+        out[p] = inside if a >= ERF_ONE and b >= ERF_ONE else inside * 0.5 * (math.erf(a) + math.erf(b))
     return out
 
 
@@ -374,14 +389,6 @@ def _local_prior(evidence: Evidence, grid: HingeGrid, gamma) -> np.ndarray:
     return (local / features_sum).reshape(-1, 3)
 
 
-def _velocity_variance(evidence: Evidence) -> np.ndarray:
-    """(3,): the variance of a class's velocities over the region (zero without data)."""
-    if evidence.count <= 0:
-        return np.zeros(3)
-    mean = evidence.v_sum / evidence.count
-    return np.maximum(evidence.v_sq / evidence.count - mean * mean, 0.0)
-
-
 def _per_row(hyper, rows: int) -> list:
     """A hyperparameter for each of ``rows`` posteriors: "auto" for all, or the row of a
     (3,) value broadcast, or of a (rows, 3) one."""
@@ -418,8 +425,9 @@ class Mixture:
     class's flights may lie from that mean there is not the prior's amplitude, which the
     evidence fits where the class flies (at 16 sectors on Paris, a std of 2-3 m/s about the
     local mean): a flight unlike the class's others would be predicted with that confidence.
-    So a mode's variance gains :data:`CLASS_SPREAD_SHARE` of its class's velocity variance
-    (over the region, per component) times ``r^2``, ``r`` the share of the mode's epistemic
+    So a mode's variance gains its class's mean square misfit about that mean (per
+    component, :attr:`Posterior.prior_misfit`; :data:`CLASS_SPREAD_SHARE` of it) times
+    ``r^2``, ``r`` the share of the mode's epistemic
     variance that is the prior's (``phi^T Sigma phi / beta`` over ``phi^T phi / alpha``, the
     latter taken inside the lattice; at most 1): next to nothing where the class's data pin
     the mode down, the class's spread where they do not.
@@ -493,7 +501,7 @@ class Mixture:
         # (at most 1), r^2 times ``_spread``
         features_sq = float(np.prod(np.sqrt(np.pi / (2.0 * self.gamma)) / grid.step))  # phi^T phi inside
         self._reliance = np.stack([m.alpha for m in self.modes]) / features_sq
-        self._spread = CLASS_SPREAD_SHARE * np.stack([_velocity_variance(e) for e in evidence.classes])
+        self._spread = CLASS_SPREAD_SHARE * np.stack([m.prior_misfit for m in self.modes])
         self.fitted = self.total.fitted
         self.speed_bound = None  # as the Posterior's
         self.plausibility: dict | None = None

@@ -223,7 +223,9 @@ class Service:
         return formats.Limits(rows, int(s.max_decoded_mb * 2**20), int(s.max_json_mb * 2**20))
 
 
-def service(request: Request) -> Service:
+async def service(request: Request) -> Service:
+    # every dependency is a coroutine: FastAPI hands a plain function to a worker thread,
+    # a hand-off per request that costs more CPU than the dependency (:func:`auth.require`)
     return request.app.state.service
 
 
@@ -278,7 +280,7 @@ class MapAnswer:
         }
 
 
-def map_answer(request: Request, svc: ServiceDep) -> MapAnswer:
+async def map_answer(request: Request, svc: ServiceDep) -> MapAnswer:
     return MapAnswer(request, svc)
 
 
@@ -350,7 +352,7 @@ class GridParams:
             raise Problem(422, str(exc)) from None
 
 
-def grid_params(
+async def grid_params(
     step: Annotated[str, Query(pattern=STEP, description="dx,dy,dz metres (or one number for all axes)")],
     bbox: Annotated[
         str | None, Query(pattern=BOX3, description="xmin,ymin,zmin,xmax,ymax,zmax in region ENU metres")

@@ -109,11 +109,11 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
         alone.fit(Xc, Vc - P @ w0, sample_weight=wc)
         mean, std = alone.predict(Q, return_std=True)
         _, epistemic = alone.predict(Q, return_std=True, include_noise=False)
-        # widened by the class's spread where the prior holds the mode: the share of its
-        # epistemic variance that is the prior's (phi^T phi / alpha inside the lattice)
+        # widened by the class's spread about its prior mean where the prior holds the mode:
+        # the share of its epistemic variance that is the prior's (phi^T phi / alpha inside
+        # the lattice)
         prior_share = np.minimum(epistemic**2 * post.alpha[1 + c] / features_sum * 2**1.5, 1.0)
-        v_mean = wc @ Vc / wc.sum()
-        spread = CLASS_SPREAD_SHARE * (wc @ (Vc - v_mean) ** 2 / wc.sum())
+        spread = CLASS_SPREAD_SHARE * (wc @ (Vc - P @ w0) ** 2 / wc.sum())
         assert_close(modes.mean[:, c], mean + Q_phi @ w0, 1e-9, f"mode {c} mean")
         assert_close(modes.std[:, c], np.sqrt(std**2 + prior_share**2 * spread), 1e-9, f"mode {c} std")
         # each mode at its own evidence maximum (to the search's tolerance in nats)
