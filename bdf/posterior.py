@@ -427,10 +427,10 @@ class Mixture:
     local mean): a flight unlike the class's others would be predicted with that confidence.
     So a mode's variance gains its class's mean square misfit about that mean (per
     component, :attr:`Posterior.prior_misfit`; :data:`CLASS_SPREAD_SHARE` of it) times
-    ``r^2``, ``r`` the share of the mode's epistemic
-    variance that is the prior's (``phi^T Sigma phi / beta`` over ``phi^T phi / alpha``, the
-    latter taken inside the lattice; at most 1): next to nothing where the class's data pin
-    the mode down, the class's spread where they do not.
+    ``r^2``, ``r`` the share of the mode's epistemic variance that is the prior's
+    (``phi^T Sigma phi / beta`` over ``phi^T phi / alpha``, the latter taken inside the
+    lattice; at most 1): next to nothing where the class's data pin the mode down, the
+    class's spread about its prior mean where they do not.
 
     Hyperparameters: "auto" fits the map with one class (``total``, whose factorisation the
     shares use) and each mode at its own evidence maximum: traffic classes differ in how

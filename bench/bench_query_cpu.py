@@ -184,6 +184,7 @@ def main(argv=None) -> int:
             f"## Query CPU against {label}, {datetime.date.today()}",
             "",
             f"`python bench/bench_query_cpu.py {other_flag} --directions {args.directions} "
+            f"{f'--model-directions {args.model_directions} ' if args.model_directions else ''}"
             f"--seconds {args.seconds:g} --connections {args.connections} --rounds {args.rounds}"
             f"{' --profile' if args.profile else ''}`: "
             "1,000-point Arrow queries of the demo's map "
