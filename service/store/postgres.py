@@ -54,11 +54,15 @@ class PostgresStore(MapStore):
             with self._transaction(None, schema=False) as q:
                 q("SELECT pg_advisory_xact_lock(hashtext('bdf-maps schema'))")  # concurrent first opens
                 q(f"CREATE SCHEMA IF NOT EXISTS {self.schema}")
+                blobs = {"tiles": "stats", "maps": "posterior"}
+                new = [t for t in blobs if q("SELECT to_regclass(?)", (f"{self.schema}.{t}",))[0][0] is None]
                 for statement in self._schema("BYTEA"):
                     q(statement)
-                # statistics are dense floats: pglz gains little and costs most of an upload's time
-                q("ALTER TABLE tiles ALTER COLUMN stats SET STORAGE EXTERNAL")
-                q("ALTER TABLE maps ALTER COLUMN posterior SET STORAGE EXTERNAL")
+                # statistics are dense floats: pglz gains little and costs most of an upload's time.
+                # Only on a table just created: ALTER TABLE waits for every transaction on it, and
+                # a process opening a store in use would deadlock with its writers
+                for table in new:
+                    q(f"ALTER TABLE {table} ALTER COLUMN {blobs[table]} SET STORAGE EXTERNAL")
                 self._init_schema(q)
             self._schema_ready = True
 

@@ -1,5 +1,6 @@
 """The HTTP API through a real uvicorn server on 127.0.0.1 (``bdf serve`` in a subprocess)."""
 
+import inspect
 import io
 import json
 import socket
@@ -11,10 +12,12 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+from fastapi.routing import APIRoute
 
 from bdf.posterior import known
 from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
+from service import app as app_module
 from service.app import create_app
 from service.formats import arrow_body, arrow_bytes, npz_bytes
 from service.settings import Settings
@@ -670,6 +673,29 @@ def test_every_route_declares_its_scope_and_enforces_it(live_server, tmp_path):
                 else:
                     assert status == 403, (method, path, who, status)
     assert "tok-" not in server.log()  # tokens never reach the logs
+
+
+def test_no_route_hands_a_request_to_a_worker_thread_before_its_work():
+    """FastAPI runs a plain-function endpoint or dependency in a worker thread: a hand-off
+    per request that costs more CPU than most of them. Every one is a coroutine; a route's
+    work goes to its lane (:mod:`service.lanes`)."""
+
+    def calls(dependant):
+        yield dependant.call
+        for dependency in dependant.dependencies:
+            yield from calls(dependency)
+
+    routes = [
+        route for route in (*app_module.router.routes, *app_module.ops.routes) if isinstance(route, APIRoute)
+    ]
+    assert len(routes) == 23  # every route of the OpenAPI document (the scope test's count)
+    plain = {
+        f"{route.path}: {call.__qualname__}"
+        for route in routes
+        for call in calls(route.dependant)
+        if call is not None and not inspect.iscoroutinefunction(call)
+    }
+    assert plain == set()
 
 
 def test_serve_refuses_a_public_address_without_tokens_and_warns_when_open(tmp_path, live_server):

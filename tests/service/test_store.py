@@ -400,6 +400,28 @@ CRASHER = textwrap.dedent(
 )
 
 
+def test_a_process_opening_a_store_in_use_waits_for_no_transaction(store_url):
+    """A worker, replica or restart opens the store while others write: its setup takes no
+    lock that waits for their transactions (an ALTER TABLE on every open did, and deadlocked
+    with writers holding a region's row)."""
+    if not store_url.startswith("postgresql"):
+        pytest.skip("a SQLite store sets nothing up on a database in use")
+    import psycopg
+
+    base, schema = store_url.split("?schema=")
+    first = open_store(store_url)
+    first.create_region(RegionSpec.model_validate(SPEC))
+    with psycopg.connect(base) as writer:  # mid-transaction on the tables, as a writer is
+        writer.execute(f"SET search_path = {schema}")
+        for table in ("regions", "tiles", "maps", "leases"):
+            writer.execute(f"SELECT count(*) FROM {table}")
+        second = open_store(store_url, timeout_s=2.0)
+        second.ping()
+        assert second.region("town").version == 0
+        second.close()
+    first.close()
+
+
 @pytest.mark.slow  # a writer process killed
 def test_a_writer_killed_mid_upload_leaves_all_or_nothing(store_url):
     # 6 x 4 tiles: an upload everywhere writes more than one batch of tile rows
