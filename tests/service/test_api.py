@@ -17,8 +17,7 @@ from fastapi.routing import APIRoute
 from bdf.posterior import known
 from bdf.region.map import region_field
 from bdf.region.spec import RegionSpec
-from service import app as app_module
-from service.app import create_app
+from service.app import create_app, ops, router
 from service.formats import arrow_body, arrow_bytes, npz_bytes
 from service.settings import Settings
 from service.wire import ARROW, GEOJSON, NPZ, PARQUET
@@ -638,7 +637,7 @@ def test_every_route_declares_its_scope_and_enforces_it(live_server, tmp_path):
     """Walks all routes of the OpenAPI document: no token, a wrong token, each scope."""
     server = live_server(env={"BDF_TOKENS": json.dumps(TOKENS)})
     paths = create_app(Settings(store_url=f"sqlite:///{tmp_path / 'openapi'}")).openapi()["paths"]
-    routes = [(m.upper(), p, op["x-scope"]) for p, ops in paths.items() for m, op in ops.items()]
+    routes = [(m.upper(), p, op["x-scope"]) for p, verbs in paths.items() for m, op in verbs.items()]
     assert {scope for *_, scope in routes} == {"public", "read", "write", "admin"}
     assert len(routes) == 23
     fill = {
@@ -685,9 +684,7 @@ def test_no_route_hands_a_request_to_a_worker_thread_before_its_work():
         for dependency in dependant.dependencies:
             yield from calls(dependency)
 
-    routes = [
-        route for route in (*app_module.router.routes, *app_module.ops.routes) if isinstance(route, APIRoute)
-    ]
+    routes = [route for route in (*router.routes, *ops.routes) if isinstance(route, APIRoute)]
     assert len(routes) == 23  # every route of the OpenAPI document (the scope test's count)
     plain = {
         f"{route.path}: {call.__qualname__}"
