@@ -289,8 +289,7 @@ def _normalised(grid: HingeGrid, gamma, at: np.ndarray, X: np.ndarray) -> np.nda
     with the same kernel (``at``): each pair of an observation and ``x`` meets at their
     midpoint with the lattice's sum of ``exp(-4 gamma (g - midpoint)^2)``, which
     :func:`_lattice_sum` divides out (near ``x``: it falls to half at the lattice's edge)."""
-    norm = (_lattice_sum(grid, gamma, 0, X[:, 0]) * _lattice_sum(grid, gamma, 1, X[:, 1]))[:, None]
-    norm *= _lattice_sum(grid, gamma, 2, X[:, 2])[:, None]
+    norm = np.prod([_lattice_sum(grid, gamma, d, X[:, d]) for d in range(3)], axis=0)[:, None]
     return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)  # 0 far outside
 
 
@@ -333,9 +332,8 @@ def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
     g = float(np.broadcast_to(np.asarray(gamma, float), (3,))[d])
     h = grid.step[d] / 2.0
     lo, hi = grid.origin[d] - h / 2, grid.origin[d] + (grid.shape[d] - 1) * grid.step[d] + h / 2
-    x = np.ascontiguousarray(x, float)
     inside = np.sqrt(np.pi / (4.0 * g)) / h  # the sum where both edges are beyond ERF_ONE widths
-    return _edge_integral(x.ravel(), 2.0 * np.sqrt(g), lo, hi, inside).reshape(x.shape)
+    return _edge_integral(np.ascontiguousarray(x, float), 2.0 * np.sqrt(g), lo, hi, inside)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -565,7 +563,7 @@ class Mixture:
     def _widened(self, c: int, epistemic: np.ndarray) -> np.ndarray:
         """Mode ``c``'s epistemic variance (..., 3) with its class's spread where the prior
         holds it (the class doc)."""
-        return epistemic + np.minimum(epistemic * self._reliance[c], 1.0) ** 2 * self._spread[c]
+        return _widen(epistemic, self._reliance[c], self._spread[c])
 
     def _gather_tables(self):
         """Every mode's weights and the share weights side by side on the hinge lattice; on
@@ -732,6 +730,14 @@ class Mixture:
         return held
 
 
+@numba.vectorize(["f8(f8, f8, f8)"], cache=True)
+def _widen(epistemic, reliance, spread):  # pragma: no cover (compiled)
+    """A mode's epistemic variance widened by its class's ``spread`` where the prior holds
+    it: ``r = min(epistemic x reliance, 1)``, plus ``r^2 spread`` (:class:`Mixture`); a
+    ufunc, so that the points, the grids and :func:`_mixture_moments` apply one rule."""
+    return epistemic + min(epistemic * reliance, 1.0) ** 2 * spread
+
+
 @numba.njit(cache=True, nogil=True)
 def _mixture_moments(
     at, var, prior, floor, columns, inverse_beta, reliance, spread, noise, mean, variance
@@ -740,9 +746,9 @@ def _mixture_moments(
     makes, point by point from the gathered tables (no (n, C, 3) temporaries: grids are
     large): the shares (``prior`` plus share weights ``at[:, 3C:]``, at least ``floor``,
     renormalised), each mode's mean ``at[:, 3c:3c+3]`` and variance (its density column
-    over beta, at least 0, widened by ``reliance`` and ``spread`` as
-    :meth:`Mixture._widened`, plus ``noise[c, 0 or p]``), then the mixture's mean and
-    variance into ``mean`` and ``variance`` (n, 3)."""
+    over beta, at least 0, widened by ``reliance`` and ``spread`` (:func:`_widen`), plus
+    ``noise[c, 0 or p]``), then the mixture's mean and variance into ``mean`` and
+    ``variance`` (n, 3)."""
     C = len(prior)
     share = np.empty(C)
     for p in range(at.shape[0]):
@@ -757,8 +763,8 @@ def _mixture_moments(
             first, second = 0.0, 0.0
             for c in range(C):
                 mu = at[p, 3 * c + d]
-                v = max(var[p, columns[c, d]] * inverse_beta[c, d], 0.0)
-                v += min(v * reliance[c, d], 1.0) ** 2 * spread[c, d] + noise[c, row, d]
+                v = _widen(max(var[p, columns[c, d]] * inverse_beta[c, d], 0.0), reliance[c, d], spread[c, d])
+                v += noise[c, row, d]
                 first += share[c] * mu
                 second += share[c] * (v + mu * mu)
             mean[p, d] = first
