@@ -191,9 +191,11 @@ class RegionSpec(BaseModel):
     #: a solve; looser values trade exactness for speed.
     cutoff: Annotated[float, Field(gt=0, lt=1)] = DEFAULT_CUTOFF
     #: Heading sectors the region answers (1: one velocity per point; more: a mixture of
-    #: traffic classes, :mod:`bdf.sectors`, and the mode of a heading); "auto": as many as
-    #: the region's fits choose (:mod:`bdf.region.resolution`), ``model_directions`` until then.
-    directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] | Literal["auto"] = 1
+    #: traffic classes, :mod:`bdf.sectors`, and the mode of a heading); "auto" (the default,
+    #: unless ``model_directions`` is named: then 1): as many as the region's fits choose
+    #: (:mod:`bdf.region.resolution`), ``model_directions`` until then. A mixture answers its
+    #: moments as ``mean`` and ``std`` too, so a client of one class reads the same columns.
+    directions: Annotated[int, Field(ge=1, le=MAX_DIRECTIONS)] | Literal["auto"] = "auto"
     #: Heading sectors of the model behind the answers (:data:`ONE_CLASS_MODEL_DIRECTIONS`
     #: when one class is answered, :data:`AUTO_FIRST_DIRECTIONS` for "auto" until a fit
     #: chooses, else ``directions``): a region of one class answers the moments of a
@@ -211,6 +213,15 @@ class RegionSpec(BaseModel):
     #: :func:`bdf.ingest.track_weights`); sparser tracks count for less than they carry.
     track_interval_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 1.0
     envelope: Envelope = Envelope()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_directions(cls, data):
+        """A spec that names its model's sectors and not ``directions`` is of one class, as
+        before "auto" was the default: only a region of one class answered from another model."""
+        if isinstance(data, dict) and "directions" not in data and data.get("model_directions") is not None:
+            return {**data, "directions": 1}
+        return data
 
     @model_validator(mode="after")
     def _consistent(self):

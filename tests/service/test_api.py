@@ -317,6 +317,31 @@ def test_directional_regions_serve_the_mixture_of_the_library(client):
         np.testing.assert_allclose(npz["mean"], flown_mean[mask], rtol=0, atol=1e-6)
 
 
+def test_a_new_region_chooses_its_sectors_and_answers_their_moments_until_then_from_16(client):
+    """A spec that names no count is of ``directions: "auto"``: its uploads are split into
+    16 sectors until a fit chooses, and it answers the mixture's moments (its modes if asked)."""
+    body = {k: v for k, v in SPEC.items() if k != "directions"} | {"name": "new"}
+    created = client.post("/v1/regions", json=body).json()["spec"]
+    assert (created["directions"], created["model_directions"]) == ("auto", 16)
+    spec = RegionSpec.model_validate(created)
+    X, V = data(7, n=400)
+    V[::2, :2] *= -1.0  # opposing traffic on half the points
+    r = client.post(
+        "/v1/regions/new/observations",
+        json={"points": X.tolist(), "velocities": V.tolist()},
+        headers={"Idempotency-Key": "new-0"},
+    )
+    assert r.json()["accepted"] == len(X), r.text
+    settle(client, "new")
+    got = client.post("/v1/regions/new/query", json={"points": X[:40].tolist()}).json()
+    mean, std, _ = library(spec, X, V, X[:40])
+    np.testing.assert_allclose(got["mean"], mean, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got["std"], std, rtol=1e-6)
+    assert "modes" not in got  # the columns a client of one class reads, unless it asks
+    got = client.post("/v1/regions/new/query", json={"points": X[:40].tolist(), "modes": True}).json()
+    assert len(got["modes"]["heading_deg"]) == 17 and np.shape(got["modes"]["share"]) == (40, 17)
+
+
 def test_points_outside_the_region_are_answered_null_and_the_rest_as_alone(client):
     """A batch straying past the region's edge: those rows are null (JSON null, Arrow nulls,
     ``known`` false, counted), every other row is what the points inside alone get; a point

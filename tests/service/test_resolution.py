@@ -31,7 +31,12 @@ def test_a_fit_chooses_the_sectors_stores_them_with_its_tiles_and_uploads_then_u
     assert fit["kind"] == "fit" and fit["region_version"] == early["region_version"] + 1
     info = store.region("crossing")
     expected = choose_directions(crossing, checked_rows(X, V, track=track, time=t)).spec
-    assert info.spec == expected and info.spec.model_directions >= 12 and info.spec.directions == "auto"
+    # the service's fit sums in its own threads: scores equal to the last few bits
+    scores = ("directions_scores",)
+    assert info.spec.model_dump(exclude=set(scores)) == expected.model_dump(exclude=set(scores))
+    got, want = ([s.model_dump() for s in spec.directions_scores] for spec in (info.spec, expected))
+    assert got == [{k: pytest.approx(v, rel=1e-9, abs=1e-12) for k, v in row.items()} for row in want]
+    assert info.spec.model_directions >= 12 and info.spec.directions == "auto"
     assert [s.chosen for s in info.spec.directions_scores].count(True) == 1
     # the stored tiles hold the chosen sectors' classes, and the map answers every class
     snapshot = store.snapshot("crossing")

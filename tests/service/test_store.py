@@ -35,6 +35,7 @@ SPEC = {
     "tile_size_m": [100, 100, 60],
     "spacing_m": [25, 25, 20],
     "gamma": [1 / 1250, 1 / 1250, 1 / 800],
+    "directions": 1,  # one velocity per point (the moments of 8 sectors); new regions: "auto"
 }
 
 

@@ -15,8 +15,8 @@ def test_spec_json_is_the_service_body():
         "noise_spacing_m": None,  # the global noise
         "noise_prior": 0.1,
         "cutoff": 1e-12,
-        "directions": 1,
-        "model_directions": 8,  # one class answered from the moments of 8 sectors
+        "directions": "auto",  # chosen by its fits
+        "model_directions": 16,  # until the first fit chooses
         "directions_scores": None,  # written by the fits of a region of "auto" directions
         "slow_mps": 5.0,
         "track_interval_s": 1.0,
@@ -64,13 +64,23 @@ def test_spec_rejects_bad_values(change, message):
 
 
 @pytest.mark.parametrize(
-    ("given", "model"),
-    [({}, 8), ({"model_directions": 1}, 1), ({"model_directions": 4}, 4), ({"directions": 16}, 16)],
+    ("given", "directions", "model"),
+    [
+        ({}, "auto", 16),
+        ({"directions": 1}, 1, 8),
+        ({"model_directions": 1}, 1, 1),
+        ({"model_directions": 4}, 1, 4),
+        ({"directions": 16}, 16, 16),
+    ],
 )
-def test_a_region_of_one_class_answers_from_eight_sectors_unless_told(given, model):
-    """The model's sectors are written out, so a stored spec names what its evidence holds."""
+def test_a_new_region_chooses_its_sectors_and_one_of_one_class_answers_from_eight_unless_told(
+    given, directions, model
+):
+    """The model's sectors are written out, so a stored spec names what its evidence holds;
+    a spec naming only its model's sectors is of one class, as before "auto" was the default."""
     spec = RegionSpec.model_validate({**PARIS, **given})
+    assert spec.directions == directions
     assert spec.model_directions == model and spec.model_sectors.directions == model
-    assert spec.sectors.directions == spec.directions
+    assert spec.sectors.directions == (model if directions == "auto" else directions)
     assert spec.posteriors == (1 if model == 1 else 2 + model)
     assert RegionSpec.model_validate(spec.model_dump(mode="json")) == spec
