@@ -3,7 +3,8 @@
 The training flights' raw 1 Hz rows go to the service over HTTP with their ``track`` and
 ``t`` columns and nothing computed for them (no weights), in ``--chunks`` uploads cut by
 time (so flights are cut across uploads); the service weighs each track's rows
-(:func:`bdf.ingest.track_weights`). The map is scored on the held-out flights (20 %,
+(:func:`bdf.ingest.track_weights`). A new region as created (``directions: "auto"``, its
+uploads split into 16 sectors until a fit chooses), 8 sectors, and one class. The map is scored on the held-out flights (20 %,
 seed 0): RMSE, MSLL, cov95, for directional maps the mixture MSLL and the conditional
 RMSE (the mode of the heading each held-out row flies, as the service answers it), and
 over the box it is judged as traffic can fly (:func:`plausibility`): on a 1 km grid at
@@ -355,9 +356,10 @@ def main():
         "2 x 2 x 1 km."
     ]
     rows = []
-    # 8 sectors; one class as a region answers it (the moments of its model's mixture); and
-    # one class on the paper's model of one field
-    for directions, model in ((8, 8), (1, None), (1, 1)):
+    # a new region as created (directions "auto": its uploads split into 16 sectors until a
+    # fit chooses); 8 sectors; one class as a region answers it (the moments of its model's
+    # mixture); and one class on the paper's model of one field
+    for directions, model in (("auto", None), (8, 8), (1, None), (1, 1)):
         spec = samples.paris_demo_region(lower, upper, directions=directions, model_directions=model)
         if args.no_http:
             rmap, extra = library_map(spec, train, True), {}
