@@ -4,14 +4,14 @@ The training flights' raw 1 Hz rows go to the service over HTTP with their ``tra
 ``t`` columns and nothing computed for them (no weights), in ``--chunks`` uploads cut by
 time (so flights are cut across uploads); the service weighs each track's rows
 (:func:`bdf.ingest.track_weights`). A new region as created (``directions: "auto"``, its
-uploads split into 16 sectors until a fit chooses), 8 sectors, and one class. The map is scored on the held-out flights (20 %,
-seed 0): RMSE, MSLL, cov95, for directional maps the mixture MSLL and the conditional
-RMSE (the mode of the heading each held-out row flies, as the service answers it), and
-over the box it is judged as traffic can fly (:func:`plausibility`): on a 1 km grid at
-every 500 m of altitude, the fastest horizontal speed of the mean and of every mode with
-share >= 0.05, the share of voxels above the bound (1.1 x the 99.9th percentile of the
-horizontal speeds of the rows within 1 km of the altitude, 400 m/s where none is), and the
-share of voxels ``known``.
+uploads split into 16 sectors until a fit chooses), 8 sectors, and one class. The map is
+scored on the held-out flights (20 %, seed 0): RMSE, MSLL, cov95, for directional maps the
+mixture MSLL and the conditional RMSE (the mode of the heading each held-out row flies, as
+the service answers it), and over the box it is judged as traffic can fly
+(:func:`plausibility`): on a 1 km grid at every 500 m of altitude, the fastest horizontal
+speed of the mean and of every mode with share >= 0.05, the share of voxels above the bound
+(1.1 x the 99.9th percentile of the horizontal speeds of the rows within 1 km of the
+altitude, 400 m/s where none is), and the share of voxels ``known``.
 
 ``--sweep`` adds the lattices a user would plausibly choose (horizontal spacing 1, 2, 4, 8
 km, ``--spacings``, x vertical 0.5 and 1 km, 1 and 8 sectors, gamma = 1 / spacing^2) with

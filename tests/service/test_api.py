@@ -550,6 +550,7 @@ def test_limits_and_errors_are_problem_json(live_server):
             "BDF_MAX_POINTS": "1000",
             "BDF_MAX_GRID_VOXELS": "5000",
             "BDF_MAX_JSON_VOXELS": "100",
+            "BDF_MAP_MEMORY_MB": "130",  # SPEC's map (one class: 125 MiB) fits, of "auto" (135) not
         }
     )
     with httpx.Client(base_url=server.url, timeout=60) as c:
@@ -635,6 +636,14 @@ def test_limits_and_errors_are_problem_json(live_server):
                 c.get(f"/v1/regions/{NAME}/tubes", params={"step": "30", "max_std_mps": "-1"}),
                 422,
                 "max_std_mps",
+            ),
+            (
+                c.post(
+                    "/v1/regions", json={k: v for k, v in SPEC.items() if k != "directions"} | {"name": "a"}
+                ),
+                422,
+                "more than this service's 130 MiB for one map: raise the spacing or gamma, or take fewer "
+                '(model_)directions (of "auto", a fit may choose 32: name a count)',
             ),
             (c.get("/v1/regions/Bad%20Name"), 422, "must be 1 to 63 lowercase letters, digits, _ and -"),
             (c.post("/v1/regions", json={**SPEC, "name": "Paris"}), 422, "name: must be 1 to 63 lowercase"),
