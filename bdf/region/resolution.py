@@ -7,9 +7,11 @@ the map has not seen, not the next second of a flight it has), and keeps the few
 sectors whose held-out mixture MSLL is within one standard error of the best (the
 one-standard-error rule: Hastie, Tibshirani and Friedman, *The Elements of Statistical
 Learning*, 7.10): a query costs in proportion to the classes, so finer sectors must earn
-it. Each count's map of all the rows is computed first (the folds start their evidence
-search at its optimum) and kept on disk, so that one count's evidence and maps are in
-memory at a time; the chosen count's is the fit's map.
+it. Each count's map of all the rows is computed first, its evidence search started at
+the optimum of the count before (:func:`_start_from`: on twelve crossing flows 24 sectors
+take 28 factorisations instead of 149), and the folds start theirs at its own optimum; it
+is kept on disk, so that one count's evidence and maps are in memory at a time; the chosen
+count's is the fit's map.
 
 Uploads before any fit are split into :data:`bdf.region.spec.AUTO_FIRST_DIRECTIONS`
 sectors: the store keeps no rows, so evidence is binned once, by the count in force.
@@ -30,7 +32,7 @@ from bdf.posterior import Mixture, Posterior
 from bdf.region.evidence import accepted_rows, accepted_rows_increments, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior, decode_posterior, encode_posterior, region_field
 from bdf.region.spec import CHOICE_FOLDS, DirectionsScore, RegionSpec
-from bdf.sectors import AUTO_DIRECTIONS
+from bdf.sectors import AUTO_DIRECTIONS, Sectors
 
 log = logging.getLogger(__name__)
 #: The folds are drawn with this seed: the same rows choose the same way.
@@ -61,11 +63,11 @@ def choose_directions(
         kept = spec.with_directions(spec.model_directions)
         return Choice(kept, *_fit(kept, rows))
     steps = len(AUTO_DIRECTIONS) * (1 + CHOICE_FOLDS)
-    spilled, scores = {}, []
+    spilled, scores, start = {}, [], None
     with contextlib.ExitStack() as files:
         for i, S in enumerate(AUTO_DIRECTIONS):
             candidate = spec.with_directions(S)
-            tiles, _, full = _fit(candidate, rows)
+            tiles, _, full = _fit(candidate, rows, _start_from(start, S))
             total = region_total(candidate, {key: inc.evidence for key, inc in tiles.items()})
             start = full.next_start
             # one candidate's evidence and maps in memory at a time: its map waits on disk
@@ -110,17 +112,25 @@ def choose_directions(
     return Choice(spec, tiles, summary, post)
 
 
-def _fit(spec: RegionSpec, rows: tuple) -> tuple[dict, dict, Posterior | Mixture | None]:
+def _fit(spec: RegionSpec, rows: tuple, start=None) -> tuple[dict, dict, Posterior | Mixture | None]:
     """The tile increments of ``rows``, their summary, and the map of them (None: no row
-    accepted)."""
+    accepted), its evidence search started at ``start``."""
     tiles, summary = accepted_rows_increments(spec, *rows)
     if summary["accepted"] == 0:
         return tiles, summary, None
-    return (
-        tiles,
-        summary,
-        compute_posterior(spec, region_total(spec, {k: i.evidence for k, i in tiles.items()}), stored=False),
-    )
+    total = region_total(spec, {k: i.evidence for k, i in tiles.items()})
+    return tiles, summary, compute_posterior(spec, total, start, stored=False)
+
+
+def _start_from(previous: np.ndarray | None, directions: int) -> np.ndarray | None:
+    """Where the evidence search of ``directions`` sectors starts: at the optimum of the
+    candidate before (``previous``: a row for the map with one class, each sector, the slow
+    class), each sector at the row of the earlier sector that holds its centre. The optimum
+    is the same from any start; from one near it the search takes fewer factorisations."""
+    if previous is None:
+        return None
+    k = Sectors(len(previous) - 2).sector_of_heading(Sectors(directions).centres_deg)
+    return np.concatenate([previous[:1], previous[1 + k], previous[-1:]])
 
 
 def _folds(track: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None:

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from bdf import metrics
+from bdf import hyperparameters, metrics
 from bdf.region.evidence import accepted_increments, checked_rows, region_total
 from bdf.region.map import RegionMap, compute_posterior
-from bdf.region.resolution import choose_directions
+from bdf.region.resolution import _start_from, choose_directions
 from bdf.region.spec import AUTO_FIRST_DIRECTIONS, RegionSpec
 from bdf.sectors import AUTO_DIRECTIONS
 
@@ -79,6 +79,38 @@ def test_auto_picks_sectors_fine_enough_for_twelve_crossing_flows_and_predicts_t
         conditional_rmse(rmap8, Xt, Vt),
     )
     assert auto <= coarse * 2 / 3, (auto, coarse)
+
+
+def test_each_count_searches_from_the_optimum_of_the_one_before_to_the_same_map_in_fewer_solves(
+    monkeypatch,
+):
+    spec = RegionSpec.model_validate(CROSSING)
+    X, V, track, t = crossing_flows(np.arange(-3500, 3501, 1000), seed=0)
+    solves = []
+    solve = hyperparameters.solve
+    monkeypatch.setattr(hyperparameters, "solve", lambda *a: solves.append(1) or solve(*a))
+
+    def fitted(directions, start=None):
+        candidate = spec.with_directions(directions)
+        increments, _ = accepted_increments(candidate, X, V, track=track, time=t)
+        evidence = region_total(candidate, {k: i.evidence for k, i in increments.items()})
+        solves.clear()
+        post = compute_posterior(candidate, evidence, start, stored=False)
+        return post, len(solves)
+
+    sixteen, _ = fitted(16)
+    start = _start_from(sixteen.next_start, 24)
+    assert start.shape == (26, 3)  # the map with one class, 24 sectors, the slow class
+    # sector k of 24 starts at the 16-sector row holding its centre (15 k degrees)
+    np.testing.assert_array_equal(
+        start[1:-1], sixteen.next_start[1 + np.round(np.arange(24) * 15 / 22.5).astype(int) % 16]
+    )
+    fresh, from_scratch = fitted(24)
+    started, from_start = fitted(24, start)
+    assert from_start < from_scratch, (from_start, from_scratch)
+    np.testing.assert_allclose(started.alpha, fresh.alpha, rtol=1e-5)
+    np.testing.assert_allclose(started.beta, fresh.beta, rtol=1e-5)
+    assert _start_from(None, 8) is None
 
 
 def test_too_few_tracks_keep_the_model_in_force():
