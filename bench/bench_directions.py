@@ -16,9 +16,11 @@ the map over its box as traffic can fly it (:func:`bench_tracks.plausibility`), 
 
 ``auto``: the region's fit chooses among 8, 16, 24 and 32 by flight-grouped cross-validation
 of the training rows (``bdf.region.resolution``); its build is the choice's, and its row
-shows the scores that chose. ``--spread-share``: each map with these values of
-:data:`bdf.posterior.CLASS_SPREAD_SHARE` (how much of its class's spread a mode gains where
-its prior holds it; 0: none) instead of the library's.
+shows the scores that chose and the factorisations each count took (its map of all the
+rows, then its folds; a count, so unlike the times the same on a busy machine).
+``--spread-share``: each map with these values of :data:`bdf.posterior.CLASS_SPREAD_SHARE`
+(how much of its class's spread a mode gains where its prior holds it; 0: none) instead of
+the library's.
 """
 
 from __future__ import annotations
@@ -64,6 +66,16 @@ def conditional(sectors, test, modes, mu, sd) -> dict:
     return out
 
 
+def _counted_solves() -> list:
+    """A list that gains an entry at each factorisation :mod:`bdf.hyperparameters` makes from
+    now on in this process (each map runs in its own)."""
+    from bdf import hyperparameters
+
+    solves, solve = [], hyperparameters.solve
+    hyperparameters.solve = lambda *args: solves.append(1) or solve(*args)
+    return solves
+
+
 def one(directions: int | str, spacing: list[float] | None = None, spread_share: float | None = None) -> dict:
     """The figures of the map with ``directions`` sectors (run in its own process); "auto":
     the sectors the region's fit chooses (:mod:`bdf.region.resolution`), with its scores.
@@ -80,6 +92,7 @@ def one(directions: int | str, spacing: list[float] | None = None, spread_share:
     from bdf.region.evidence import checked_rows
     from bdf.region.map import RegionMap
     from bdf.region.resolution import choose_directions
+    from bdf.sectors import AUTO_DIRECTIONS
     from clients import samples
 
     train, test, lower, upper = split()
@@ -92,7 +105,13 @@ def one(directions: int | str, spacing: list[float] | None = None, spread_share:
     t0 = time.perf_counter()
     chose = {}
     if directions == "auto":
-        choice = choose_directions(spec, checked_rows(train.X, train.V, track=train.flight, time=train.time))
+        solves, steps = _counted_solves(), []  # factorisations at each step of the fit
+        choice = choose_directions(
+            spec,
+            checked_rows(train.X, train.V, track=train.flight, time=train.time),
+            lambda _: steps.append(len(solves)),
+        )
+        per_step = np.diff([0, *steps]).reshape(len(AUTO_DIRECTIONS), -1)  # a count's map, then its folds
         spec, rmap = choice.spec, RegionMap(choice.spec, choice.posterior)
         chose = {
             "chosen": spec.model_directions,
@@ -101,6 +120,9 @@ def one(directions: int | str, spacing: list[float] | None = None, spread_share:
             ),
             "CV conditional RMSE (8/16/24/32)": " / ".join(
                 f"{s.conditional_rmse_mps:.2f}" for s in spec.directions_scores
+            ),
+            "factorisations: maps of all rows / folds (8/16/24/32)": " / ".join(
+                f"{row[0]}, {row[1:].sum()}" for row in per_step
             ),
         }
     else:

@@ -422,7 +422,11 @@ async def create_region(request: Request, svc: ServiceDep):
             f"computing this region's map may take {spec.map_bytes / 2**20:.0f} MiB ({spec.couplings:.3g} "
             f"couplings), more than this service's {budget / 2**20:.0f} MiB for one map: raise the spacing "
             "or gamma, or take fewer (model_)directions"
-            + (' (of "auto", a fit may choose 32: name a count)' if spec.directions == "auto" else ""),
+            + (
+                f' (of "auto", a fit may choose {max(sectors.AUTO_DIRECTIONS)}: name a count)'
+                if spec.directions == "auto"
+                else ""
+            ),
         )
     info = await svc.run(lambda: svc.maps.store.create_region(spec))
     return JSONResponse(_view(info), status_code=201)

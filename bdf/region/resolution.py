@@ -8,8 +8,8 @@ sectors whose held-out mixture MSLL is within one standard error of the best (th
 one-standard-error rule: Hastie, Tibshirani and Friedman, *The Elements of Statistical
 Learning*, 7.10): a query costs in proportion to the classes, so finer sectors must earn
 it. Each count's map of all the rows is computed first, its evidence search started at
-the optimum of the count before (:func:`_start_from`: on twelve crossing flows 24 sectors
-take 28 factorisations instead of 149), and the folds start theirs at its own optimum; it
+the optimum of the count before (:func:`_start_from`: fewer factorisations, counted by
+``bench/bench_directions.py --directions auto``), and the folds start theirs at its own optimum; it
 is kept on disk, so that one count's evidence and maps are in memory at a time; the chosen
 count's is the fit's map.
 

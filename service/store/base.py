@@ -323,11 +323,11 @@ class MapStore(ABC):
                         (checksum(blob), region_id, key),
                     )
             # 6 names the model's sectors: a region stored before holds evidence of its own
-            # directions (one class: the paper's model), which a new spec's defaults would not read
+            # directions (one class: the paper's model), which a new spec's default would not read
             for name, text in q("SELECT name, spec FROM regions"):
                 body = json.loads(text)
                 if body.get("model_directions") is None:
-                    body["model_directions"] = body.setdefault("directions", 1)
+                    body["model_directions"] = body.get("directions", 1)
                     q("UPDATE regions SET spec = ? WHERE name = ?", (json.dumps(body), name))
             q("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION),))
         elif int(rows[0][0]) != SCHEMA_VERSION:

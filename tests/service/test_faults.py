@@ -379,9 +379,13 @@ def test_a_schema_2_store_is_upgraded_with_checksums_and_loses_nothing(store_url
     assert_stored(store_url, [1])
 
 
-def test_a_schema_5_store_keeps_its_one_class_regions_on_the_model_their_evidence_holds(store_url):
+@pytest.mark.parametrize("stored_without", [("model_directions",), ("model_directions", "directions")])
+def test_a_schema_5_store_keeps_its_one_class_regions_on_the_model_their_evidence_holds(
+    store_url, stored_without
+):
     """Schema 6 writes out a region's model sectors: a region of one class stored before it
-    holds one class's evidence, which a new spec's default (8 sectors) would not read."""
+    holds one class's evidence, which a new spec's defaults (8 sectors; "auto" directions,
+    for a spec stored before ``directions`` existed) would not read."""
     paper = {**SPEC, "model_directions": 1}
     with TestClient(create_app(Settings(store_url=store_url))) as c:
         assert c.post("/v1/regions", json=paper).status_code == 201
@@ -391,7 +395,8 @@ def test_a_schema_5_store_keeps_its_one_class_regions_on_the_model_their_evidenc
     conn, mark = raw_connection(store_url)
     (text,) = conn.execute("SELECT spec FROM regions").fetchone()
     old = json.loads(text)
-    del old["model_directions"]  # as schema 5 stored it
+    for field in stored_without:  # as schema 5 (or a store before directions) stored it
+        del old[field]
     conn.execute(f"UPDATE regions SET spec = {mark}", (json.dumps(old),))
     conn.execute("UPDATE meta SET value = '5' WHERE key = 'schema_version'")
     conn.close()
