@@ -149,14 +149,14 @@ def folds(n: int, n_splits: int, groups=None, seed: int = 0) -> np.ndarray:
 def held_out_scores(modes: Modes, sectors: Sectors, V: np.ndarray, V_train: np.ndarray) -> dict:
     """How a map's :class:`~bdf.posterior.Modes` at held-out rows predict their velocities
     ``V``: RMSE and MSLL of the mixture's moments, the mixture's MSLL
-    (:func:`bdf.metrics.mixture_msll`), and the RMSE of the mode of each row's own heading;
-    the MSLLs against the training rows' ``V_train`` mean and std."""
+    (:func:`bdf.metrics.mixture_msll`), and the RMSE of the mode of each row's own heading
+    (:meth:`~bdf.posterior.Modes.flown`); the MSLLs against the training rows' ``V_train``
+    mean and std."""
     mean, std = modes.answer(sectors)
     mu, sd = V_train.mean(0), V_train.std(0)
-    heading = np.degrees(np.arctan2(V[:, 0], V[:, 1]))
     return {
         "rmse": float(metrics.rmse(V, mean)),
         "msll": float(metrics.msll(V, mean, std, mu, sd)),
         "mixture_msll": float(metrics.mixture_msll(V, modes.share, modes.mean, modes.std, mu, sd)),
-        "cond_rmse": float(metrics.rmse(V, modes.answer(sectors, heading)[0])),
+        "cond_rmse": float(metrics.rmse(V, modes.flown(sectors, V)[0])),
     }

@@ -51,6 +51,16 @@ class Modes(NamedTuple):
         k0, k1, weight = (np.broadcast_to(a, self.share.shape[:-1]) for a in sectors.nearest_two(heading_deg))
         return pooled(weight, *self._of(k0), *self._of(k1))
 
+    def flown(self, sectors: Sectors, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and std (n, 3) of the mode of the heading each velocity ``V`` (n, 3) flies
+        (:meth:`answer`), or the slow class's below ``sectors.slow_mps``: how a held-out row
+        of known velocity is scored at its own heading (the conditional answer)."""
+        if self.share.shape[-1] == 1:
+            return self.answer(sectors)
+        mean, std = self.answer(sectors, np.degrees(np.arctan2(V[:, 0], V[:, 1])))
+        slow = (sectors.classify(V) == sectors.directions)[:, None]
+        return np.where(slow, self.mean[:, -1], mean), np.where(slow, self.std[:, -1], std)
+
     def as_one_class(self) -> Modes:
         """The mixture as one mode: its moments, share 1, all the data's weight."""
         mean, std = mixture_moments(self.share, self.mean, self.std)

@@ -38,8 +38,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def conditional(sectors, test, modes, mu, sd) -> dict:
-    """The answer at each held-out row's own heading: pooled, the sector's own mode, and the
-    linear blend (slow rows: the slow class's mode, the same for all three)."""
+    """The answer at each held-out row's own heading (slow rows: the slow class's mode, the
+    same for all): the service's (:meth:`bdf.posterior.Modes.flown`), the sector's own mode,
+    and the linear blend."""
     from bdf import metrics
     from bdf.sectors import mixture_moments
 
@@ -52,7 +53,7 @@ def conditional(sectors, test, modes, mu, sd) -> dict:
     blend[rows, k1] += 1.0 - weight
     own = sectors.sector_of_heading(heading)
     answers = {
-        "pooled": modes.answer(sectors, heading),
+        "pooled": modes.flown(sectors, V),
         "own sector": (modes.mean[rows, own], modes.std[rows, own]),
         "linear blend": mixture_moments(blend, modes.mean, modes.std),
     }

@@ -148,10 +148,9 @@ def held_out(spec: RegionSpec, rmap: RegionMap, train, test) -> dict:
             test.V, modes.share, modes.mean, modes.std, train.V.mean(0), train.V.std(0)
         )
         # the service's answer at the heading each held-out row flies (the slow class's below it)
-        heading = np.degrees(np.arctan2(test.V[:, 0], test.V[:, 1]))
-        flown = modes.answer(spec.sectors, heading)[0]
-        slow = spec.sectors.classify(test.V) == spec.sectors.directions
-        row["cond. RMSE"] = float(metrics.rmse(test.V, np.where(slow[:, None], modes.mean[:, -1], flown)))
+        flown, flown_std = modes.flown(spec.sectors, test.V)
+        row["cond. RMSE"] = float(metrics.rmse(test.V, flown))
+        row["cond. cov95"] = float(metrics.coverage(test.V, flown, flown_std))
     return row
 
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from bdf import BayesianDynamicField
+from bdf.crossval import held_out_scores
 from bdf.posterior import CLASS_SPREAD_SHARE, LOCAL_PRIOR_HINGES, LOCAL_PRIOR_ROWS, SHARE_FLOOR
 from bdf.region.evidence import decode_tile, encode_tile, increments, region_total
 from bdf.region.map import RegionMap, compute_posterior, region_field
@@ -40,8 +41,13 @@ def test_sectors_are_centred_on_north_clockwise_and_slow_is_last():
     np.testing.assert_array_equal(s.classify(V), [0, 1, 2, 3, 0, 4])
     np.testing.assert_array_equal(s.sector_of_heading([-44, 44, 46, 359, 721]), [0, 0, 1, 0, 0])
     np.testing.assert_array_equal(Sectors(1).classify(V), np.zeros(6))
-    for bad in ({"directions": 33}, {"directions": 0}, {"directions": 2.5}, {"slow_mps": 0}):
-        with pytest.raises(ValueError):
+    for bad in (
+        {"directions": 33},
+        {"directions": 0},
+        {"directions": 2.5},
+        {"slow_mps": 0},
+    ):
+        with pytest.raises(ValueError, match=next(iter(bad))):
             Sectors(**{"directions": 4, **bad})
 
 
@@ -167,6 +173,15 @@ def test_each_mode_is_the_field_of_its_class_and_the_mixture_is_their_moments(cr
     p0, p1 = w / modes.std[:, 0] ** 2, (1 - w) / modes.std[:, 1] ** 2
     assert_close(cond_std, 1 / np.sqrt(p0 + p1), 1e-12, "pooled std")
     assert_close(cond_mean, (p0 * modes.mean[:, 0] + p1 * modes.mean[:, 1]) / (p0 + p1), 1e-12, "pooled mean")
+    # a held-out row is scored at the heading it flies, or as the slow class below slow_mps
+    flying = np.array([[10.0, 10.0 * np.sqrt(3.0), 0.0], [1.0, -1.0, 0.5]] * 150)  # 30 degrees; slow
+    flown_mean, flown_std = modes.flown(Sectors(4), flying)
+    assert_close(flown_mean[::2], cond_mean[::2], 1e-12, "flown mean")
+    assert_close(flown_std[::2], cond_std[::2], 1e-12, "flown std")
+    assert_close(flown_mean[1::2], modes.mean[1::2, 4], 1e-12, "slow mean")
+    assert_close(flown_std[1::2], modes.std[1::2, 4], 1e-12, "slow std")
+    scores = held_out_scores(modes, Sectors(4), flying, V)
+    assert scores["cond_rmse"] == pytest.approx(np.sqrt(np.mean((flying - flown_mean) ** 2)), rel=1e-12)
     # continuous in the heading: either side of a sector boundary (45 degrees) the same
     below, above = (mix.predict(Q, return_std=True, heading_deg=h) for h in (45.0 - 1e-9, 45.0 + 1e-9))
     assert_close(below[0], above[0], 1e-6, "mean across a boundary")
