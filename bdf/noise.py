@@ -44,8 +44,15 @@ def moments(lattice: Lattice, X, V, weight) -> np.ndarray:
     return features.splat(lattice, X, W, 1.0 / lattice.step**2, cutoff=NOISE_CUTOFF)
 
 
+def table(lattice: Lattice, moments: np.ndarray) -> features.LaneTable:
+    """The moments (lattice + (7,)) as queries gather them: laid out once, not per query
+    (a noise lattice is fine: tens of MB a class)."""
+    return features.LaneTable.of(moments, features.lanes_for(lattice, 1.0 / lattice.step**2, NOISE_CUTOFF))
+
+
 def noise_variance(lattice: Lattice, moments, X, mean, beta, prior):
-    """sigma^2 at points ``X`` (n, 3) where the posterior mean is ``mean`` (n, 3)."""
+    """sigma^2 at points ``X`` (n, 3) where the posterior mean is ``mean`` (n, 3); ``moments``:
+    lattice values or their :func:`table`."""
     a = features.gather(lattice, X, moments, 1.0 / lattice.step**2, cutoff=NOISE_CUTOFF)
     return _shrunk(a, mean, beta, prior)
 

@@ -116,7 +116,8 @@ class Posterior:
     ):
         self.grid, self.kernel = grid, kernel
         self.gamma, self.cutoff = np.array(kernel.gamma), kernel.cutoff
-        self.noise_lattice, self.noise_prior, self._moments = noise_lattice, noise_prior, evidence.moments
+        self.noise_lattice, self.noise_prior = noise_lattice, noise_prior
+        self._moments = None if evidence.moments is None else noise.table(noise_lattice, evidence.moments)
         # where the data are (:meth:`data_weight`); a mixture keeps its classes' itself
         self._density = evidence.density if density else None
         self.stencil = sparse.stencil_on(grid, kernel)

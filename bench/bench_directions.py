@@ -12,7 +12,7 @@ the map over its box as traffic can fly it (:func:`bench_tracks.plausibility`), 
 1,000-point query with the modes, in the library.
 
     python bench/bench_directions.py [--directions 8,16,24,32,auto] [--spread-share 0.5]
-        [--publish]
+        [--noise-spacing 1000,1000,125 --noise-prior none,0.01,0.1] [--publish]
 
 ``auto``: the region's fit chooses among 8, 16, 24 and 32 by flight-grouped cross-validation
 of the training rows (``bdf.region.resolution``); its build is the choice's, and its row
@@ -20,12 +20,15 @@ shows the scores that chose and the factorisations each count took (its map of a
 rows, then its folds; a count, so unlike the times the same on a busy machine).
 ``--spread-share``: each map with these values of :data:`bdf.posterior.CLASS_SPREAD_SHARE`
 (how much of its class's spread a mode gains where its prior holds it; 0: none) instead of
-the library's.
+the library's. ``--noise-spacing`` and ``--noise-prior``: each map with local noise
+(:mod:`bdf.noise`) on that lattice at each prior weight ("none": the global noise, the
+demo's). Every row also says what the region would store: its map and its tiles.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import subprocess
 import sys
@@ -37,10 +40,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def conditional(sectors, test, modes, mu, sd) -> dict:
+def conditional(sectors, test, modes, epistemic, mu, sd) -> dict:
     """The answer at each held-out row's own heading (slow rows: the slow class's mode, the
     same for all): the service's (:meth:`bdf.posterior.Modes.flown`), the sector's own mode,
-    and the linear blend."""
+    and the linear blend; and the service's cov95 where the noise is over 90 % of its
+    variance (``epistemic``: the modes without noise), with the share of values there."""
     from bdf import metrics
     from bdf.sectors import mixture_moments
 
@@ -57,7 +61,14 @@ def conditional(sectors, test, modes, mu, sd) -> dict:
         "own sector": (modes.mean[rows, own], modes.std[rows, own]),
         "linear blend": mixture_moments(blend, modes.mean, modes.std),
     }
-    out = {}
+    mean, std = answers["pooled"]
+    noisy = epistemic.flown(sectors, V)[1] ** 2 < 0.1 * std**2
+    out = {
+        "pooled: cov95 where noise > 90 % of variance": float(
+            metrics.coverage(V[noisy], mean[noisy], std[noisy])
+        ),
+        "values where noise > 90 %": float(noisy.mean()),
+    }
     for name, (mean, std) in answers.items():
         mean = np.where(slow[:, None], modes.mean[:, -1], mean)
         std = np.where(slow[:, None], modes.std[:, -1], std)
@@ -77,11 +88,17 @@ def _counted_solves() -> list:
     return solves
 
 
-def one(directions: int | str, spacing: list[float] | None = None, spread_share: float | None = None) -> dict:
+def one(
+    directions: int | str,
+    spacing: list[float] | None = None,
+    spread_share: float | None = None,
+    noise: tuple[list[float], float] | None = None,
+) -> dict:
     """The figures of the map with ``directions`` sectors (run in its own process); "auto":
     the sectors the region's fit chooses (:mod:`bdf.region.resolution`), with its scores.
     ``spacing`` (m, per axis): that lattice, gamma 1 / spacing^2, instead of the demo's;
-    ``spread_share``: :data:`bdf.posterior.CLASS_SPREAD_SHARE`, instead of the library's."""
+    ``spread_share``: :data:`bdf.posterior.CLASS_SPREAD_SHARE`, instead of the library's;
+    ``noise``: local noise (:mod:`bdf.noise`) of this lattice spacing and prior weight."""
     import resource
 
     from bench_tracks import library_map, plausibility, split
@@ -90,9 +107,10 @@ def one(directions: int | str, spacing: list[float] | None = None, spread_share:
 
     if spread_share is not None:
         posterior.CLASS_SPREAD_SHARE = spread_share
-    from bdf.region.evidence import checked_rows
-    from bdf.region.map import RegionMap
+    from bdf.region.evidence import accepted_increments, checked_rows
+    from bdf.region.map import RegionMap, encode_posterior
     from bdf.region.resolution import choose_directions
+    from bdf.region.spec import RegionSpec
     from bdf.sectors import AUTO_DIRECTIONS
     from clients import samples
 
@@ -102,6 +120,10 @@ def one(directions: int | str, spacing: list[float] | None = None, spread_share:
     else:
         spec = samples.paris_region(
             lower, upper, spacing, directions=directions, cutoff=samples.PARIS_REGION_CUTOFF
+        )
+    if noise is not None:
+        spec = RegionSpec.model_validate(
+            {**spec.model_dump(), "noise_spacing_m": noise[0], "noise_prior": noise[1]}
         )
     t0 = time.perf_counter()
     chose = {}
@@ -140,18 +162,31 @@ def one(directions: int | str, spacing: list[float] | None = None, spread_share:
         rmap.predict(Q, modes=rmap.predict_modes(Q))
         query.append(time.perf_counter() - t)
     judged = plausibility(spec, rmap, train)
+    increments, _ = accepted_increments(spec, train.X, train.V, track=train.flight, time=train.time)
     return {
         "sectors": directions,
         "spread share": posterior.CLASS_SPREAD_SHARE,
+        "local noise (spacing m; prior)": "none" if noise is None else f"{noise[0]}; {noise[1]}",
         **chose,
         "build [s]": build_s,
         "peak RSS [GB]": peak / 1e9,
         "held-out MSLL": float(metrics.msll(test.V, mean, std, mu, sd)),
         "mixture MSLL": metrics.mixture_msll(test.V, modes.share, modes.mean, modes.std, mu, sd),
-        **conditional(spec.sectors, test, modes, mu, sd),
+        **conditional(
+            spec.sectors,
+            test,
+            modes,
+            rmap.posterior.predict_modes(spec.inside_points(test.X), include_noise=False),
+            mu,
+            sd,
+        ),
         "worst ratio to bound": judged["worst ratio to bound"],
         "implausible voxels": judged["implausible voxels"],
         "1,000-point query with modes [ms]": 1e3 * min(query),
+        # what a region stores: its map (encode_posterior) and its tiles (statistics and
+        # their rounding residual, as large again)
+        "stored map [MB]": len(encode_posterior(rmap.posterior)) / 1e6,
+        "tiles [MB]": sum(2 * len(i.evidence.to_bytes()) for i in increments.values()) / 1e6,
     }
 
 
@@ -164,19 +199,27 @@ def main():
     parser.add_argument(
         "--spread-share", help="values of bdf.posterior.CLASS_SPREAD_SHARE to run (comma-separated)"
     )
+    parser.add_argument("--noise-spacing", help="local noise on a lattice of this spacing (m, x,y,z)")
+    parser.add_argument(
+        "--noise-prior", default="none", help="its prior weights (comma-separated; none: the global noise)"
+    )
     parser.add_argument("--one", help=argparse.SUPPRESS)  # a child: one map, JSON out
     parser.add_argument("--publish", action="store_true", help="append the report to bench/RESULTS.md")
     args = parser.parse_args()
     spacing = None if args.spacing is None else [float(v) for v in args.spacing.split(",")]
     shares = [None] if args.spread_share is None else [float(v) for v in args.spread_share.split(",")]
+    priors = args.noise_prior.split(",")
     if args.one:
         directions = args.one if args.one == "auto" else int(args.one)
-        print(json.dumps(one(directions, spacing, shares[0])))
+        noise = None
+        if priors[0] != "none":
+            noise = ([float(v) for v in args.noise_spacing.split(",")], float(priors[0]))
+        print(json.dumps(one(directions, spacing, shares[0], noise)))
         return
     from bench_core import publish, rows_table
 
     rows = []
-    for share in shares:
+    for share, prior in itertools.product(shares, priors):
         for directions in args.directions.split(","):
             out = subprocess.run(
                 [
@@ -186,6 +229,11 @@ def main():
                     str(directions),
                     *(["--spacing", args.spacing] if spacing else []),
                     *(["--spread-share", str(share)] if share is not None else []),
+                    *(
+                        ["--noise-spacing", args.noise_spacing, "--noise-prior", prior]
+                        if prior != "none"
+                        else []
+                    ),
                 ],
                 capture_output=True,
                 text=True,
@@ -199,6 +247,11 @@ def main():
         f"python bench/bench_directions.py --directions {args.directions}"
         + (f" --spacing {args.spacing}" if spacing else "")
         + (f" --spread-share {args.spread_share}" if args.spread_share else "")
+        + (
+            f" --noise-spacing {args.noise_spacing} --noise-prior {args.noise_prior}"
+            if args.noise_spacing
+            else ""
+        )
     )
     lines = [
         f"\n## Heading resolution ({time.strftime('%Y-%m-%d')}, `{command}`)\n",

@@ -103,9 +103,10 @@ POSTERIOR_NAMES = frozenset(
 #: prior mean; 3: its query tables as :class:`bdf.features.LaneTable`, 2026-11-28; 4: their
 #: chunks as wide as :func:`bdf.features.lanes_for` says; 5: a mode's variance widened by
 #: its class's spread where its prior holds it, :data:`bdf.posterior.CLASS_SPREAD_SHARE`;
-#: 6: that spread about the mode's prior mean; all 2026-11-28), so that a map stored by an
-#: older code is computed again, not served (:func:`decode_posterior`)
-MODEL_REVISION = 6
+#: 6: that spread about the mode's prior mean; all 2026-11-28; 7: local noise moments as a
+#: :class:`bdf.features.LaneTable`, 2026-11-28), so that a map stored by an older code is
+#: computed again, not served (:func:`decode_posterior`)
+MODEL_REVISION = 7
 
 
 def encode_posterior(post: Posterior | Mixture) -> bytes:

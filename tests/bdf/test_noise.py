@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from bdf import BayesianDynamicField
+from bdf import BayesianDynamicField, features
 from bdf.kernel import NOISE_CUTOFF
 from bdf.sectors import Sectors
 from bdf.statistics import SectorEvidence
@@ -149,3 +149,28 @@ def test_bad_local_noise_settings_are_clear_value_errors(change, message):
     field = BayesianDynamicField(LOWER, UPPER, SPACING, GAMMA, **change)
     with pytest.raises(ValueError, match=message):
         field.fit(np.ones((3, 3)), np.ones((3, 3)))
+
+
+@pytest.mark.parametrize("directions", [1, 4])
+def test_queries_gather_the_moments_as_laid_out_once(data, monkeypatch, directions):
+    """A map keeps its noise moments as a LaneTable: a query does not lay out tens of MB a
+    class again (it did, per class and per query: 8.5x the demo's 16-sector query)."""
+    X, V = data
+    field = BayesianDynamicField(
+        LOWER, UPPER, SPACING, GAMMA, "auto", "auto", noise_spacing=NOISE_SPACING, directions=directions
+    ).fit(X, V)
+    Xq = np.random.default_rng(1).uniform(LOWER, UPPER, (50, 3))
+    axes = [np.linspace(0, 10, 6), np.linspace(1, 7, 4), np.linspace(0, 6, 5)]
+
+    def answers():
+        modes = field.predict_modes(Xq)
+        return [*field.predict(Xq, return_std=True), modes.std, *field.posterior_.predict_grid(axes)]
+
+    first = answers()  # lays out the query tables of the hinge and midpoint lattices
+
+    def laid_out(*args):
+        raise AssertionError("a query laid out a table")
+
+    monkeypatch.setattr(features.LaneTable, "of", laid_out)
+    for got, want in zip(answers(), first, strict=True):
+        np.testing.assert_array_equal(got, want)
