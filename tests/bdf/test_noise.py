@@ -154,7 +154,8 @@ def test_bad_local_noise_settings_are_clear_value_errors(change, message):
 @pytest.mark.parametrize("directions", [1, 4])
 def test_queries_gather_the_moments_as_laid_out_once(data, monkeypatch, directions):
     """A map keeps its noise moments as a LaneTable: a query does not lay out tens of MB a
-    class again (it did, per class and per query: 8.5x the demo's 16-sector query)."""
+    class again (it did, per class and per query: 271 against 52 ms on the demo's region at
+    16 sectors, bench/RESULTS.md)."""
     X, V = data
     field = BayesianDynamicField(
         LOWER, UPPER, SPACING, GAMMA, "auto", "auto", noise_spacing=NOISE_SPACING, directions=directions

@@ -41,12 +41,7 @@ def test_sectors_are_centred_on_north_clockwise_and_slow_is_last():
     np.testing.assert_array_equal(s.classify(V), [0, 1, 2, 3, 0, 4])
     np.testing.assert_array_equal(s.sector_of_heading([-44, 44, 46, 359, 721]), [0, 0, 1, 0, 0])
     np.testing.assert_array_equal(Sectors(1).classify(V), np.zeros(6))
-    for bad in (
-        {"directions": 33},
-        {"directions": 0},
-        {"directions": 2.5},
-        {"slow_mps": 0},
-    ):
+    for bad in ({"directions": 33}, {"directions": 0}, {"directions": 2.5}, {"slow_mps": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             Sectors(**{"directions": 4, **bad})
 
