@@ -101,13 +101,13 @@ def one(
     ``noise``: local noise (:mod:`bdf.noise`) of this lattice spacing and prior weight."""
     import resource
 
-    from bench_tracks import library_map, plausibility, split
+    from bench_tracks import library_increments, library_map, plausibility, split
 
     from bdf import metrics, posterior
 
     if spread_share is not None:
         posterior.CLASS_SPREAD_SHARE = spread_share
-    from bdf.region.evidence import accepted_increments, checked_rows
+    from bdf.region.evidence import checked_rows
     from bdf.region.map import RegionMap, encode_posterior
     from bdf.region.resolution import choose_directions
     from bdf.region.spec import RegionSpec
@@ -148,8 +148,10 @@ def one(
                 f"{row[0]}, {row[1:].sum()}" for row in per_step
             ),
         }
+        increments = choice.increments
     else:
-        rmap = library_map(spec, train, True)
+        increments = library_increments(spec, train, True)
+        rmap = library_map(spec, train, True, increments)
     build_s = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     modes = rmap.predict_modes(test.X)
@@ -162,7 +164,6 @@ def one(
         rmap.predict(Q, modes=rmap.predict_modes(Q))
         query.append(time.perf_counter() - t)
     judged = plausibility(spec, rmap, train)
-    increments, _ = accepted_increments(spec, train.X, train.V, track=train.flight, time=train.time)
     return {
         "sectors": directions,
         "spread share": posterior.CLASS_SPREAD_SHARE,

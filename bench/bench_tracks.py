@@ -165,10 +165,17 @@ def expected_coverage(modes, mean, std) -> float:
     return float(np.mean(np.einsum("nc,ncd->nd", modes.share, inside)))
 
 
-def library_map(spec: RegionSpec, train, tracks: bool) -> RegionMap:
-    """The map of the rows through the library's own path (no tiles kept, no HTTP)."""
+def library_increments(spec: RegionSpec, train, tracks: bool) -> dict:
+    """The tile increments of the rows through the library's own path (what uploads store)."""
     kw = {"track": train.flight, "time": train.time} if tracks else {}
-    increments, _ = accepted_increments(spec, train.X, train.V, **kw)
+    return accepted_increments(spec, train.X, train.V, **kw)[0]
+
+
+def library_map(spec: RegionSpec, train, tracks: bool, increments: dict | None = None) -> RegionMap:
+    """The map of the rows (or of their ``increments``, :func:`library_increments`) through
+    the library's own path (no tiles kept, no HTTP)."""
+    if increments is None:
+        increments = library_increments(spec, train, tracks)
     evidence = region_total(spec, {k: i.evidence for k, i in increments.items()})
     return RegionMap(spec, compute_posterior(spec, evidence))
 
