@@ -264,7 +264,8 @@ class BayesianDynamicField:
         heading_deg : None, number or (n,)
             None: a directional field answers its mixture's mean and std. A heading
             (degrees from north, clockwise): the mode of traffic flying it (the two
-            nearest sectors' modes pooled, :func:`bdf.sectors.pooled`).
+            nearest sectors' modes pooled, their noise narrowed by the heading:
+            :func:`bdf.sectors.heading_mode`).
             A field of one direction has one mode.
         """
         X = as_points(X, "X", allow_empty=True)

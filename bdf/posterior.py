@@ -14,7 +14,7 @@ from bdf import _blas, features, hyperparameters, noise, sparse
 from bdf.features import LaneTable
 from bdf.grid import HingeGrid
 from bdf.kernel import Kernel
-from bdf.sectors import Sectors, mixture_moments, pooled
+from bdf.sectors import Sectors, heading_mode, mixture_moments
 from bdf.statistics import MIDPOINT_BLOCK, Evidence, SectorEvidence
 
 #: ``known``: the data within the kernel's reach weigh at least this (:func:`known`): one
@@ -38,18 +38,23 @@ class Modes(NamedTuple):
     mean: np.ndarray  # (n, C, 3) velocity of each mode
     std: np.ndarray  # (n, C, 3) its std (predictive, or epistemic)
     weight: np.ndarray  # (n, C) the class's data within the kernel's reach (:meth:`Posterior.data_weight`)
+    # (n, C, 3) the noise variance within std^2 of each heading sector's mode, which a known
+    # heading can narrow (:func:`bdf.sectors.heading_mode`); zero for the slow class and for
+    # a map of one class, which no heading narrows
+    heading_noise: np.ndarray
 
     def answer(self, sectors: Sectors, heading_deg=None) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std (..., 3): the mixture's moments (at points or on a grid), or with
         ``heading_deg`` (one, or one per point) the mode of that heading: the two nearest
-        sectors' modes pooled (:func:`bdf.sectors.pooled`; the one mode of a map of one
+        sectors' modes pooled (:func:`bdf.sectors.heading_mode`; the one mode of a map of one
         class)."""
         if self.share.shape[-1] == 1:
             return self.mean[..., 0, :], self.std[..., 0, :]
         if heading_deg is None:
             return mixture_moments(self.share, self.mean, self.std)
-        k0, k1, weight = (np.broadcast_to(a, self.share.shape[:-1]) for a in sectors.nearest_two(heading_deg))
-        return pooled(weight, *self._of(k0), *self._of(k1))
+        heading = np.broadcast_to(np.asarray(heading_deg, float), self.share.shape[:-1])
+        k0, k1, weight = sectors.nearest_two(heading)
+        return heading_mode(sectors, heading, weight, *self._of(k0), *self._of(k1))
 
     def flown(self, sectors: Sectors, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std (n, 3) of the mode of the heading each velocity ``V`` (n, 3) flies
@@ -66,7 +71,8 @@ class Modes(NamedTuple):
         mean, std = mixture_moments(self.share, self.mean, self.std)
         shape = self.share.shape[:-1]
         weight = self.weight.sum(axis=-1, keepdims=True)
-        return Modes(np.ones((*shape, 1)), np.zeros(shape), mean[..., None, :], std[..., None, :], weight)
+        one = (np.ones((*shape, 1)), np.zeros(shape), mean[..., None, :], std[..., None, :], weight)
+        return Modes(*one, np.zeros_like(one[3]))
 
     def heading_share(self, sectors: Sectors, heading_deg) -> np.ndarray:
         """(...): the share of traffic of a heading, pooled as its mode (:meth:`answer`)."""
@@ -74,12 +80,11 @@ class Modes(NamedTuple):
         s0, s1 = (np.take_along_axis(self.share, k[..., None], axis=-1)[..., 0] for k in (k0, k1))
         return weight * s0 + (1.0 - weight) * s1
 
-    def _of(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and std (..., 3) of class ``k`` (...) at each point."""
+    def _of(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mean, std and heading noise (..., 3) of class ``k`` (...) at each point."""
         at = k[..., None, None]
-        return (
-            np.take_along_axis(self.mean, at, axis=-2)[..., 0, :],
-            np.take_along_axis(self.std, at, axis=-2)[..., 0, :],
+        return tuple(
+            np.take_along_axis(a, at, axis=-2)[..., 0, :] for a in (self.mean, self.std, self.heading_noise)
         )
 
     @property
@@ -253,14 +258,15 @@ class Posterior:
         """The one mode of a map of one class."""
         mean, std, weight = self.answer(X, include_noise)
         n = len(X)
-        return Modes(np.ones((n, 1)), np.zeros(n), mean[:, None], std[:, None], weight)
+        return Modes(np.ones((n, 1)), np.zeros(n), mean[:, None], std[:, None], weight, np.zeros((n, 1, 3)))
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """The one mode of a map of one class, on the grid ``axes``."""
         mean, var = self.predict_grid(axes, include_noise)
         n = mean.shape[:3]
         weight = self.data_weight_grid(axes)
-        return Modes(np.ones((*n, 1)), np.zeros(n), mean[..., None, :], np.sqrt(var)[..., None, :], weight)
+        one = (np.ones((*n, 1)), np.zeros(n), mean[..., None, :], np.sqrt(var)[..., None, :], weight)
+        return Modes(*one, np.zeros_like(one[3]))
 
     def compact(self) -> Posterior:
         """Compute the variance density and the gather tables now and drop the factors:
@@ -663,15 +669,19 @@ class Mixture:
         C = len(self.modes)
         at, var, extra = self._gather(X, modes=True)
         mean = at[:, : 3 * C].reshape(len(X), C, 3)
-        std = np.empty_like(mean)
+        std, heading_noise = np.empty_like(mean), np.zeros_like(mean)
         for c, mode in enumerate(self.modes):
             v = self._widened(c, np.maximum(var[:, tables.columns[c]] / mode.beta, 0.0))
             if include_noise:
-                v = v + mode.noise_variance(X, mean[:, c])
+                scatter = mode.noise_variance(X, mean[:, c])
+                v = v + scatter
+                if c < self.sectors.directions:
+                    heading_noise[:, c] = scatter
             std[:, c] = np.sqrt(v)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
         share, share_std = self._share(at[:, 3 * C :], extra[:, tables.total_columns[0]])
-        return Modes(share, share_std, mean, std, _normalised(self.grid, self.gamma, extra[:, -C:], X))
+        weight = _normalised(self.grid, self.gamma, extra[:, -C:], X)
+        return Modes(share, share_std, mean, std, weight, heading_noise)
 
     def answer(self, X: np.ndarray, include_noise=True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The mixture's mean and std (n, 3) and all the data's weight (n, 1), as
@@ -712,17 +722,21 @@ class Mixture:
         std = var[..., tables.columns]  # (nx, ny, nz, C, 3), then in place
         std /= np.stack([m.beta for m in self.modes])
         np.maximum(std, 0.0, out=std)
+        heading_noise = np.zeros_like(mean)
         for c, mode in enumerate(self.modes):
             std[..., c, :] = self._widened(c, std[..., c, :])
             if include_noise:
-                std[..., c, :] += mode.noise_variance_grid(axes, mean[..., c, :])
+                scatter = mode.noise_variance_grid(axes, mean[..., c, :])
+                std[..., c, :] += scatter
+                if c < self.sectors.directions:
+                    heading_noise[..., c, :] = scatter
         np.sqrt(std, out=std)
         # phi^T (G + lam I)^-1 phi, from the map with one class's first factorisation
         share, share_std = self._share(
             at[..., 3 * C :].reshape(-1, C), extra[..., tables.total_columns[0]].ravel()
         )
         weight = _normalised_grid(self.grid, self.gamma, extra[..., -C:], axes)
-        return Modes(share.reshape(*n, C), share_std.reshape(n), mean, std, weight)
+        return Modes(share.reshape(*n, C), share_std.reshape(n), mean, std, weight, heading_noise)
 
     def compact(self) -> Mixture:
         self.total.compact()

@@ -6,7 +6,7 @@ uploads give them, :func:`bench_tracks.library_map`), on the demo's lattice. Per
 sectors, each in a fresh process (its peak RSS is the map's): the build, held-out MSLL of
 the mixture's moments, mixture MSLL, and the conditional answer at the heading each held-out
 row flies, two ways side by side: the two nearest sectors' modes pooled (the service's rule,
-:func:`bdf.sectors.pooled`) and the sector's own mode (the rule before); with the linear
+:func:`bdf.sectors.heading_mode`) and the sector's own mode (the rule before); with the linear
 blend of the two modes (weights linear in angle, moments of the blend) for reference. Then
 the map over its box as traffic can fly it (:func:`bench_tracks.plausibility`), and a
 1,000-point query with the modes, in the library.

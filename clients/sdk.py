@@ -102,9 +102,10 @@ class Prediction:
 class Grid:
     """A voxel grid: axes x (nx,), y (ny,), z (nz,); mean and std (nx, ny, nz, 3). With
     ``modes``: each traffic class's ``share`` (nx, ny, nz, C), ``mode_mean`` and ``mode_std``
-    (nx, ny, nz, C, 3), the shares' std ``share_std`` (nx, ny, nz), and
-    ``mode_prior_only`` (nx, ny, nz, C): no data of the class within the kernel's reach,
-    so its mode there is only its prior."""
+    (nx, ny, nz, C, 3), the shares' std ``share_std`` (nx, ny, nz), ``mode_prior_only``
+    (nx, ny, nz, C): no data of the class within the kernel's reach, so its mode there is
+    only its prior, and ``mode_heading_noise`` (nx, ny, nz, C, 3): the noise variance within
+    ``mode_std^2`` that a known heading narrows (:func:`bdf.sectors.heading_mode`)."""
 
     x: np.ndarray
     y: np.ndarray
@@ -118,6 +119,7 @@ class Grid:
     mode_std: np.ndarray | None = None
     share_std: np.ndarray | None = None
     mode_prior_only: np.ndarray | None = None
+    mode_heading_noise: np.ndarray | None = None
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -722,7 +724,7 @@ class _Endpoints:
         params = self._read_params(name, _grid_params(step, bbox) | ({"modes": "true"} if modes else {}))
         response = yield _Request("GET", f"/v1/regions/{name}/grid", accept=NPZ, params=params)
         a = _npz(response.content)
-        names = ("share", "mode_mean", "mode_std", "share_std", "mode_prior_only")
+        names = ("share", "mode_mean", "mode_std", "share_std", "mode_prior_only", "mode_heading_noise")
         per_class = tuple(a[n] for n in names) if modes else (None,) * len(names)
         return Grid(a["x"], a["y"], a["z"], a["mean"], a["std"], a["known"], _version(response), *per_class)
 

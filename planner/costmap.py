@@ -15,7 +15,7 @@ A route's cost is ``∫ (1 + risk(x) + flow(x, direction)) ds`` along it (metres
 
 On a directional map (``modes``: each traffic class's share, mean and std, the classes of
 :class:`bdf.sectors.Sectors`) a segment flies in the mode of its heading, the two nearest
-sectors' modes pooled as the service answers a heading (:func:`bdf.sectors.pooled`; the
+sectors' modes pooled as the service answers a heading (:func:`bdf.sectors.heading_mode`; the
 slow class when its horizontal speed at ``cruise_mps`` is below ``slow_mps``): risk, tube
 and flow are that mode's, and a *conflict* term is added, ``w_conflict * sum over the
 other classes c of share_c * c_c * |cruise * direction - mean_c| / cruise`` (the two pooled
@@ -41,7 +41,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import erfc
 
-from bdf.sectors import CROSSING_DEG, MIN_SHARE, Sectors, pooled
+from bdf.sectors import CROSSING_DEG, MIN_SHARE, Sectors, heading_mode
 
 #: Where no tile has data, the std is at least this many tube bounds.
 UNKNOWN_STD_RATIO = 10.0
@@ -50,8 +50,9 @@ UNKNOWN_STD_RATIO = 10.0
 CURVATURE_SAFETY = 1.25
 #: Columns of the per-voxel field table.
 S, RISK, CONFIDENCE, MEAN = 0, 1, 2, slice(3, 6)
-#: Columns of the class table: the 6 fields above, then the class's share and std (e, n, u).
-SHARE, STD, CLASS_COLUMNS = 6, slice(7, 10), 10
+#: Columns of the class table: the 6 fields above, then the class's share, std (e, n, u)
+#: and the noise variance within it that a known heading narrows (:func:`bdf.sectors.heading_mode`).
+SHARE, STD, HEADING_NOISE, CLASS_COLUMNS = 6, slice(7, 10), slice(10, 13), 13
 
 
 @dataclass(frozen=True)
@@ -83,12 +84,14 @@ class CostWeights:
 
 @dataclass(frozen=True)
 class ModeGrids:
-    """A directional map on the grid: ``share`` (nx, ny, nz, C), ``mean`` and ``std`` (nx, ny,
-    nz, C, 3) of each traffic class of ``sectors`` (the service's grid with ``modes``)."""
+    """A directional map on the grid: ``share`` (nx, ny, nz, C), ``mean``, ``std`` and
+    ``heading_noise`` (nx, ny, nz, C, 3) of each traffic class of ``sectors`` (the service's
+    grid with ``modes``; :class:`bdf.posterior.Modes`)."""
 
     share: np.ndarray
     mean: np.ndarray
     std: np.ndarray
+    heading_noise: np.ndarray
     sectors: Sectors
 
 
@@ -141,7 +144,7 @@ class CostMap:
         table = _voxel_fields(mean, std, self.weights)
         classes = class_curvature = None
         if self.modes is not None:
-            per_class = self._class_fields(shape, known)  # (nx, ny, nz, C, 10)
+            per_class = self._class_fields(shape, known)  # (nx, ny, nz, C, 13)
             # a state is in the tube when some class's mode with at least MIN_SHARE of the
             # traffic is: its fields are the least s's (the mixture's where no class has)
             s = np.where(per_class[..., SHARE] >= MIN_SHARE, per_class[..., S], np.inf)
@@ -167,20 +170,26 @@ class CostMap:
         return np.where(k, mean, 0.0), np.where(k, std, np.maximum(std, floor))
 
     def _class_fields(self, shape, known) -> np.ndarray:
-        """(nx, ny, nz, C, 10): each class's fields (s, risk, confidence, mean), share and std."""
+        """(nx, ny, nz, C, 13): each class's fields (s, risk, confidence, mean), share, std and
+        heading noise."""
         m = self.modes
         C = m.sectors.classes
         share = np.asarray(m.share, float)
         mean, std = np.asarray(m.mean, float), np.asarray(m.std, float)
-        if share.shape != (*shape, C) or mean.shape != (*shape, C, 3) or std.shape != (*shape, C, 3):
+        heading_noise = np.asarray(m.heading_noise, float)
+        if share.shape != (*shape, C) or any(a.shape != (*shape, C, 3) for a in (mean, std, heading_noise)):
             raise ValueError(
                 f"modes must have shapes {(*shape, C)} and {(*shape, C, 3)} for {C} classes, got "
-                f"{share.shape}, {mean.shape}, {std.shape}"
+                f"{share.shape}, {mean.shape}, {std.shape}, {heading_noise.shape}"
             )
-        if not (np.isfinite(mean).all() and np.isfinite(std).all() and np.isfinite(share).all()):
-            raise ValueError("mode means, stds and shares must be finite")
+        if not all(np.isfinite(a).all() for a in (mean, std, share, heading_noise)):
+            raise ValueError("mode means, stds, heading noises and shares must be finite")
+        if not ((heading_noise >= 0).all() and (heading_noise <= std * std).all()):
+            raise ValueError("a mode's heading noise must lie between 0 and its variance std^2")
         mean, std = self._unknown_as_prior(mean, std, known)
-        return np.concatenate([_voxel_fields(mean, std, self.weights), share[..., None], std], axis=-1)
+        return np.concatenate(
+            [_voxel_fields(mean, std, self.weights), share[..., None], std, heading_noise], axis=-1
+        )
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -279,19 +288,22 @@ class CostMap:
     def flown(self, X, direction) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """On a directional map, per sample flying along ``direction``: the cost per metre,
         the tube's s (upper bound, as :meth:`max_std_high`) of the mode flown, the class
-        fields (n, C, 10) and the fields of the mode flown (n, 6). The mode flown is the
+        fields (n, C, 13) and the fields of the mode flown (n, 6). The mode flown is the
         heading's, its two nearest sectors' modes pooled (as the service's answer for a
-        heading, :func:`bdf.sectors.pooled`), or the slow class's (:meth:`class_of`)."""
+        heading, :func:`bdf.sectors.heading_mode`), or the slow class's (:meth:`class_of`)."""
         w = self.weights
         F, cell, t = self._interpolate(X, self.classes)
         sectors = self.modes.sectors
         F = F.reshape(len(F), sectors.classes, CLASS_COLUMNS)
         n = np.arange(len(F))
-        k0, k1, weight = sectors.nearest_two(np.degrees(np.arctan2(direction[:, 0], direction[:, 1])))
+        heading = np.degrees(np.arctan2(direction[:, 0], direction[:, 1]))
+        k0, k1, weight = sectors.nearest_two(heading)
         slow = self.class_of(direction) == sectors.directions
         k0, k1 = np.where(slow, sectors.directions, k0), np.where(slow, sectors.directions, k1)
         weight = np.where(slow, 1.0, weight)
-        mean, std = pooled(weight, F[n, k0, MEAN], F[n, k0, STD], F[n, k1, MEAN], F[n, k1, STD])
+        mean, std = heading_mode(
+            sectors, heading, weight, *(F[n, k, col] for k in (k0, k1) for col in (MEAN, STD, HEADING_NOISE))
+        )
         # one class flown (the slow one, or a map of one direction): its fields as interpolated
         own = np.where((k0 == k1)[:, None], F[n, k0, :SHARE], _voxel_fields(mean, std, w))
         mean = own[:, MEAN]

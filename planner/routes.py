@@ -48,7 +48,8 @@ class MapSource(Protocol):
 
     def grid(self, name: str, step, bbox=None, *, modes: bool = False) -> Any:
         """An object with ``axes``, ``mean``, ``std``, ``known`` and, with ``modes``,
-        ``share``, ``mode_mean``, ``mode_std`` (as :meth:`clients.sdk.BDFClient.grid`)."""
+        ``share``, ``mode_mean``, ``mode_std``, ``mode_heading_noise`` (as
+        :meth:`clients.sdk.BDFClient.grid`)."""
 
     def assess_route(self, name: str, route, *, max_std_mps: float, vehicle: dict, times_s) -> dict:
         """A route's metrics on the map (as :meth:`clients.sdk.BDFClient.assess_route`)."""
@@ -69,6 +70,7 @@ class LocalGrid:
     mode_mean: np.ndarray | None = None
     mode_std: np.ndarray | None = None
     share_std: np.ndarray | None = None
+    mode_heading_noise: np.ndarray | None = None
 
     @property
     def x(self) -> np.ndarray:
@@ -113,7 +115,7 @@ class LocalMap:
         mean, std, known = self.map.predict_grid(axes, m)
         if m is None:
             return LocalGrid(axes, mean, std, known)
-        return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std, m.share_std)
+        return LocalGrid(axes, mean, std, known, m.share, m.mean, m.std, m.share_std, m.heading_noise)
 
     def assess_route(self, name: str, route, *, max_std_mps: float, vehicle: dict, times_s) -> dict:
         self._check(name)
@@ -322,7 +324,9 @@ def _plan_on_grid(client, region, spec, start, goal, box, step, weights, run, cr
     lo[:2] = spec.lower[:2] + np.floor((lo[:2] - spec.lower[:2]) / step[:2] + 1e-9) * step[:2]
     directional = not spec.one_class
     grid = client.grid(region, step, bbox=[*lo, *hi], modes=directional)
-    modes = ModeGrids(grid.share, grid.mode_mean, grid.mode_std, spec.sectors) if directional else None
+    modes = None
+    if directional:
+        modes = ModeGrids(grid.share, grid.mode_mean, grid.mode_std, grid.mode_heading_noise, spec.sectors)
     costmap = CostMap(grid.axes, grid.mean, grid.std, weights, known=grid.known, modes=modes)
     # the grid ends on a whole step: the box the planner sees is the grid's
     band = (float(costmap.lower[2]), float(costmap.upper[2]))

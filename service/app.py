@@ -720,7 +720,9 @@ async def grid(
 ):
     """Mean and std on the voxel grid ``bbox`` x ``step``: npz (arrays mean, std (nx, ny, nz,
     3), known (nx, ny, nz), x, y, z; with ``modes``: share (nx, ny, nz, C), share_std,
-    mode_mean and mode_std (nx, ny, nz, C, 3), mode_prior_only (nx, ny, nz, C: no data of
+    mode_mean and mode_std (nx, ny, nz, C, 3), mode_heading_noise (nx, ny, nz, C, 3: the noise
+    variance within mode_std^2 that a known heading narrows, :func:`bdf.sectors.heading_mode`),
+    mode_prior_only (nx, ny, nz, C: no data of
     the class within the kernel's reach, the mode is its prior), heading_deg (C,), NaN for
     the slow class),
     Arrow (one row per voxel, C order; ``shape`` in the schema metadata), or JSON for small
@@ -767,7 +769,7 @@ async def tubes(
     where data lies within the kernel's reach, with their mean velocity: GeoJSON points (lon, lat, alt),
     npz (points, mean, std (k, 3), mask (nx, ny, nz), x, y, z) or Arrow. With ``heading_deg``,
     mean and std are the mode of that heading (its two nearest sectors' modes pooled,
-    :func:`bdf.sectors.pooled`), and its share, pooled alike, bounds the tube too."""
+    :func:`bdf.sectors.heading_mode`), and its share, pooled alike, bounds the tube too."""
     out = formats.negotiate(request.headers.get("accept"), [GEOJSON, JSON, NPZ, ARROW])
     bound = formats.TubeBound(max_std_mps, component, heading_deg, min_share)
     max_json = svc.settings.max_json_voxels

@@ -785,6 +785,7 @@ def encode_grid(out: str, spec: RegionSpec, axes, pred, headers: dict, max_json_
                 share_std=m.share_std,
                 mode_mean=m.mean,
                 mode_std=m.std,
+                mode_heading_noise=m.heading_noise,
                 mode_prior_only=m.prior_only,
                 heading_deg=np.array(headings),
             )

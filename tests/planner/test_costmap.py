@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
+from bdf import BayesianDynamicField
 from bdf.sectors import Sectors
 from planner.costmap import CURVATURE_SAFETY, CostMap, CostWeights, ModeGrids, path_metrics
 from planner.search import Box, PlanningProblem
@@ -201,7 +202,7 @@ def lanes(S=4):
     std[..., west, :] = np.where(north, 0.5, 8.0)[..., None]
     mix_mean = np.einsum("...c,...cd->...d", share, mean)
     mix_std = np.sqrt(np.einsum("...c,...cd->...d", share, std**2 + mean**2) - mix_mean**2)
-    return mix_mean, mix_std, ModeGrids(share, mean, std, sectors)
+    return mix_mean, mix_std, ModeGrids(share, mean, std, np.zeros_like(std), sectors)
 
 
 def test_a_directional_map_costs_the_mode_flown_and_the_traffic_met():
@@ -234,6 +235,36 @@ def test_a_directional_map_costs_the_mode_flown_and_the_traffic_met():
     assert path_metrics(cm, [[900.0, 300, 100], [100.0, 300, 100]])["conflict_exposure"] == pytest.approx(0.0)
 
 
+def test_the_mode_flown_is_the_maps_answer_for_its_heading():
+    """The planner flies the library's mode of a heading (:func:`bdf.sectors.heading_mode`):
+    one rule for routes, queries and assessment, its noise narrowed by the heading."""
+    rng = np.random.default_rng(7)
+    lower, upper = np.zeros(3), np.array([10.0, 8.0, 6.0])
+    X = rng.uniform(lower, upper, (1500, 3))
+    flown = np.radians(rng.uniform(0, 360, len(X)))  # headings spread: the pool turns with them
+    V = np.stack([15 * np.sin(flown), 15 * np.cos(flown), 0.3 * np.sin(X[:, 0])], axis=1)
+    V += 0.5 * rng.standard_normal(V.shape)
+    sectors = Sectors(8)
+    field = BayesianDynamicField(lower, upper, [2.0, 2.0, 1.5], [0.3, 0.2, 0.5], "auto", "auto", directions=8)
+    field.fit(X, V)
+    axes = tuple(np.linspace(lo, hi, n) for lo, hi, n in zip(lower, upper, (6, 5, 4), strict=True))
+    modes = field.posterior_.predict_grid_modes(axes)
+    mix_mean, mix_std = modes.answer(sectors)
+    grid = ModeGrids(modes.share, modes.mean, modes.std, modes.heading_noise, sectors)
+    cm = CostMap(axes, mix_mean, mix_std, CostWeights(max_std_mps=2.0, cruise_mps=15.0), modes=grid)
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    heading = rng.uniform(0, 360, len(nodes))
+    h = np.radians(heading)
+    direction = np.stack([np.sin(h), np.cos(h), 0 * h], axis=1)
+    own = cm.flown(nodes, direction)[3]
+    at_nodes = type(modes)(*(a.reshape(len(nodes), *a.shape[3:]) for a in modes))
+    mean, std = at_nodes.answer(sectors, heading)
+    np.testing.assert_allclose(own[:, 3:6], mean, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(own[:, 0], std.max(axis=1), rtol=1e-9)
+    plain = type(modes)(*at_nodes[:-1], np.zeros_like(at_nodes.heading_noise)).answer(sectors, heading)[1]
+    assert (std.max(axis=1) < 0.95 * plain.max(axis=1)).mean() > 0.2 and (std <= plain * (1 + 1e-12)).all()
+
+
 def test_a_directional_map_of_one_class_is_the_plain_map():
     mean = np.broadcast_to([3.0, -1.0, 0.5], (*mesh().shape[:3], 3))
     std = 1.0 + 0.001 * mesh()
@@ -244,7 +275,13 @@ def test_a_directional_map_of_one_class_is_the_plain_map():
         mean,
         std,
         w,
-        modes=ModeGrids(np.ones((*std.shape[:3], 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
+        modes=ModeGrids(
+            np.ones((*std.shape[:3], 1)),
+            mean[..., None, :],
+            std[..., None, :],
+            0 * std[..., None, :],
+            Sectors(1),
+        ),
     )
     P = random_points(40, seed=3)
     np.testing.assert_allclose(
@@ -257,7 +294,13 @@ def test_a_directional_map_of_one_class_is_the_plain_map():
             mean,
             std,
             w,
-            modes=ModeGrids(np.ones((2, 2, 2, 1)), mean[..., None, :], std[..., None, :], Sectors(1)),
+            modes=ModeGrids(
+                np.ones((2, 2, 2, 1)),
+                mean[..., None, :],
+                std[..., None, :],
+                0 * std[..., None, :],
+                Sectors(1),
+            ),
         )
 
 
@@ -268,13 +311,19 @@ def test_a_class_without_traffic_does_not_open_the_tube():
     w = CostWeights(max_std_mps=2.0, cruise_mps=20.0, conflict=1.0)
     std = modes.std.copy()
     std[mesh()[..., 0] > 500, :-1, :] = 8.0  # east of x = 500 m the lanes are unknown
-    modes = ModeGrids(modes.share, modes.mean, std.copy(), modes.sectors)
+    modes = ModeGrids(modes.share, modes.mean, std.copy(), modes.heading_noise, modes.sectors)
     lanes_only = CostMap(AXES, mix_mean, mix_std, w, modes=modes)
     std[..., -1, :] = 0.001  # the slow class: certain, and no traffic in it
     share = modes.share.copy()
     share[..., -1] = 0.04
     share[..., :-1] *= 0.96
-    empty_slow = CostMap(AXES, mix_mean, mix_std, w, modes=ModeGrids(share, modes.mean, std, modes.sectors))
+    empty_slow = CostMap(
+        AXES,
+        mix_mean,
+        mix_std,
+        w,
+        modes=ModeGrids(share, modes.mean, std, modes.heading_noise, modes.sectors),
+    )
     P = random_points(200, seed=5)
     states = empty_slow.segments_in_tube(P, P)  # a state (no length): in the tube if any flow is
     np.testing.assert_array_equal(states, lanes_only.segments_in_tube(P, P))
@@ -282,5 +331,11 @@ def test_a_class_without_traffic_does_not_open_the_tube():
     np.testing.assert_allclose(empty_slow.fields(P)[:, :3], lanes_only.fields(P)[:, :3], rtol=1e-12)
     share[..., -1] = 1.0  # with all the traffic it is a flow like any other
     share[..., :-1] = 0.0
-    slow = CostMap(AXES, mix_mean, mix_std, w, modes=ModeGrids(share, modes.mean, std, modes.sectors))
+    slow = CostMap(
+        AXES,
+        mix_mean,
+        mix_std,
+        w,
+        modes=ModeGrids(share, modes.mean, std, modes.heading_noise, modes.sectors),
+    )
     assert (slow.fields(P)[:, 0] < 0.01).all()
