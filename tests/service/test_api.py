@@ -298,6 +298,9 @@ def test_directional_regions_serve_the_mixture_of_the_library(client):
         np.testing.assert_allclose(npz["share"].reshape(-1, 5), ref.share, rtol=0, atol=1e-9)
         np.testing.assert_allclose(npz["mode_mean"].reshape(-1, 5, 3), ref.mean, rtol=0, atol=1e-6)
         np.testing.assert_allclose(npz["mode_std"].reshape(-1, 5, 3), ref.std, rtol=1e-6)
+        noise = npz["mode_heading_noise"].reshape(-1, 5, 3)
+        np.testing.assert_allclose(noise, ref.heading_noise, rtol=1e-6)
+        assert (noise[:, :4] > 0).all() and (noise[:, 4] == 0).all()  # sectors' noise; none for slow
         np.testing.assert_array_equal(npz["heading_deg"][:4], [0, 90, 180, 270])
     r = client.get("/v1/regions/lanes/grid", params={"step": "50,50,20", "modes": "true"})
     assert r.status_code == 422 and "npz" in r.json()["detail"]
