@@ -108,9 +108,9 @@ def heading_mode(
     narrowed by as much as the pool turns with the heading.
 
     The pool is log-linear, ``N(mean0, std0)^w N(mean1, std1)^(1 - w)`` per component: its
-    precision is ``w / std0^2 + (1 - w) / std1^2`` and its mean the precision-weighted one,
-    continuous in the heading, the sector's own mode at its centre, and the better known of
-    two modes counts for more. On the Paris flight split it beats the sector's own mode on
+    precision is ``w / std0^2 + (1 - w) / std1^2`` and its mean the precision-weighted one:
+    continuous in the heading, the sector's own mode's mean at its centre, and the better
+    known of two modes counts for more. On the Paris flight split it beats the sector's own mode on
     conditional RMSE and MSLL at 8 to 32 sectors, and the linear blend of the two on MSLL and
     cov95 (``bench/bench_directions.py``).
 
@@ -127,7 +127,7 @@ def heading_mode(
     the pool turns with the heading (``kappa`` near 1, ``a`` the sector's width); where the
     second mode is only its prior it does not; where one corridor fills both, ``a`` is small.
     On the Paris flight split at 16 sectors the conditional cov95 goes from 0.973 to 0.968
-    and its MSLL from -1.938 to -1.950; along a corridor of drones crossing a sector
+    and its MSLL from -1.938 to -1.947; along a corridor of drones crossing a sector
     boundary (a test's) cov95 goes from 0.951 to 0.930 (``bench/bench_directions.py``)."""
     w = np.asarray(weight, float)[..., None]
     a0 = 1.0 / np.maximum(std0, TINY_STD) ** 2
@@ -147,7 +147,7 @@ def heading_mode(
     # where a mode stands still: it points nowhere)
     d0, d1 = (np.arctan2(m[..., 0], m[..., 1]) for m in (mean0, mean1))
     still = (mean0[..., :2] == 0.0).all(axis=-1) | (mean1[..., :2] == 0.0).all(axis=-1)
-    between = np.where(still, 0.0, np.angle(np.exp(1j * (d1 - d0))))
+    between = np.where(still, 0.0, np.mod(d1 - d0 + np.pi, 2.0 * np.pi) - np.pi)
     spread = horizontal_sq * between**2 / 12.0
     h = np.radians(np.asarray(heading_deg, float))
     across_sq = np.stack(np.broadcast_arrays(np.cos(h) ** 2, np.sin(h) ** 2, 0.0), axis=-1)  # (..., 3)
