@@ -184,7 +184,8 @@ class CostMap:
             )
         if not all(np.isfinite(a).all() for a in (mean, std, share, heading_noise)):
             raise ValueError("mode means, stds, heading noises and shares must be finite")
-        if not ((heading_noise >= 0).all() and (heading_noise <= std * std).all()):
+        # at most the variance, to its rounding (std is the root of a sum the noise is part of)
+        if not ((heading_noise >= 0).all() and (heading_noise <= std * std * (1 + 1e-12)).all()):
             raise ValueError("a mode's heading noise must lie between 0 and its variance std^2")
         mean, std = self._unknown_as_prior(mean, std, known)
         return np.concatenate(

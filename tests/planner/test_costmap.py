@@ -265,6 +265,23 @@ def test_the_mode_flown_is_the_maps_answer_for_its_heading():
     assert (std.max(axis=1) < 0.95 * plain.max(axis=1)).mean() > 0.2 and (std <= plain * (1 + 1e-12)).all()
 
 
+def test_a_modes_heading_noise_lies_within_its_variance():
+    """Heading noise is part of a mode's variance: the rounding of ``sqrt`` is let through,
+    a negative value or one above the variance is refused."""
+    mix_mean, mix_std, modes = lanes()
+    w = CostWeights(max_std_mps=2.0, cruise_mps=20.0)
+    variance = np.random.default_rng(1).uniform(0.1, 70.0, modes.std.shape)
+    std = np.sqrt(variance)  # std**2 rounds to either side of variance
+    CostMap(
+        AXES, mix_mean, mix_std, w, modes=ModeGrids(modes.share, modes.mean, std, variance, modes.sectors)
+    )
+    for bad in (-1e-3 * variance, 1.001 * variance):
+        with pytest.raises(ValueError, match="heading noise must lie between 0 and its variance"):
+            CostMap(
+                AXES, mix_mean, mix_std, w, modes=ModeGrids(modes.share, modes.mean, std, bad, modes.sectors)
+            )
+
+
 def test_a_directional_map_of_one_class_is_the_plain_map():
     mean = np.broadcast_to([3.0, -1.0, 0.5], (*mesh().shape[:3], 3))
     std = 1.0 + 0.001 * mesh()
