@@ -127,8 +127,9 @@ def heading_mode(
     the pool turns with the heading (``kappa`` near 1, ``a`` the sector's width); where the
     second mode is only its prior it does not; where one corridor fills both, ``a`` is small.
     On the Paris flight split at 16 sectors the conditional cov95 goes from 0.973 to 0.968
-    and its MSLL from -1.938 to -1.947; along a corridor of drones crossing a sector
-    boundary (a test's) cov95 goes from 0.951 to 0.930 (``bench/bench_directions.py``)."""
+    and its MSLL from -1.938 to -1.947 (``bench/bench_directions.py``); along a corridor of
+    drones crossing a sector boundary (a test's) cov95 goes from 0.951 to 0.930
+    (``bench/history/heading-noise-rules.py``, with the rules tried before)."""
     w = np.asarray(weight, float)[..., None]
     a0 = 1.0 / np.maximum(std0, TINY_STD) ** 2
     a1 = 1.0 / np.maximum(std1, TINY_STD) ** 2
