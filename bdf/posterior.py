@@ -215,15 +215,28 @@ class Posterior:
         """Mean and variance (predictive, or epistemic without the noise) on the grid
         ``axes`` (three 1-D arrays), each (nx, ny, nz, 3); separable, see
         :func:`features.gather_grid`."""
+        mean, var, _ = self._grid(axes, include_noise)
+        return mean, var
+
+    def answer_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`answer` on the grid ``axes``: mean and std (nx, ny, nz, 3) and
+        :meth:`data_weight` (nx, ny, nz, 1), each lattice gathered once."""
+        mean, var, at = self._grid(axes, include_noise)
+        return mean, np.sqrt(var), _normalised_grid(self.grid, self.gamma, at, axes)
+
+    def _grid(self, axes, include_noise):
+        """Mean and variance on the grid ``axes``, and the data's density gathered there
+        (nx, ny, nz, 1; None for a mode, which keeps none): one gather per lattice."""
         densities, columns = self.variance_table()
         mean = features.gather_grid(
             self.grid, axes, self.weights.reshape(*self.grid.shape, 3), self.gamma, cutoff=self.cutoff
         )
-        var = features.gather_grid(
+        at = features.gather_grid(
             self.grid.midpoints(), axes, densities, 2.0 * self.gamma, cutoff=self.cutoff
-        )[..., columns]
+        )
         scatter = self.noise_variance_grid(axes, mean) if include_noise else 0.0
-        return mean, np.maximum(var / self.beta, 0.0) + scatter
+        density = at[..., -1:] if self._density is not None else None
+        return mean, np.maximum(at[..., columns] / self.beta, 0.0) + scatter, density
 
     def noise_variance_grid(self, axes, mean: np.ndarray):
         """:meth:`noise_variance` on the grid ``axes`` where the posterior mean is ``mean``
@@ -262,10 +275,9 @@ class Posterior:
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """The one mode of a map of one class, on the grid ``axes``."""
-        mean, var = self.predict_grid(axes, include_noise)
+        mean, std, weight = self.answer_grid(axes, include_noise)
         n = mean.shape[:3]
-        weight = self.data_weight_grid(axes)
-        one = (np.ones((*n, 1)), np.zeros(n), mean[..., None, :], np.sqrt(var)[..., None, :], weight)
+        one = (np.ones((*n, 1)), np.zeros(n), mean[..., None, :], std[..., None, :], weight)
         return Modes(*one, np.zeros_like(one[3]))
 
     def compact(self) -> Posterior:
@@ -705,11 +717,22 @@ class Mixture:
 
     def predict_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray]:
         """The mixture's mean and variance on the grid ``axes`` (see :meth:`Posterior.predict_grid`)."""
+        mean, var, _ = self._grid(axes, include_noise)
+        return mean, var
+
+    def answer_grid(self, axes, include_noise=True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`answer` on the grid ``axes`` (see :meth:`Posterior.answer_grid`)."""
+        mean, var, at = self._grid(axes, include_noise)
+        return mean, np.sqrt(var), _normalised_grid(self.grid, self.gamma, at, axes)
+
+    def _grid(self, axes, include_noise):
+        """The mixture's mean and variance on the grid ``axes``, and all the data's density
+        gathered there (nx, ny, nz, 1), from one gather per lattice."""
         at, var, _ = self._gather_grid(axes)
         n = at.shape[:3]
         local = (lambda m, mean: m.noise_variance_grid(axes, mean.reshape(*n, 3))) if include_noise else None
-        mean, var = self._moments(at.reshape(-1, at.shape[-1]), var.reshape(-1, var.shape[-1]), local)
-        return mean.reshape(*n, 3), var.reshape(*n, 3)
+        mean, variance = self._moments(at.reshape(-1, at.shape[-1]), var.reshape(-1, var.shape[-1]), local)
+        return mean.reshape(*n, 3), variance.reshape(*n, 3), var[..., -1:]
 
     def predict_grid_modes(self, axes, include_noise=True) -> Modes:
         """:class:`Modes` on the grid ``axes``, each array with the grid's shape first: like

@@ -299,9 +299,7 @@ class RegionMap:
         the caller has them (the answer derives from them)."""
         axes = self.spec.grid_axes(axes)
         if modes is None:
-            mean, var = self.posterior.predict_grid(axes)
-            std = np.sqrt(var)
-            weight = self.posterior.data_weight_grid(axes)
+            mean, std, weight = self.posterior.answer_grid(axes)  # without the modes' arrays
         else:
             mean, std = modes.answer(self.spec.sectors)
             weight = modes.weight

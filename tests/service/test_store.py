@@ -307,6 +307,34 @@ def test_posteriors_computed_in_a_child_process_answer_as_those_computed_here(st
     there.close()
 
 
+@pytest.mark.parametrize("directions", [1, 4])
+def test_a_grid_served_slab_by_slab_is_the_maps_grid_at_once(store, spec, directions, monkeypatch):
+    """The service computes a grid in slabs of x (a deadline check between them): joined,
+    they are the map's grid computed whole, modes included, and ``known`` is the points'."""
+    name = f"town{directions}"
+    store.create_region(RegionSpec.model_validate({**SPEC, "name": name, "directions": directions}))
+    maps = RegionMaps(store)
+    X, V = data(3, n=300, band=True)  # known only near the band
+    V[::3, 0] *= -1  # opposing flows for the directional map
+    maps.upload(name, "fit", X, V, replace=True)
+    axes = [np.linspace(0, 300, 7), np.linspace(0, 200, 5), np.linspace(0, 60, 4)]
+    monkeypatch.setattr(RegionMaps, "GRID_SLAB", 2 * 5 * 4)  # slabs of two x values, the last of one
+    whole = maps._state(name, store.region(name), 1).map
+    modes = whole.predict_grid_modes(axes)
+    for asked, want in ((None, whole.predict_grid(axes)), (modes, whole.predict_grid(axes, modes))):
+        sliced = maps.predict_grid(name, axes, modes=asked is not None)
+        for got, expected in zip((sliced.mean, sliced.std, sliced.known), want, strict=True):
+            np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+        if asked is not None:
+            np.testing.assert_allclose(sliced.modes.mean, modes.mean, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(sliced.modes.weight, modes.weight, rtol=1e-12, atol=1e-15)
+    mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    points = whole.predict(mesh)
+    np.testing.assert_allclose(sliced.std.reshape(-1, 3), points[1], rtol=1e-9)
+    np.testing.assert_array_equal(sliced.known.ravel(), points[2])
+    assert sliced.known.any() and not sliced.known.all()
+
+
 def test_posterior_cache_is_bounded_by_memory(store, spec):
     maps = RegionMaps(store)
     states = []
