@@ -4,8 +4,9 @@ Routes stay thin: decoding and encoding live in :mod:`service.formats`, the maps
 :mod:`service.maps` and :mod:`bdf.region`, storage in :mod:`service.store`. Every route
 declares its scope (``x-scope`` in the OpenAPI document). Work that takes CPU or the
 database runs in a lane's threads (:mod:`service.lanes`: light or heavy, bounded, shed
-when full), never on the event loop; ``/healthz`` and ``/metrics`` answer from the event
-loop alone, so they never wait behind work.
+when full); on a local store a light step that only reads runs on the event loop, where it
+costs less than the hand-off to a thread (at most a light request's work: ``/healthz`` and
+``/metrics``, answered from the event loop alone, wait behind no more than that).
 """
 
 from __future__ import annotations
@@ -213,8 +214,9 @@ class Service:
     metrics: Metrics
 
     async def run(self, step, heavy: bool = False, write: bool = False):
-        """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy``, one
-        ``write`` at a time; a light step that returns :class:`Heavy` goes on in the heavy lane."""
+        """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy`` (on
+        the event loop if it only reads and the store is local), one ``write`` at a time; a
+        light step that returns :class:`Heavy` goes on in the heavy lane."""
         return await self.lanes.run(step, heavy, write)
 
     def limits(self, rows: int) -> formats.Limits:
@@ -428,7 +430,7 @@ async def create_region(request: Request, svc: ServiceDep):
                 else ""
             ),
         )
-    info = await svc.run(lambda: svc.maps.store.create_region(spec))
+    info = await svc.run(lambda: svc.maps.store.create_region(spec), write=True)
     return JSONResponse(_view(info), status_code=201)
 
 
@@ -444,7 +446,7 @@ async def get_region(name: RegionName, svc: ServiceDep):
 
 @router.delete("/regions/{name}", status_code=204, **scoped("admin"))
 async def delete_region(name: RegionName, svc: ServiceDep):
-    await svc.run(lambda: svc.maps.store.delete_region(name))
+    await svc.run(lambda: svc.maps.store.delete_region(name), write=True)
     return Response(status_code=204)
 
 
@@ -1093,7 +1095,12 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
         isolate=True,
     )
     lanes = Lanes(
-        settings.threads, settings.queue, settings.heavy_threads, settings.heavy_queue, settings.max_waiting
+        settings.threads,
+        settings.queue,
+        settings.heavy_threads,
+        settings.heavy_queue,
+        settings.max_waiting,
+        inline=maps.store.local_reads,
     )
     svc = app.state.service = Service(settings, maps, Jobs(), lanes, Metrics(maps, lanes))
     problems.install(app, PATTERNS)

@@ -12,6 +12,14 @@ A step that must wait for a map being computed hands the wait to a third bound,
 ``waiting`` (threads that block without CPU, many of them), and steps again when the map
 is ready: a burst of readers of a new region does not fill the heavy lane with waits.
 
+Where reads never wait on a network or on a writer (a local store: SQLite's WAL), a light
+step that only reads runs on the event loop itself (:attr:`Lanes.inline`), in its turn: on
+these machines handing a step to a thread and back costs more CPU than a small query's
+work (the thread and the event loop take the GIL from each other a dozen times per step:
+``bench/bench_service.py``'s 1-point rows), and a light step is short by its cost bound.
+Writes, heavy work and waits keep their threads; so does every light step on a networked
+store, whose reads may hang.
+
 Uploads and retractions run one at a time per process, and wait for their turn before
 they take a thread at work: the store takes one writer at a time anyway, and each rewrites
 the tiles it touches whole (seconds on a 16-sector map, however small its body). A fit
@@ -175,6 +183,20 @@ class Lane:
                     self.stats.admitted -= 1
             raise
 
+    def inline(self, fn: Callable[[], Any]) -> Any:
+        """``fn()`` here, in the event loop's thread, counted as the lane's work (module doc):
+        :class:`DeadlineExceeded` if the deadline has passed already."""
+        with self._lock:
+            self.stats.admitted += 1
+            self.stats.busy += 1
+        try:
+            check()
+            return fn()
+        finally:
+            with self._lock:
+                self.stats.busy -= 1
+                self.stats.admitted -= 1
+
     @contextlib.contextmanager
     def _held(self, semaphore: threading.Semaphore | None, waited_for: str):
         """``semaphore`` held (None: nothing to hold) until the block ends;
@@ -208,8 +230,16 @@ class Lanes:
     """The light and the heavy lane, the waiters, and the writes (module doc)."""
 
     def __init__(
-        self, light_threads: int, light_queue: int, heavy_threads: int, heavy_queue: int, waiters: int = 64
+        self,
+        light_threads: int,
+        light_queue: int,
+        heavy_threads: int,
+        heavy_queue: int,
+        waiters: int = 64,
+        inline: bool = False,
     ):
+        """``inline``: light steps that only read run on the event loop (module doc)."""
+        self.inline = inline
         self.light = Lane("light", light_threads, light_queue)
         self.heavy = Lane("heavy", heavy_threads, heavy_queue, retry_after_s=5)
         # a wait for a map takes a thread but no CPU: many may wait, each until its deadline
@@ -217,14 +247,22 @@ class Lanes:
         self.writes = threading.Semaphore(1)
 
     async def run(self, fn: Callable[[], Any], heavy: bool = False, write: bool = False) -> Any:
-        """``fn()`` in the light lane (the heavy one if ``heavy``), one ``write`` at a time;
-        a :class:`Heavy` it returns runs on in the heavy lane, a :class:`Waiting` waits,
-        then steps again."""
-        result = await (self.heavy if heavy else self.light).run(fn, self.writes if write else None)
+        """``fn()`` in the light lane (the heavy one if ``heavy``; on the event loop if it
+        only reads and :attr:`inline`), one ``write`` at a time; a :class:`Heavy` it returns
+        runs on in the heavy lane, a :class:`Waiting` waits, then steps again."""
+        if heavy or write:
+            result = await (self.heavy if heavy else self.light).run(fn, self.writes if write else None)
+        else:
+            result = await self._read(fn)
         while isinstance(result, Heavy | Waiting):
             if isinstance(result, Heavy):
                 result = await self.heavy.run(result.work)
             else:
                 await self.waiting.run(result.wait)
-                result = await self.light.run(result.then)
+                result = await (self.light.run(result.then) if write else self._read(result.then))
         return result
+
+    async def _read(self, fn: Callable[[], Any]) -> Any:
+        """A light step that only reads: on the event loop if :attr:`inline`, else in a light
+        thread."""
+        return self.light.inline(fn) if self.inline else await self.light.run(fn)

@@ -225,6 +225,9 @@ class MapStore(ABC):
     """Regions, their tiles' statistics, and the upload ledger. Thread-safe; every method
     is one transaction."""
 
+    #: reads never wait on a network or on a writer (a local file, WAL): the service runs
+    #: light reads on its event loop (:mod:`service.lanes`)
+    local_reads = False
     #: a test hook called inside ``apply`` after each batch of tile rows (fault injection)
     after_tile_write: Callable[[TileKey], None] | None = None
     #: called as the last step of every write transaction, its lock won and its rows

@@ -28,6 +28,8 @@ FILE_NAME = "maps.sqlite3"
 
 
 class SqliteStore(MapStore):
+    local_reads = True
+
     def __init__(self, path, *, busy_timeout_s: float = 5.0):
         """``path``: the database file, or a data directory to hold ``maps.sqlite3``."""
         path = Path(path)

@@ -182,3 +182,46 @@ def test_writes_take_turns_without_holding_a_thread_so_queries_keep_one():
         assert (all_lanes.light.stats.admitted, all_lanes.light.stats.busy) == (0, 0)
 
     anyio.run(main)
+
+
+def test_on_a_local_store_reads_run_on_the_event_loop_and_writes_heavy_work_and_waits_do_not():
+    """``inline``: a light read runs in the event loop's thread (counted in the light lane
+    meanwhile), and again after a wait; a write, heavy work and the wait itself run in
+    threads; a read past its deadline does not start."""
+    both = Lanes(light_threads=1, light_queue=0, heavy_threads=1, heavy_queue=0, inline=True)
+    seen = []
+
+    def where(what):
+        seen.append((what, threading.current_thread() is threading.main_thread()))
+        return what
+
+    def read():
+        where("read")
+        assert (both.light.stats.admitted, both.light.stats.busy) == (1, 1)
+        return "answer"
+
+    waited = []
+
+    def step():
+        where("step")
+        if waited:
+            return Heavy(lambda: where("heavy"))
+        return Waiting(lambda: waited.append(where("wait")), step)
+
+    async def main():
+        assert await both.run(read) == "answer"
+        assert await both.run(step) == "heavy"
+        assert await both.run(lambda: where("write"), write=True) == "write"
+        with lanes.deadline(-1), pytest.raises(DeadlineExceeded):
+            await both.run(lambda: where("late"))
+
+    anyio.run(main)
+    assert seen == [
+        ("read", True),
+        ("step", True),
+        ("wait", False),
+        ("step", True),
+        ("heavy", False),
+        ("write", False),
+    ]
+    assert both.light.stats.admitted == both.light.stats.busy == 0
