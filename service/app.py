@@ -245,19 +245,22 @@ class MapAnswer:
 
     def __init__(self, request: Request, svc: Service):
         self.request, self.svc, self.body = request, svc, b""
+        self._digest: str | None = None  # of the request, once its body is read
 
     def etag(self, region_id: str, version: int, settled: bool) -> str:
-        h = hashlib.sha256()
-        request = self.request
-        for part in (
-            request.url.path,
-            repr(sorted(request.query_params.multi_items())),
-            request.headers.get("accept", ""),
-            request.headers.get("content-type", ""),
-        ):
-            h.update(part.encode() + b"\0")
-        h.update(self.body)
-        return f'W/"{region_id}.{version}{"" if settled else "~"}.{h.hexdigest()[:20]}"'
+        if self._digest is None:  # the 304 check and the answer's headers both name it
+            h = hashlib.sha256()
+            request = self.request
+            for part in (
+                request.scope["path"],
+                repr(sorted(request.query_params.multi_items())),
+                request.headers.get("accept", ""),
+                request.headers.get("content-type", ""),
+            ):
+                h.update(part.encode() + b"\0")
+            h.update(self.body)
+            self._digest = h.hexdigest()[:20]
+        return f'W/"{region_id}.{version}{"" if settled else "~"}.{self._digest}"'
 
     def region_or_304(self, name: str) -> tuple[RegionInfo, Response | None]:
         """The region's info, and a 304 if the client's ETag names its current state and
