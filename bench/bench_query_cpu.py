@@ -32,11 +32,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_core import arguments, publish, rows_table  # bench/ is on the path as a script
-from bench_service import QUERY, build, query_body, wrk_load
+from bench_service import QUERY, arrow_points, build, query_body, wrk_load
 
 from bdf import ingest
 from clients.local import LocalService
 from clients.samples import load_paris, paris_demo_region
+from service.wire import ARROW
 
 ROOT = Path(__file__).resolve().parents[1]
 #: what --profile reports (py-spy frame names): the compute, then the request's other work
@@ -106,6 +107,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--seconds", type=float, default=8.0)
     parser.add_argument("--connections", type=int, default=4)
+    parser.add_argument("--points", type=int, default=1000, help="points per query (1: the fixed cost)")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--profile", action="store_true", help="where this tree's query time goes (py-spy)")
     args = parser.parse_args(argv)
@@ -113,7 +115,11 @@ def main(argv=None) -> int:
     test = ingest.train_test_split(obs, by="flight", test_fraction=0.2, seed=0)
     spec = paris_demo_region(lower, upper, directions=args.directions, model_directions=args.model_directions)
     here = spec.model_dump(mode="json")
-    body = query_body(obs.X[test], "arrow")
+    body = (
+        query_body(obs.X[test], "arrow")
+        if args.points == 1000
+        else (arrow_points(obs.X[test][: args.points]), ARROW)
+    )
     rows = []
     with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         if args.against_directions is not None:
@@ -186,8 +192,9 @@ def main(argv=None) -> int:
             f"`python bench/bench_query_cpu.py {other_flag} --directions {args.directions} "
             f"{f'--model-directions {args.model_directions} ' if args.model_directions else ''}"
             f"--seconds {args.seconds:g} --connections {args.connections} --rounds {args.rounds}"
+            f"{f' --points {args.points}' if args.points != 1000 else ''}"
             f"{' --profile' if args.profile else ''}`: "
-            "1,000-point Arrow queries of the demo's map "
+            f"{args.points:,}-point Arrow queries of the demo's map "
             f"({'one class' if args.directions == 1 else f'{args.directions} sectors'}), 2 workers, SQLite.",
             "",
             rows_table(rows),

@@ -5,8 +5,8 @@ Routes stay thin: decoding and encoding live in :mod:`service.formats`, the maps
 declares its scope (``x-scope`` in the OpenAPI document). Work that takes CPU or the
 database runs in a lane's threads (:mod:`service.lanes`: light or heavy, bounded, shed
 when full); on a local store a light step that only reads runs on the event loop, where it
-costs less than the hand-off to a thread (at most a light request's work: ``/healthz`` and
-``/metrics``, answered from the event loop alone, wait behind no more than that).
+costs less than the hand-off to a thread. ``/healthz`` and ``/metrics`` answer from the
+event loop alone: never behind heavy work (on a local store, behind the light reads ahead).
 """
 
 from __future__ import annotations

@@ -16,7 +16,9 @@ Where reads never wait on a network or on a writer (a local store: SQLite's WAL)
 step that only reads runs on the event loop itself (:attr:`Lanes.inline`), in its turn: on
 these machines handing a step to a thread and back costs more CPU than a small query's
 work (the thread and the event loop take the GIL from each other a dozen times per step:
-``bench/bench_service.py``'s 1-point rows), and a light step is short by its cost bound.
+``bench/bench_query_cpu.py --points 1``), and a light step is short by its cost bound. The
+loop is then the light lane's one thread: beyond ``threads + queue`` requests being
+answered in the process (:func:`received`), a light read is shed at once as a full lane's.
 Writes, heavy work and waits keep their threads; so does every light step on a networked
 store, whose reads may hang.
 
@@ -59,6 +61,9 @@ _niced = threading.local()
 
 #: time.monotonic() by which the current request must be answered
 _deadline: ContextVar[float] = ContextVar("deadline", default=math.inf)
+#: requests this process has received (their headers) and not yet answered, counted by the
+#: server's protocol (:mod:`service.server`) on the event loop: no lock
+_answering = 0
 
 
 class Overloaded(Exception):
@@ -82,6 +87,19 @@ def deadline(seconds: float):
         yield
     finally:
         _deadline.reset(token)
+
+
+def received() -> None:
+    """A request's headers have arrived: it waits for the event loop, or is at work."""
+    global _answering
+    _answering += 1
+
+
+def answered() -> None:
+    """... and its answer is sent (or its connection lost): what an inline read is shed
+    beyond (:meth:`Lane.inline`)."""
+    global _answering
+    _answering -= 1
 
 
 def remaining() -> float:
@@ -185,8 +203,16 @@ class Lane:
 
     def inline(self, fn: Callable[[], Any]) -> Any:
         """``fn()`` here, in the event loop's thread, counted as the lane's work (module doc):
-        :class:`DeadlineExceeded` if the deadline has passed already."""
+        :class:`Overloaded` at once if the process is answering more requests than the lane
+        holds (the loop is its one thread: the rest wait their turn), :class:`DeadlineExceeded`
+        if the deadline has passed already."""
         with self._lock:
+            if _answering > self.threads + self.queue:
+                self.stats.shed += 1
+                raise Overloaded(
+                    f"the service is at capacity for {self.name} work; retry in {self.retry_after_s} s",
+                    self.retry_after_s,
+                )
             self.stats.admitted += 1
             self.stats.busy += 1
         try:

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
+from service import lanes
 from service.settings import Settings
 
 log = logging.getLogger("bdf.service")
@@ -89,6 +90,7 @@ class GuardedProtocol(HttpToolsProtocol):
     _head_bytes = 0  # of the request line and headers now arriving
     _tail = b""  # the last bytes of them, where their end may begin
     _refused = False  # answered 431: nothing more is read
+    _at_work = 0  # its requests whose headers came, not yet answered (service.lanes.received)
 
     def connection_made(self, transport) -> None:
         super().connection_made(transport)
@@ -100,6 +102,8 @@ class GuardedProtocol(HttpToolsProtocol):
         if len(self.headers) > _limits().max_headers:
             return self._refuse(f"more than {_limits().max_headers} header fields")
         super().on_headers_complete()
+        self._at_work += 1
+        lanes.received()
         self._in_body = True
         self._arm()  # a body, if any, must keep arriving
 
@@ -125,6 +129,9 @@ class GuardedProtocol(HttpToolsProtocol):
 
     def on_response_complete(self) -> None:
         pipelined = bool(self.pipeline)  # its headers are in: it is at work, not awaited
+        if self._at_work:
+            self._at_work -= 1
+            lanes.answered()
         super().on_response_complete()
         if not (pipelined or self.transport.is_closing()):
             self._await_request()
@@ -159,6 +166,9 @@ class GuardedProtocol(HttpToolsProtocol):
 
     def connection_lost(self, exc) -> None:
         self._cancel()
+        for _ in range(self._at_work):  # never to be answered
+            lanes.answered()
+        self._at_work = 0
         super().connection_lost(exc)
 
     def _await_request(self) -> None:

@@ -225,3 +225,29 @@ def test_on_a_local_store_reads_run_on_the_event_loop_and_writes_heavy_work_and_
         ("write", False),
     ]
     assert both.light.stats.admitted == both.light.stats.busy == 0
+
+
+def test_an_inline_read_is_shed_at_once_when_the_process_answers_more_than_the_lane_holds():
+    """The event loop is the inline lane's one thread: with ``threads + queue`` requests
+    being answered besides this one, a read is refused (503) without running; writes still
+    queue for their turn."""
+    both = Lanes(light_threads=1, light_queue=2, heavy_threads=1, heavy_queue=0, inline=True)
+    ran = []
+
+    async def main():
+        for _ in range(4):  # 1 thread + 2 waiting: the lane is full, and this request beyond
+            lanes.received()
+        try:
+            with pytest.raises(Overloaded):
+                await both.run(lambda: ran.append("read"))
+            assert await both.run(lambda: ran.append("write") or "written", write=True) == "written"
+        finally:
+            lanes.answered()
+        try:
+            assert await both.run(lambda: ran.append("read") or "answer") == "answer"
+        finally:
+            for _ in range(3):
+                lanes.answered()
+
+    anyio.run(main)
+    assert ran == ["write", "read"] and both.light.stats.shed == 1
