@@ -35,10 +35,10 @@ from bdf import sectors
 from bdf.region.route import CHUNK_SAMPLES, ENVELOPE_SAMPLES_PER_POINT, MAX_ROUTE_POINTS, SAMPLE_M
 from bdf.region.route import samples as route_samples
 from bdf.region.spec import REGION_NAME, REGION_NAME_RULE, RegionSpec, key_str
-from service import formats, problems, slices, webmap, wire
+from service import formats, lanes, problems, slices, webmap, wire
 from service.auth import PUBLIC, require
 from service.jobs import Jobs
-from service.lanes import Heavy, Lanes, Waiting
+from service.lanes import Heavy, Lanes, Threaded, Waiting
 from service.maps import RegionMaps, upload_digest, upload_kind
 from service.problems import Problem
 from service.settings import Settings
@@ -213,11 +213,12 @@ class Service:
     lanes: Lanes
     metrics: Metrics
 
-    async def run(self, step, heavy: bool = False, write: bool = False):
+    async def run(self, step, heavy: bool = False, write: bool = False, body_bytes: int = 0):
         """``step()`` in a lane (:mod:`service.lanes`): the light one unless ``heavy`` (on
-        the event loop if it only reads and the store is local), one ``write`` at a time; a
-        light step that returns :class:`Heavy` goes on in the heavy lane."""
-        return await self.lanes.run(step, heavy, write)
+        the event loop if it only reads, its request's body of ``body_bytes`` is small and
+        the store is local), one ``write`` at a time; a light step that returns
+        :class:`Heavy` goes on in the heavy lane."""
+        return await self.lanes.run(step, heavy, write, body_bytes)
 
     def limits(self, rows: int) -> formats.Limits:
         """What one request body may decode into: ``rows`` rows at most."""
@@ -373,9 +374,16 @@ async def grid_params(
 GridDep = Annotated[GridParams, Depends(grid_params)]
 
 
+#: Work (points or voxels x the map's posteriors) a light read does on the event loop itself
+#: (:mod:`service.lanes`); more goes on in a light thread. 10,000: a 1,000-point query of 8
+#: sectors, about 6 ms here (``bench/bench_service.py``'s library rows)
+INLINE_COST = 10_000
+
+
 def _light_or_heavy(svc: Service, info: RegionInfo, min_version: int, rows: int, work):
     """``work()`` now if it is light (``rows`` points or voxels times the map's posteriors
-    within ``light_cost``), else handed on to the heavy lane; first, if no map of at least
+    within ``light_cost``; in a light thread if it runs on the event loop and costs more than
+    :data:`INLINE_COST`), else handed on to the heavy lane; first, if no map of at least
     ``min_version`` is ready, a wait for it (no lane's thread holds it)."""
     maps = svc.maps
     if not maps.ready(info, min_version):
@@ -383,7 +391,10 @@ def _light_or_heavy(svc: Service, info: RegionInfo, min_version: int, rows: int,
             lambda: maps.wait_for(info, min_version),
             lambda: _light_or_heavy(svc, info, min_version, rows, work),
         )
-    return work() if rows * info.spec.posteriors <= svc.settings.light_cost else Heavy(work)
+    cost = rows * info.spec.posteriors
+    if cost > svc.settings.light_cost:
+        return Heavy(work)
+    return Threaded(work) if cost > INLINE_COST and lanes.on_loop() else work()
 
 
 def _within_budget(svc: Service, spec: RegionSpec, rows: int, modes: bool, media: str, what: str) -> None:
@@ -529,7 +540,9 @@ async def post_fit(name: RegionName, request: Request, upload_id: IdempotencyKey
     answering queries until the new one commits."""
     body = await request.body()
     content_type = request.headers.get("content-type")
-    spec, obs = await svc.run(lambda: _observations(svc, name, body, content_type), _heavy_body(svc, body))
+    spec, obs = await svc.run(
+        lambda: _observations(svc, name, body, content_type), _heavy_body(svc, body), body_bytes=len(body)
+    )
 
     def fit(progress=None):
         return _apply(svc, name, upload_id, obs, replace=True, progress=progress)
@@ -625,7 +638,7 @@ async def query(
 
         return _light_or_heavy(svc, info, min_version, len(q.X), work)
 
-    return await svc.run(step)
+    return await svc.run(step, body_bytes=len(answer.body))
 
 
 @router.post(
@@ -665,7 +678,7 @@ async def assess_route(
 
         return _light_or_heavy(svc, info, min_version, cost, work)
 
-    return await svc.run(step)
+    return await svc.run(step, body_bytes=len(answer.body))
 
 
 def _route_cost(svc: Service, route: formats.RouteQuery) -> int:

@@ -13,14 +13,15 @@ A step that must wait for a map being computed hands the wait to a third bound,
 is ready: a burst of readers of a new region does not fill the heavy lane with waits.
 
 Where reads never wait on a network or on a writer (a local store: SQLite's WAL), a light
-step that only reads runs on the event loop itself (:attr:`Lanes.inline`), in its turn: on
-these machines handing a step to a thread and back costs more CPU than a small query's
-work (the thread and the event loop take the GIL from each other a dozen times per step:
-``bench/bench_query_cpu.py --points 1``), and a light step is short by its cost bound. The
-loop is then the light lane's one thread: beyond ``threads + queue`` requests being
-answered in the process (:func:`received`), a light read is shed at once as a full lane's.
-Writes, heavy work and waits keep their threads; so does every light step on a networked
-store, whose reads may hang.
+step that only reads a small body (:data:`INLINE_BODY_BYTES`) runs on the event loop itself
+(:attr:`Lanes.inline`), in its turn: on these machines handing a step to a thread and back
+costs more CPU than a small query's work (the thread and the event loop take the GIL from
+each other a dozen times per step: ``bench/history/lane-handoff.py``). Work longer than a
+few milliseconds it hands on to a light thread (:class:`Threaded`, :func:`on_loop`), so the
+loop is never held long. The loop is then the light lane's one thread: beyond ``threads +
+queue`` requests being answered in the process (:func:`received`), a light read is shed at
+once as a full lane's. Writes, heavy work and waits keep their threads; so does every light
+step on a networked store, whose reads may hang.
 
 Uploads and retractions run one at a time per process, and wait for their turn before
 they take a thread at work: the store takes one writer at a time anyway, and each rewrites
@@ -61,6 +62,10 @@ _niced = threading.local()
 
 #: time.monotonic() by which the current request must be answered
 _deadline: ContextVar[float] = ContextVar("deadline", default=math.inf)
+#: A light read whose request body is larger runs in a thread: decoding it would hold the
+#: event loop (a 1,000-point Arrow query is 24 KB; JSON about 60)
+INLINE_BODY_BYTES = 64 * 1024
+_inline = threading.local()  # .active: the event loop's thread is running a read (Lane.inline)
 #: requests this process has received (their headers) and not yet answered, counted by the
 #: server's protocol (:mod:`service.server`) on the event loop: no lock
 _answering = 0
@@ -102,6 +107,11 @@ def answered() -> None:
     _answering -= 1
 
 
+def on_loop() -> bool:
+    """This is a light read running on the event loop: long work should be :class:`Threaded`."""
+    return getattr(_inline, "active", False)
+
+
 def remaining() -> float:
     """Seconds left before the current deadline (inf without one)."""
     return _deadline.get() - time.monotonic()
@@ -125,6 +135,14 @@ def wait_timeout() -> float | None:
 @dataclass(frozen=True)
 class Heavy:
     """What a light step returns when the rest of its work belongs in the heavy lane."""
+
+    work: Callable[[], Any]
+
+
+@dataclass(frozen=True)
+class Threaded:
+    """What a light step on the event loop returns when the rest of its work would hold the
+    loop too long (:func:`on_loop`): it goes on in a light lane's thread."""
 
     work: Callable[[], Any]
 
@@ -215,10 +233,12 @@ class Lane:
                 )
             self.stats.admitted += 1
             self.stats.busy += 1
+        _inline.active = True
         try:
             check()
             return fn()
         finally:
+            _inline.active = False
             with self._lock:
                 self.stats.busy -= 1
                 self.stats.admitted -= 1
@@ -272,23 +292,25 @@ class Lanes:
         self.waiting = Lane("waiting", waiters, 0, retry_after_s=5)
         self.writes = threading.Semaphore(1)
 
-    async def run(self, fn: Callable[[], Any], heavy: bool = False, write: bool = False) -> Any:
+    async def run(
+        self, fn: Callable[[], Any], heavy: bool = False, write: bool = False, body_bytes: int = 0
+    ) -> Any:
         """``fn()`` in the light lane (the heavy one if ``heavy``; on the event loop if it
-        only reads and :attr:`inline`), one ``write`` at a time; a :class:`Heavy` it returns
-        runs on in the heavy lane, a :class:`Waiting` waits, then steps again."""
-        if heavy or write:
-            result = await (self.heavy if heavy else self.light).run(fn, self.writes if write else None)
+        only reads, its request's body is at most :data:`INLINE_BODY_BYTES` and
+        :attr:`inline`), one ``write`` at a time; a :class:`Heavy` it returns runs on in the
+        heavy lane, a :class:`Threaded` in a light thread, a :class:`Waiting` waits, then
+        steps again."""
+        loop = self.inline and not (heavy or write) and body_bytes <= INLINE_BODY_BYTES
+        if loop:
+            result = self.light.inline(fn)
         else:
-            result = await self._read(fn)
-        while isinstance(result, Heavy | Waiting):
+            result = await (self.heavy if heavy else self.light).run(fn, self.writes if write else None)
+        while isinstance(result, Heavy | Threaded | Waiting):
             if isinstance(result, Heavy):
                 result = await self.heavy.run(result.work)
+            elif isinstance(result, Threaded):
+                result = await self.light.run(result.work)
             else:
                 await self.waiting.run(result.wait)
-                result = await (self.light.run(result.then) if write else self._read(result.then))
+                result = self.light.inline(result.then) if loop else await self.light.run(result.then)
         return result
-
-    async def _read(self, fn: Callable[[], Any]) -> Any:
-        """A light step that only reads: on the event loop if :attr:`inline`, else in a light
-        thread."""
-        return self.light.inline(fn) if self.inline else await self.light.run(fn)

@@ -8,7 +8,7 @@ import anyio
 import pytest
 
 from service import lanes
-from service.lanes import DeadlineExceeded, Heavy, Lane, Lanes, Overloaded, Waiting
+from service.lanes import DeadlineExceeded, Heavy, Lane, Lanes, Overloaded, Threaded, Waiting
 
 
 def test_a_full_lane_sheds_at_once_and_frees_its_slots_after():
@@ -186,8 +186,9 @@ def test_writes_take_turns_without_holding_a_thread_so_queries_keep_one():
 
 def test_on_a_local_store_reads_run_on_the_event_loop_and_writes_heavy_work_and_waits_do_not():
     """``inline``: a light read runs in the event loop's thread (counted in the light lane
-    meanwhile), and again after a wait; a write, heavy work and the wait itself run in
-    threads; a read past its deadline does not start."""
+    meanwhile), and again after a wait; a write, heavy work, the wait itself, the long work
+    a read hands on (:class:`Threaded`) and a read of a large body run in threads; a read
+    past its deadline does not start."""
     both = Lanes(light_threads=1, light_queue=0, heavy_threads=1, heavy_queue=0, inline=True)
     seen = []
 
@@ -197,7 +198,7 @@ def test_on_a_local_store_reads_run_on_the_event_loop_and_writes_heavy_work_and_
 
     def read():
         where("read")
-        assert (both.light.stats.admitted, both.light.stats.busy) == (1, 1)
+        assert (both.light.stats.admitted, both.light.stats.busy) == (1, 1) and lanes.on_loop()
         return "answer"
 
     waited = []
@@ -212,6 +213,8 @@ def test_on_a_local_store_reads_run_on_the_event_loop_and_writes_heavy_work_and_
         assert await both.run(read) == "answer"
         assert await both.run(step) == "heavy"
         assert await both.run(lambda: where("write"), write=True) == "write"
+        assert await both.run(lambda: Threaded(lambda: where("long") if not lanes.on_loop() else 0)) == "long"
+        assert await both.run(lambda: where("big body"), body_bytes=lanes.INLINE_BODY_BYTES + 1) == "big body"
         with lanes.deadline(-1), pytest.raises(DeadlineExceeded):
             await both.run(lambda: where("late"))
 
@@ -223,6 +226,8 @@ def test_on_a_local_store_reads_run_on_the_event_loop_and_writes_heavy_work_and_
         ("step", True),
         ("heavy", False),
         ("write", False),
+        ("long", False),
+        ("big body", False),
     ]
     assert both.light.stats.admitted == both.light.stats.busy == 0
 
