@@ -62,6 +62,8 @@ _niced = threading.local()
 
 #: time.monotonic() by which the current request must be answered
 _deadline: ContextVar[float] = ContextVar("deadline", default=math.inf)
+#: whether the current request's client has left (:func:`client`; never, unless told)
+_client_gone: ContextVar[Callable[[], bool]] = ContextVar("client_gone", default=lambda: False)
 #: A light read whose request body is larger runs in a thread: decoding it would hold the
 #: event loop (a 1,000-point Arrow query is 24 KB; JSON about 60)
 INLINE_BODY_BYTES = 64 * 1024
@@ -105,6 +107,17 @@ def answered() -> None:
     beyond (:meth:`Lane.inline`)."""
     global _answering
     _answering -= 1
+
+
+@contextlib.contextmanager
+def client(gone: Callable[[], bool]):
+    """Within this block, ``gone()`` tells whether the current request's client has left: an
+    inline read whose client left while it waited for its turn is dropped, not computed."""
+    token = _client_gone.set(gone)
+    try:
+        yield
+    finally:
+        _client_gone.reset(token)
 
 
 def on_loop() -> bool:
@@ -222,10 +235,10 @@ class Lane:
     def inline(self, fn: Callable[[], Any]) -> Any:
         """``fn()`` here, in the event loop's thread, counted as the lane's work (module doc):
         :class:`Overloaded` at once if the process is answering more requests than the lane
-        holds (the loop is its one thread: the rest wait their turn), :class:`DeadlineExceeded`
-        if the deadline has passed already."""
+        holds (the loop is its one thread: the rest wait their turn) or the client has left
+        (:func:`client`), :class:`DeadlineExceeded` if the deadline has passed already."""
         with self._lock:
-            if _answering > self.threads + self.queue:
+            if _answering > self.threads + self.queue or _client_gone.get()():
                 self.stats.shed += 1
                 raise Overloaded(
                     f"the service is at capacity for {self.name} work; retry in {self.retry_after_s} s",

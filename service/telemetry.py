@@ -248,7 +248,14 @@ class RequestMiddleware:
                     raise Problem(413, self._too_large())
                 return message
 
-            with lanes.deadline(self.timeout_s), anyio.move_on_after(self.timeout_s) as timer:
+            # uvicorn's receive is its request cycle's, which knows when the client has left
+            cycle = getattr(receive, "__self__", None)
+            gone = (lambda: cycle.disconnected) if hasattr(cycle, "disconnected") else (lambda: False)
+            with (
+                lanes.client(gone),
+                lanes.deadline(self.timeout_s),
+                anyio.move_on_after(self.timeout_s) as timer,
+            ):
                 await self.app(scope, limited_receive, send_with_headers)
             if timer.cancelled_caught:
                 self.metrics.deadlines.inc()

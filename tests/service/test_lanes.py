@@ -256,3 +256,21 @@ def test_an_inline_read_is_shed_at_once_when_the_process_answers_more_than_the_l
 
     anyio.run(main)
     assert ran == ["write", "read"] and both.light.stats.shed == 1
+
+
+def test_an_inline_read_whose_client_left_is_dropped_before_it_runs():
+    """After an overload the loop does not compute answers nobody waits for (a threaded
+    read, already handed to its thread, still runs)."""
+    both = Lanes(light_threads=1, light_queue=2, heavy_threads=1, heavy_queue=0, inline=True)
+    ran = []
+
+    async def main():
+        with lanes.client(lambda: True):
+            with pytest.raises(Overloaded):
+                await both.run(lambda: ran.append("left"))
+            assert await both.run(lambda: ran.append("write") or "written", write=True) == "written"
+        with lanes.client(lambda: False):
+            assert await both.run(lambda: ran.append("here") or "answer") == "answer"
+
+    anyio.run(main)
+    assert ran == ["write", "here"]
