@@ -1110,7 +1110,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
         cache_mb=settings.cache_mb,
         isolate=True,
     )
-    lanes = Lanes(
+    work_lanes = Lanes(
         settings.threads,
         settings.queue,
         settings.heavy_threads,
@@ -1118,7 +1118,7 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
         settings.max_waiting,
         inline=maps.store.local_reads,
     )
-    svc = app.state.service = Service(settings, maps, Jobs(), lanes, Metrics(maps, lanes))
+    svc = app.state.service = Service(settings, maps, Jobs(), work_lanes, Metrics(maps, work_lanes))
     problems.install(app, PATTERNS)
     if settings.cors_origins:  # off unless configured: browsers on other origins get no access
         app.add_middleware(
