@@ -176,10 +176,6 @@ class Posterior:
         convolution with itself."""
         return self._midpoints(X)[1]
 
-    def data_weight_grid(self, axes) -> np.ndarray:
-        """:meth:`data_weight` on the grid ``axes``, (nx, ny, nz, 1)."""
-        return data_weight_grid(self.grid, self.gamma, self.cutoff, self._density[..., None], axes)
-
     def mean(self, X: np.ndarray) -> np.ndarray:
         if self._mean_table is None:
             self._mean_table = LaneTable.of(self.weights.reshape(*self.grid.shape, 3), self._lanes())
@@ -320,12 +316,6 @@ def _normalised(grid: HingeGrid, gamma, at: np.ndarray, X: np.ndarray) -> np.nda
     :func:`_lattice_sum` divides out (near ``x``: it falls to half at the lattice's edge)."""
     norm = np.prod([_lattice_sum(grid, gamma, d, X[:, d]) for d in range(3)], axis=0)[:, None]
     return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)  # 0 far outside
-
-
-def data_weight_grid(grid: HingeGrid, gamma, cutoff, densities: np.ndarray, axes) -> np.ndarray:
-    """:func:`data_weight` on the grid ``axes`` (nx, ny, nz, C); separable."""
-    at = features.gather_grid(grid.midpoints(), axes, densities, 2.0 * np.asarray(gamma), cutoff=cutoff)
-    return _normalised_grid(grid, gamma, at, axes)
 
 
 def _normalised_grid(grid: HingeGrid, gamma, at: np.ndarray, axes) -> np.ndarray:
@@ -706,9 +696,6 @@ class Mixture:
     def data_weight(self, X: np.ndarray) -> np.ndarray:
         """(n, C): each class's data within the kernel's reach (:meth:`Posterior.data_weight`)."""
         return self.predict_modes(X).weight
-
-    def data_weight_grid(self, axes) -> np.ndarray:
-        return data_weight_grid(self.grid, self.gamma, self.cutoff, self._densities, axes)
 
     def predict(self, X: np.ndarray, return_std=False, include_noise=True):
         """The mixture's mean (n, 3), and its std if asked (moments over the modes)."""

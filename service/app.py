@@ -376,7 +376,7 @@ GridDep = Annotated[GridParams, Depends(grid_params)]
 
 #: Work (points or voxels x the map's posteriors) a light read does on the event loop itself
 #: (:mod:`service.lanes`); more goes on in a light thread. 10,000: a 1,000-point query of 8
-#: sectors, about 6 ms here (``bench/bench_service.py``'s library rows)
+#: sectors, about 5.5 ms here (``bench/bench_service.py``'s library rows)
 INLINE_COST = 10_000
 
 

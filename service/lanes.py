@@ -195,11 +195,7 @@ class Lane:
         request holds it before it takes a thread at work (and waits for it as in the queue)."""
         with self._lock:
             if self.stats.admitted >= self.threads + self.queue:
-                self.stats.shed += 1
-                raise Overloaded(
-                    f"the service is at capacity for {self.name} work; retry in {self.retry_after_s} s",
-                    self.retry_after_s,
-                )
+                raise self._shed()
             self.stats.admitted += 1
         state = {"started": False, "dropped": False}
 
@@ -239,11 +235,7 @@ class Lane:
         (:func:`client`), :class:`DeadlineExceeded` if the deadline has passed already."""
         with self._lock:
             if _answering > self.threads + self.queue or _client_gone.get()():
-                self.stats.shed += 1
-                raise Overloaded(
-                    f"the service is at capacity for {self.name} work; retry in {self.retry_after_s} s",
-                    self.retry_after_s,
-                )
+                raise self._shed()
             self.stats.admitted += 1
             self.stats.busy += 1
         _inline.active = True
@@ -255,6 +247,14 @@ class Lane:
             with self._lock:
                 self.stats.busy -= 1
                 self.stats.admitted -= 1
+
+    def _shed(self) -> Overloaded:
+        """A request refused at once (counted), holding :attr:`_lock`."""
+        self.stats.shed += 1
+        return Overloaded(
+            f"the service is at capacity for {self.name} work; retry in {self.retry_after_s} s",
+            self.retry_after_s,
+        )
 
     @contextlib.contextmanager
     def _held(self, semaphore: threading.Semaphore | None, waited_for: str):

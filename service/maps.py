@@ -72,8 +72,9 @@ class RegionMaps:
     #: Points computed between deadline checks.
     CHUNK = 4096
     #: Voxels of a grid's slab (of x) computed between deadline checks: each slab pays its
-    #: separable contractions over y and z whole, so slabs of 4,096 voxels took a 100 x 100 x
-    #: 30 grid 1.5-2.5x the time of slabs of 32,768 (``bench/bench_service.py``'s grid rows)
+    #: separable contractions over y and z whole (slabs of 4,096 voxels, one x value of a
+    #: 100 x 100 x 30 grid, and a second density gather made that grid 302-381 ms over HTTP
+    #: against 166-168 now: ``bench/bench_service.py``'s grid rows)
     GRID_SLAB = 32768
 
     def __init__(self, store: MapStore, cache_mb: float = 512.0, isolate: bool = False, **refresh):

@@ -250,9 +250,8 @@ class RequestMiddleware:
 
             # uvicorn's receive is its request cycle's, which knows when the client has left
             cycle = getattr(receive, "__self__", None)
-            gone = (lambda: cycle.disconnected) if hasattr(cycle, "disconnected") else (lambda: False)
             with (
-                lanes.client(gone),
+                lanes.client(lambda: getattr(cycle, "disconnected", False)),
                 lanes.deadline(self.timeout_s),
                 anyio.move_on_after(self.timeout_s) as timer,
             ):

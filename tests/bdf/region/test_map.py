@@ -65,7 +65,10 @@ def test_known_is_where_the_data_weigh_within_the_kernels_reach(small, direction
     axes = [np.linspace(0, 300, 7), np.linspace(0, 200, 5), np.array([10.0, 50.0])]
     mesh = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     np.testing.assert_allclose(
-        post.data_weight_grid(axes).reshape(len(mesh), -1), post.data_weight(mesh), rtol=1e-9, atol=1e-12
+        post.predict_grid_modes(axes).weight.reshape(len(mesh), -1),
+        post.data_weight(mesh),
+        rtol=1e-9,
+        atol=1e-12,
     )
     _, _, known = RegionMap(spec, post).predict(Q)
     np.testing.assert_array_equal(known, got.sum(1) >= KNOWN_WEIGHT)
