@@ -25,7 +25,7 @@ BOUNDS_CHECKED = {
         "_splat_blocks",
         "_splat_rows",
         "_axis_factors",
-        "_point_factors",
+        "_window_exponents",
     )
 }
 
