@@ -314,7 +314,8 @@ def _normalised(grid: HingeGrid, gamma, at: np.ndarray, X: np.ndarray) -> np.nda
     with the same kernel (``at``): each pair of an observation and ``x`` meets at their
     midpoint with the lattice's sum of ``exp(-4 gamma (g - midpoint)^2)``, which
     :func:`_lattice_sum` divides out (near ``x``: it falls to half at the lattice's edge)."""
-    norm = np.prod([_lattice_sum(grid, gamma, d, X[:, d]) for d in range(3)], axis=0)[:, None]
+    norm = (_lattice_sum(grid, gamma, 0, X[:, 0]) * _lattice_sum(grid, gamma, 1, X[:, 1]))[:, None]
+    norm *= _lattice_sum(grid, gamma, 2, X[:, 2])[:, None]
     return np.divide(np.maximum(at, 0.0), norm, out=np.zeros_like(at), where=norm > 0)  # 0 far outside
 
 
@@ -348,11 +349,10 @@ def _lattice_sum(grid: HingeGrid, gamma, d: int, x: np.ndarray) -> np.ndarray:
     integral over its cells (the midpoint rule; inside, the sum's ripple is
     ``2 exp(-pi^2 / (gamma_d spacing_d^2))`` of it, below 1e-4 at the usual
     ``gamma = 1 / spacing^2``)."""
-    g = float(np.broadcast_to(np.asarray(gamma, float), (3,))[d])
-    h = grid.step[d] / 2.0
-    lo, hi = grid.origin[d] - h / 2, grid.origin[d] + (grid.shape[d] - 1) * grid.step[d] + h / 2
-    inside = np.sqrt(np.pi / (4.0 * g)) / h  # the sum where both edges are beyond ERF_ONE widths
-    return _edge_integral(np.ascontiguousarray(x, float), 2.0 * np.sqrt(g), lo, hi, inside)
+    g, h = float(gamma[d]), float(grid.step[d]) / 2.0
+    lo, hi = float(grid.origin[d]) - h / 2, float(grid.origin[d]) + (grid.shape[d] - 1) * 2.0 * h + h / 2
+    inside = math.sqrt(math.pi / (4.0 * g)) / h  # the sum where both edges are beyond ERF_ONE widths
+    return _edge_integral(np.ascontiguousarray(x, float), 2.0 * math.sqrt(g), lo, hi, inside)
 
 
 @numba.njit(cache=True, nogil=True)
