@@ -523,7 +523,8 @@ def _window_exponents(t, scale, reach, shape, log_cutoff):  # pragma: no cover (
 def _point_windows(lattice: Lattice, t, scale, cutoff) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each point's window (``lo``, ``width``: (n, 3)) and its per-axis factors (n, 3, W),
     zero below the cutoff and beyond the window: the exponentials in one numpy call, which
-    evaluates them side by side in SIMD lanes (a tenth of a compiled loop's scalar calls)."""
+    evaluates them side by side in SIMD lanes where a compiled loop calls the scalar ``exp``
+    for each (queries' server CPU: ``bench/RESULTS.md``, 2026-11-29)."""
     lo, width, factors = _window_exponents(
         t, scale, window(scale, cutoff), np.array(lattice.shape), np.log(cutoff)
     )
