@@ -1,6 +1,6 @@
 """In-process figures behind the build and service readings of bench/RESULTS.md (2026-11-25).
 
-    python bench/bench_kernels.py [--parts evidence,digests,arrow,floor,lanes]
+    python bench/bench_kernels.py [--parts evidence,digests,arrow,floor,lanes,windows]
 
 * evidence: ``bdf.region.evidence.increments`` of 200,000 synthetic-city points (``make_city``), in
   microseconds a point, best of 5, with 1 and 8 heading sectors;
@@ -16,7 +16,10 @@
   from tables of the demo's 8-sector shapes (its hinge lattice, 41 x 41 x 8 at gamma =
   1 / spacing^2, 36 channels; its midpoint lattice, 10 channels), at the demo's cutoff and
   the default one, in chunks of 32 values against 16 (the median ratio of 30 pairs), and
-  the width ``features.lanes_for`` gives.
+  the width ``features.lanes_for`` gives;
+* windows: the share of such a gather (demo's cutoff; one class's tables, 3 and 2 channels,
+  and 8 sectors') that is its points' windows and factors (``features._point_windows``,
+  one vectorised exponential), median of 30.
 
 Medians or best of several runs; prints a table (not appended: the readings quote it).
 """
@@ -24,6 +27,7 @@ Medians or best of several runs; prints a table (not appended: the readings quot
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import sys
 import tempfile
@@ -205,12 +209,46 @@ def lane_rows(pairs: int = 30) -> list[tuple[str, str]]:
     return rows
 
 
+def window_rows(repeat: int = 30) -> list[tuple[str, str]]:
+    rng = np.random.default_rng(0)
+    step = np.array([2000.0, 2000.0, 1000.0])
+    hinge = Lattice(np.zeros(3), step, (41, 41, 8))
+    midpoints = Lattice(np.zeros(3), step / 2.0, (81, 81, 15))
+    X = rng.uniform(0.0, 1.0, (1000, 3)) * step * (np.array(hinge.shape) - 1)
+    rows = []
+    for name, lattice, channels, k in (
+        ("hinge", hinge, 3, 1.0 / step**2),
+        ("midpoint", midpoints, 2, 2.0 / step**2),
+        ("hinge", hinge, 36, 1.0 / step**2),
+        ("midpoint", midpoints, 10, 2.0 / step**2),
+    ):
+        T = rng.standard_normal((*lattice.shape, channels))
+        table = features.LaneTable.of(T, features.lanes_for(lattice, k, PARIS_REGION_CUTOFF))
+        t = np.ascontiguousarray((X - lattice.origin) / lattice.step)
+        scale = np.asarray(k, float).reshape(1, 3) * lattice.step**2
+        windows = median(
+            functools.partial(features._point_windows, lattice, t, scale, PARIS_REGION_CUTOFF), repeat
+        )
+        gather = median(
+            functools.partial(features.gather_pointwise, lattice, X, table, k, cutoff=PARIS_REGION_CUTOFF),
+            repeat,
+        )
+        rows.append(
+            (
+                f"gather of 1,000 points, {name} lattice ({channels} channels): its windows' share",
+                f"{windows / gather:.2f} ({1e6 * windows:.0f} of {1e6 * gather:.0f} us)",
+            )
+        )
+    return rows
+
+
 PARTS = {
     "evidence": evidence_rows,
     "digests": digest_rows,
     "arrow": arrow_rows,
     "floor": floor_rows,
     "lanes": lane_rows,
+    "windows": window_rows,
 }
 
 
