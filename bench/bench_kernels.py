@@ -180,12 +180,18 @@ def floor_rows(klass: int = 2) -> list[tuple[str, str]]:
     return rows
 
 
-def lane_rows(pairs: int = 30) -> list[tuple[str, str]]:
-    rng = np.random.default_rng(0)
+def demo_lattices(rng) -> tuple[np.ndarray, Lattice, Lattice, np.ndarray]:
+    """The demo's step, hinge lattice (41 x 41 x 8) and its midpoints, and 1,000 random points
+    inside it: the shapes the lanes and windows parts gather from."""
     step = np.array([2000.0, 2000.0, 1000.0])
     hinge = Lattice(np.zeros(3), step, (41, 41, 8))
     midpoints = Lattice(np.zeros(3), step / 2.0, (81, 81, 15))
-    X = rng.uniform(0.0, 1.0, (1000, 3)) * step * (np.array(hinge.shape) - 1)
+    return step, hinge, midpoints, rng.uniform(0.0, 1.0, (1000, 3)) * step * (np.array(hinge.shape) - 1)
+
+
+def lane_rows(pairs: int = 30) -> list[tuple[str, str]]:
+    rng = np.random.default_rng(0)
+    step, hinge, midpoints, X = demo_lattices(rng)
     rows = []
     cases = (("hinge", hinge, 36, 1.0 / step**2), ("midpoint", midpoints, 10, 2.0 / step**2))
     for cutoff in (PARIS_REGION_CUTOFF, features.DEFAULT_CUTOFF):
@@ -211,10 +217,7 @@ def lane_rows(pairs: int = 30) -> list[tuple[str, str]]:
 
 def window_rows(repeat: int = 30) -> list[tuple[str, str]]:
     rng = np.random.default_rng(0)
-    step = np.array([2000.0, 2000.0, 1000.0])
-    hinge = Lattice(np.zeros(3), step, (41, 41, 8))
-    midpoints = Lattice(np.zeros(3), step / 2.0, (81, 81, 15))
-    X = rng.uniform(0.0, 1.0, (1000, 3)) * step * (np.array(hinge.shape) - 1)
+    step, hinge, midpoints, X = demo_lattices(rng)
     rows = []
     for name, lattice, channels, k in (
         ("hinge", hinge, 3, 1.0 / step**2),
