@@ -31,10 +31,14 @@ import functools
 import json
 import logging
 import resource
+import socket
+import sys
 from dataclasses import dataclass
 
 import uvicorn
+from uvicorn.config import STARTUP_FAILURE
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.supervisors import Multiprocess
 
 from service import lanes
 from service.settings import Settings
@@ -42,6 +46,7 @@ from service.settings import Settings
 log = logging.getLogger("bdf.service")
 #: descriptors kept beside client connections: the store, the posterior process, logs
 SPARE_FDS = 256
+APP = "service.app:create_app"
 
 
 @dataclass(frozen=True)
@@ -220,11 +225,40 @@ def log_config(level: str) -> dict:
     return config
 
 
+class WorkerSockets(list):
+    """The listening socket of a worker process: its own, bound with ``SO_REUSEPORT``, made
+    where this list is unpickled (uvicorn sends its sockets to each worker it spawns, and
+    again to each it restarts).
+
+    On one socket shared by all workers, the first worker to wake takes every connection
+    waiting, and keep-alive clients stay where they landed: 16 connections opened at once
+    went all to one of two workers in two of three runs, the other idle
+    (``bench/RESULTS.md``, 2026-11-29). With a socket each, the kernel spreads connections
+    over the workers by a hash of their addresses. The parent holds the port with a socket
+    bound the same way that never listens, so no connection waits on it."""
+
+    def __init__(self, family: int, address: tuple, held: socket.socket | None = None):
+        super().__init__([held if held is not None else reuse_port_socket(family, address)])
+        self.family, self.address = family, address
+
+    def __reduce__(self):
+        return WorkerSockets, (self.family, self.address)
+
+
+def reuse_port_socket(family: int, address: tuple) -> socket.socket:
+    """A TCP socket bound to ``address`` with ``SO_REUSEPORT`` (and uvicorn's ``SO_REUSEADDR``)."""
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+    sock.bind(address)
+    return sock
+
+
 def run(settings: Settings) -> None:
-    """Serve the app with ``settings`` (the workers rebuild them from the environment)."""
+    """Serve the app with ``settings`` (the workers rebuild them from the environment);
+    several workers on Linux listen on a socket each (:class:`WorkerSockets`)."""
     connection_cap(settings.max_connections)  # raise the descriptor limit before the workers start
-    uvicorn.run(
-        "service.app:create_app",
+    options = dict(
         factory=True,
         host=settings.host,
         port=settings.port,
@@ -236,3 +270,16 @@ def run(settings: Settings) -> None:
         log_level=settings.log_level,
         timeout_graceful_shutdown=60,
     )
+    if settings.workers == 1 or sys.platform != "linux":
+        uvicorn.run(APP, **options)
+        return
+    config = uvicorn.Config(APP, **options)
+    family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
+    try:
+        held = reuse_port_socket(family, (settings.host, settings.port))
+    except OSError as exc:
+        log.error("cannot listen on %s:%d: %s", settings.host, settings.port, exc)
+        sys.exit(STARTUP_FAILURE)
+    address = held.getsockname()[:2]
+    log.info("listening on %s:%d, a socket per worker", *address)
+    Multiprocess(config, sockets=WorkerSockets(family, address, held)).run()
