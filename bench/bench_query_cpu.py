@@ -10,10 +10,11 @@ Each side is ``bdf serve`` (2 uvicorn workers, SQLite) of its own checkout (the 
 in a temporary git worktree; this tree again with ``--against-directions``), holding the
 demo's Paris map (``paris_demo_region``, fitted over HTTP from the flight split's training
 rows); ``wrk`` POSTs the same 1,000 held-out points as Arrow on ``--connections`` for
-``--seconds``, the two sides alternating for ``--rounds``. Reported: requests/s, p50, and
-the CPU of each server's process tree per request (/proc), and their ratio (this tree over
-the other). ``--profile``: one more run of
-this tree under py-spy (every worker, 200 Hz), and where a query's time goes: the share of
+``--seconds``, the two sides alternating for ``--rounds``. Reported: requests/s, p50, the
+CPU of each server's process tree per request (/proc) and their ratio (this tree over the
+other), and the least busy worker's CPU in its least even round (0 when the other worker
+held every connection). ``--profile``: one more run of this tree under py-spy (every
+worker, 200 Hz), and where a query's time goes: the share of
 the samples inside the query's work that lie in each of :data:`PROFILED`.
 """
 
@@ -176,6 +177,7 @@ def main(argv=None) -> int:
                     "requests/s": float(np.mean([r["req/s"] for r in results])),
                     "p50 ms": float(np.mean([r["p50 ms"] for r in results])),
                     "server CPU ms/request": float(np.mean([r["server CPU ms/req"] for r in results])),
+                    "idlest worker, cores": float(np.min([r["idlest worker, cores"] for r in results])),
                 }
             )
     ratio = rows[0]["server CPU ms/request"] / rows[1]["server CPU ms/request"]

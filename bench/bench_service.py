@@ -79,17 +79,27 @@ def arrow_points(X, V=None, sample_weight=None, track=None, t=None) -> bytes:
     return arrow_bytes(cols)
 
 
-def process_tree_cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) of process ``pid`` and its children (uvicorn workers)."""
-    tick, total = os.sysconf("SC_CLK_TCK"), 0.0
+def process_tree_cpu_s(pid: int) -> dict[int, tuple[int, float]]:
+    """Process ``pid`` and each of its children (uvicorn's workers): its parent and CPU
+    seconds (user + system)."""
+    tick, tree = os.sysconf("SC_CLK_TCK"), {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             fields = stat.read_text().rsplit(")", 1)[1].split()
         except OSError:  # the process ended meanwhile
             continue
-        if int(stat.parent.name) == pid or int(fields[1]) == pid:
-            total += (int(fields[11]) + int(fields[12])) / tick
-    return total
+        child, parent = int(stat.parent.name), int(fields[1])
+        if child == pid or parent == pid:
+            tree[child] = (parent, (int(fields[11]) + int(fields[12])) / tick)
+    return tree
+
+
+def _spawned(pid: int) -> bool:
+    """Process ``pid`` is a worker that multiprocessing spawned."""
+    try:
+        return b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
 
 
 def stats(latencies, wall=None) -> dict:
@@ -171,9 +181,14 @@ def wrk_load(
             data.write_bytes(body[0])
             env.update(BDF_BENCH_BODY=str(data), BDF_BENCH_TYPE=body[1])
         cmd = ["wrk", "-t1", f"-c{connections}", f"-d{seconds:g}s", "--timeout", "30s", "-s", str(script)]
-        cpu = process_tree_cpu_s(pid)
+        before = process_tree_cpu_s(pid)
         out = subprocess.run([*cmd, f"{url}{path}"], env=env, capture_output=True, text=True)
-        cpu = process_tree_cpu_s(pid) - cpu
+        after = process_tree_cpu_s(pid)
+    cpu = sum(c for _, c in after.values()) - sum(c for _, c in before.values())
+    # the least busy worker (uvicorn's children spawned by multiprocessing, not its resource
+    # tracker), in cores: near 0 when another took every connection
+    workers = [p for p, (parent, _) in after.items() if parent == pid and p in before and _spawned(p)]
+    idlest = min(((after[p][1] - before[p][1]) / seconds for p in workers), default=float("nan"))
     found = re.search(r"^BDF (\d+) (\d+) (\d+) (\d+)$", out.stdout, re.M)
     errors = re.search(r"^BDF_ERRORS (\d+) (\d+) (\d+)$", out.stdout, re.M)
     # 503s are the lanes shedding load (their queue full: by design, with Retry-After); any
@@ -191,6 +206,7 @@ def wrk_load(
         "p99 ms": p99 / 1e3,
         "req/s": requests / (micros / 1e6),
         "server CPU ms/req": 1e3 * cpu / (requests - shed),
+        "idlest worker, cores": idlest,
     }
 
 

@@ -231,11 +231,12 @@ class WorkerSockets(list):
     again to each it restarts).
 
     On one socket shared by all workers, the first worker to wake takes every connection
-    waiting, and keep-alive clients stay where they landed: 16 connections opened at once
-    went all to one of two workers in two of three runs, the other idle
-    (``bench/RESULTS.md``, 2026-11-29). With a socket each, the kernel spreads connections
-    over the workers by a hash of their addresses. The parent holds the port with a socket
-    bound the same way that never listens, so no connection waits on it."""
+    waiting, and keep-alive clients stay where they landed: under 16 connections opened at
+    once one of two workers served them all while the other idled at 0.001 of a core
+    (``bench/bench_query_cpu.py``, ``bench/RESULTS.md`` 2026-11-29). With a socket each, the
+    kernel spreads connections over the workers by a hash of their addresses. The parent
+    holds the port with a socket bound the same way that never listens, so no connection
+    waits on it."""
 
     def __init__(self, family: int, address: tuple, held: socket.socket | None = None):
         super().__init__([held if held is not None else reuse_port_socket(family, address)])

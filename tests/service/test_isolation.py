@@ -393,8 +393,8 @@ def _connections_per_worker(svc, workers: dict[int, psutil.Process], n: int) -> 
 
 
 def test_connections_opened_at_once_are_spread_over_the_workers_and_a_restarted_one(live_server):
-    # on one shared socket the first worker to wake took all 16 in two of three runs
-    # (bench/RESULTS.md); a socket per worker fails this with probability 2^-15
+    # on one socket shared by the workers this failed in two of three runs (the first to wake
+    # took all 16); with a socket each the kernel's hash fails it with probability 2^-15
     svc = live_server(args=["--workers", "2"])
     workers = _workers_listening(svc, 2)
     held = _connections_per_worker(svc, workers, 16)
