@@ -255,6 +255,18 @@ def reuse_port_socket(family: int, address: tuple) -> socket.socket:
     return sock
 
 
+def _held_port(family: int, address: tuple) -> socket.socket:
+    """The parent's socket that holds the port for the workers' (:class:`WorkerSockets`):
+    bound with ``SO_REUSEPORT`` once a bind without it succeeded, so that a port in use
+    fails as it would without, another ``bdf serve`` on it too (whose sockets would
+    otherwise share its connections with ours)."""
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind(address)
+        port = probe.getsockname()[1]  # the one the system chose for port 0
+    return reuse_port_socket(family, (address[0], port))
+
+
 def run(settings: Settings) -> None:
     """Serve the app with ``settings`` (the workers rebuild them from the environment);
     several workers on Linux listen on a socket each (:class:`WorkerSockets`)."""
@@ -277,7 +289,7 @@ def run(settings: Settings) -> None:
     config = uvicorn.Config(APP, **options)
     family = socket.AF_INET6 if ":" in settings.host else socket.AF_INET
     try:
-        held = reuse_port_socket(family, (settings.host, settings.port))
+        held = _held_port(family, (settings.host, settings.port))
     except OSError as exc:
         log.error("cannot listen on %s:%d: %s", settings.host, settings.port, exc)
         sys.exit(STARTUP_FAILURE)

@@ -13,6 +13,8 @@ import json
 import logging
 import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 import types
@@ -404,6 +406,13 @@ def test_connections_opened_at_once_are_spread_over_the_workers_and_a_restarted_
     killed.wait(30)
     workers = _workers_listening(svc, 2)  # uvicorn starts another, with a socket of its own
     assert killed.pid not in workers
+    held = _connections_per_worker(svc, workers, 16)
+    assert sum(held) == 16 and min(held) >= 1, held
+    # a second service on the port is refused, as without SO_REUSEPORT, not let in to share it
+    env = {**os.environ, "BDF_DATA_DIR": str(svc.log_path.parent / "other")}
+    cmd = [sys.executable, "-m", "clients.cli", "serve", "--port", str(svc.port), "--workers", "2"]
+    other = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=120)
+    assert other.returncode != 0 and "cannot listen" in other.stderr + other.stdout
     held = _connections_per_worker(svc, workers, 16)
     assert sum(held) == 16 and min(held) >= 1, held
 
