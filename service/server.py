@@ -23,6 +23,9 @@ is not armed again for it when the first answer is sent.
 
 A body that trickles in without pausing that long is bounded by the request deadline
 (:mod:`service.lanes`).
+
+Several workers on Linux listen on a socket each (:class:`WorkerSockets`), so that the
+kernel spreads connections over them.
 """
 
 from __future__ import annotations
