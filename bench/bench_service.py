@@ -185,10 +185,12 @@ def wrk_load(
         out = subprocess.run([*cmd, f"{url}{path}"], env=env, capture_output=True, text=True)
         after = process_tree_cpu_s(pid)
     cpu = sum(c for _, c in after.values()) - sum(c for _, c in before.values())
-    # the least busy worker (uvicorn's children spawned by multiprocessing, not its resource
-    # tracker), in cores: near 0 when another took every connection
+    # the least busy of several workers (uvicorn's children spawned by multiprocessing, not its
+    # resource tracker; one worker is the server process itself), in cores: near 0 when
+    # another took every connection
     workers = [p for p, (parent, _) in after.items() if parent == pid and p in before and _spawned(p)]
-    idlest = min(((after[p][1] - before[p][1]) / seconds for p in workers), default=float("nan"))
+    busy = [(after[p][1] - before[p][1]) / seconds for p in workers]
+    idlest = min(busy) if len(busy) > 1 else float("nan")
     found = re.search(r"^BDF (\d+) (\d+) (\d+) (\d+)$", out.stdout, re.M)
     errors = re.search(r"^BDF_ERRORS (\d+) (\d+) (\d+)$", out.stdout, re.M)
     # 503s are the lanes shedding load (their queue full: by design, with Retry-After); any
