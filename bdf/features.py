@@ -495,12 +495,23 @@ def gram_band(lattice: Lattice, X, k, amplitude, stencil, *, cutoff=DEFAULT_CUTO
 
 
 @numba.njit(cache=True, nogil=True)
-def _window_exponents(t, scale, reach, shape, log_cutoff):  # pragma: no cover (compiled)
-    """Each point's window on each axis: its first lattice point ``lo`` and count ``width``
+def _window_exponents(X, origin, step, scale, reach, shape, log_cutoff):  # pragma: no cover (compiled)
+    """The points ``X`` (n, 3) by lattice cell (C order; outside: the nearest cell), so that
+    neighbours find most of their window in cache: that ``order`` (n,), then in that order
+    each point's window on each axis, its first lattice point ``lo`` and count ``width``
     (n, 3), and the exponents ``-s (t - lo - j)^2`` of its factors (n, 3, W): ``-inf``
-    beyond the window or below ``log_cutoff`` (the factor is zero). ``t`` (n, 3) in lattice
-    steps, ``scale`` (1 or n, 3) the kernel in steps^-2, ``reach`` its windows' half-width."""
-    n = t.shape[0]
+    beyond the window or below ``log_cutoff`` (the factor is zero). ``t`` is the point in
+    lattice steps, ``scale`` (1 or n, 3, in ``X``'s order) the kernel in steps^-2,
+    ``reach`` its windows' half-width."""
+    n = X.shape[0]
+    t, key = np.empty((n, 3)), np.empty(n, np.int64)
+    for p in range(n):
+        c = 0
+        for d in range(3):
+            t[p, d] = (X[p, d] - origin[d]) / step[d]
+            c = c * shape[d] + min(max(int(np.floor(t[p, d])), 0), shape[d] - 1)
+        key[p] = c
+    order = np.argsort(key)
     widest = 1
     for q in range(reach.shape[0]):
         for d in range(3):
@@ -508,27 +519,29 @@ def _window_exponents(t, scale, reach, shape, log_cutoff):  # pragma: no cover (
     lo, width = np.empty((n, 3), np.int64), np.empty((n, 3), np.int64)
     out = np.empty((n, 3, widest))
     for p in range(n):
-        q = min(p, scale.shape[0] - 1)
+        q = min(order[p], scale.shape[0] - 1)
         for d in range(3):
-            s, ti = scale[q, d], t[p, d]
+            s, ti = scale[q, d], t[order[p], d]
             a = min(max(np.ceil(ti - reach[q, d]), 0.0), float(shape[d]))
             b = min(max(np.floor(ti + reach[q, d]), -1.0), shape[d] - 1.0)
             lo[p, d], width[p, d] = int(a), max(int(b - a) + 1, 0)
             for j in range(widest):
                 e = -s * (ti - a - j) ** 2
                 out[p, d, j] = e if (j < width[p, d]) & (e >= log_cutoff) else -np.inf
-    return lo, width, out
+    return order, lo, width, out
 
 
-def _point_windows(lattice: Lattice, t, scale, cutoff) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each point's window (``lo``, ``width``: (n, 3)) and its per-axis factors (n, 3, W),
-    zero below the cutoff and beyond the window: the exponentials in one numpy call, which
-    evaluates them side by side in SIMD lanes where a compiled loop calls the scalar ``exp``
-    for each (queries' server CPU: ``bench/RESULTS.md``, 2026-11-29)."""
-    lo, width, factors = _window_exponents(
-        t, scale, window(scale, cutoff), np.array(lattice.shape), np.log(cutoff)
+def _point_windows(lattice: Lattice, X, scale, cutoff) -> tuple[np.ndarray, ...]:
+    """The points ``X`` (n, 3) in lattice-cell order (``order``), and in that order each
+    one's window (``lo``, ``width``: (n, 3)) and its per-axis factors (n, 3, W), zero below
+    the cutoff and beyond the window: the exponentials in one numpy call, which evaluates
+    them side by side in SIMD lanes where a compiled loop calls the scalar ``exp`` for each
+    (queries' server CPU: ``bench/RESULTS.md``, 2026-11-29); the rest in one compiled call
+    (numpy's steps on a 1,000-point query cost as much as the exponentials)."""
+    order, lo, width, factors = _window_exponents(
+        X, lattice.origin, lattice.step, scale, window(scale, cutoff), np.array(lattice.shape), np.log(cutoff)
     )
-    return lo, width, np.exp(factors, out=factors)
+    return order, lo, width, np.exp(factors, out=factors)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -682,10 +695,11 @@ def _chunk_32(flat, at, stride, fx, fy, wx, wy, acc, q):  # pragma: no cover (co
     acc[q + 28], acc[q + 29], acc[q + 30], acc[q + 31] = b28, b29, b30, b31
 
 
-def _gather_lanes(lo, width, factors, table, channels, out):  # pragma: no cover (compiled)
-    """:func:`gather` point by point: ``out[n, c] = sum_ijk fx fy fz T[i, j, k, c]`` over
-    each point's own window (:func:`_point_windows`: ``lo`` and ``width`` (n, 3), the
-    factors (n, 3, W)), ``table`` a :class:`LaneTable`'s values. Points go by blocks of
+def _gather_lanes(order, lo, width, factors, table, channels, out):  # pragma: no cover (compiled)
+    """:func:`gather` point by point: ``out[order[p], c] = sum_ijk fx fy fz T[i, j, k, c]``
+    over each point's own window (:func:`_point_windows`: the points' ``order``, then in
+    it ``lo`` and ``width`` (n, 3) and the factors (n, 3, W)), ``table`` a
+    :class:`LaneTable`'s values. Points go by blocks of
     :data:`BLOCK_POINTS` (neighbours, in lattice-cell order): each chunk of the window's
     rows is summed for every point of the block before the next chunk (:func:`_chunk_16`,
     :func:`_chunk_32`), so the chunk's plane of the window is read from L1, not L2
@@ -719,9 +733,9 @@ def _gather_lanes(lo, width, factors, table, channels, out):  # pragma: no cover
         for b in range(m):
             p = start + b
             if span[b, 1] > span[b, 0]:
-                _sum_z(factors[p], width[p], acc[b], lo[p, 2] * channels, out[p])
+                _sum_z(factors[p], width[p], acc[b], lo[p, 2] * channels, out[order[p]])
             else:
-                out[p] = 0.0
+                out[order[p]] = 0.0
     return out
 
 
@@ -743,24 +757,11 @@ def _slp_vectorised():
 
 with _slp_vectorised():  # compiled (or loaded from numba's cache) now, in one thread
     _gather_lanes = numba.njit(
-        "f8[:, ::1](i8[:, ::1], i8[:, ::1], f8[:, :, ::1], f8[:, :, :, ::1], i8, f8[:, ::1])",
+        "f8[:, ::1](i8[::1], i8[:, ::1], i8[:, ::1], f8[:, :, ::1], f8[:, :, :, ::1], i8, f8[:, ::1])",
         cache=True,
         nogil=True,
         fastmath={"contract"},  # fused multiply-adds: one rounding per term, not two
     )(_gather_lanes)
-
-
-@numba.njit(cache=True, nogil=True)
-def _cell_order(t, shape):  # pragma: no cover (compiled)
-    """The points ``t`` (n, 3, lattice steps) by lattice cell, in C order (outside: the
-    nearest cell)."""
-    key = np.empty(t.shape[0], np.int64)
-    for p in range(t.shape[0]):
-        c = 0
-        for d in range(3):
-            c = c * shape[d] + min(max(int(np.floor(t[p, d])), 0), shape[d] - 1)
-        key[p] = c
-    return np.argsort(key)
 
 
 def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.ndarray:
@@ -770,17 +771,12 @@ def gather_pointwise(lattice: Lattice, X, T, k, *, cutoff=DEFAULT_CUTOFF) -> np.
     :class:`LaneTable` of them that a posterior keeps. Points are visited by lattice cell,
     so neighbours find most of their window in cache."""
     table = T if isinstance(T, LaneTable) else LaneTable.of(T, lanes_for(lattice, k, cutoff))
-    X = np.asarray(X, float)
+    X = np.ascontiguousarray(X, float)
     out = np.empty((len(X), table.channels))
     if len(X) == 0:
         return out
-    scale = np.asarray(k, float).reshape(-1, 3) * lattice.step**2
-    t = (X - lattice.origin) / lattice.step
-    order = _cell_order(t, np.array(lattice.shape))
-    scale = np.ascontiguousarray(scale[order] if len(scale) > 1 else scale)
-    windows = _point_windows(lattice, np.ascontiguousarray(t[order]), scale, cutoff)
-    out[order] = _gather_lanes(*windows, table.values, table.channels, np.empty_like(out))
-    return out
+    scale = np.ascontiguousarray(np.asarray(k, float).reshape(-1, 3) * lattice.step**2)
+    return _gather_lanes(*_point_windows(lattice, X, scale, cutoff), table.values, table.channels, out)
 
 
 def _per_scale(scale, cutoff) -> tuple:

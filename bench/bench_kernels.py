@@ -227,10 +227,9 @@ def window_rows(repeat: int = 30) -> list[tuple[str, str]]:
     ):
         T = rng.standard_normal((*lattice.shape, channels))
         table = features.LaneTable.of(T, features.lanes_for(lattice, k, PARIS_REGION_CUTOFF))
-        t = np.ascontiguousarray((X - lattice.origin) / lattice.step)
         scale = np.asarray(k, float).reshape(1, 3) * lattice.step**2
         windows = median(
-            functools.partial(features._point_windows, lattice, t, scale, PARIS_REGION_CUTOFF), repeat
+            functools.partial(features._point_windows, lattice, X, scale, PARIS_REGION_CUTOFF), repeat
         )
         gather = median(
             functools.partial(features.gather_pointwise, lattice, X, table, k, cutoff=PARIS_REGION_CUTOFF),
