@@ -2,11 +2,13 @@
 ``wrk``, grids, concurrent uploads, and the library's own compute for the same query.
 
     .venv/bin/python bench/bench_service.py [--postgres URL] [--seconds 10] [--workers 2]
-        [--directions 1,8] [--no-append]
+        [--directions 1,8] [--model-directions 1] [--no-append]
 
 A real ``bdf serve`` (``--workers`` uvicorn workers, SQLite unless --postgres) holds the
 demo's Paris map (its lattice, ``clients.samples.paris_demo_region``; flight split, fitted over
-HTTP as one Arrow body), with one class and with the demo's 8 heading sectors:
+HTTP as one Arrow body), with one class and with the demo's 8 heading sectors (one class
+answers from a model of 8 sectors, or with ``--model-directions 1`` from the paper's model
+of one field):
 
 * queries: ``wrk`` (a C load generator: microseconds of CPU per request, so the server's
   cost is what is measured) POSTs the same 1,000 test points with 1, 4, 16 and 64
@@ -373,6 +375,9 @@ def main():
     parser.add_argument("--threads", type=int, default=2, help="the service's compute threads (BDF_THREADS)")
     parser.add_argument("--workers", type=int, default=2, help="uvicorn worker processes (BDF_WORKERS)")
     parser.add_argument("--directions", default="1,8", help="heading sectors of the maps (the demo's: 8)")
+    parser.add_argument(
+        "--model-directions", type=int, help="the model of one class (1: the paper's one field)"
+    )
     args = parser.parse_args()
     if shutil.which("wrk") is None:
         sys.exit("bench_service needs wrk: apt-get install wrk (make bench does, as root)")
@@ -393,7 +398,8 @@ def main():
     ]
     backends = ["SQLite", "PostgreSQL"] if args.postgres else ["SQLite"]
     for directions in (int(d) for d in args.directions.split(",")):
-        spec = samples.paris_demo_region(lower, upper, directions=directions)
+        model = args.model_directions if directions == 1 else None
+        spec = samples.paris_demo_region(lower, upper, directions=directions, model_directions=model)
         for name in backends:
             env = {
                 "BDF_LOG_LEVEL": "warning",
@@ -406,7 +412,8 @@ def main():
                 rows, fit_s = run(env, tmp, spec, obs, test, args.seconds)
             report += [
                 "",
-                f"{name}, directions {directions}: fit over HTTP {fit_s:.2f} s",
+                f"{name}, directions {directions} (model_directions {spec.model_directions}): "
+                f"fit over HTTP {fit_s:.2f} s",
                 "",
                 rows_table(rows),
             ]
