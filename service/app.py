@@ -1104,6 +1104,9 @@ def create_app(settings: Settings | None = None, store: MapStore | None = None) 
         version="1",
         description="3D velocity maps with calibrated uncertainty, tiled per region.",
         lifespan=lifespan,
+        # the service's own metrics are Prometheus' (/metrics); FastAPI's OpenTelemetry hooks
+        # would look up three providers on every request, for nobody
+        telemetry={"tracing": False, "metrics": False, "logs": False},
     )
     maps = RegionMaps(
         store or open_store(settings.store, settings.store_timeout_s),

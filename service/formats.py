@@ -30,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from bdf import ingest
 from bdf.region.route import MAX_ROUTE_SPEED_MPS, MIN_TUBE_STD_MPS, VEHICLES, Vehicle, checked, vehicle
 from bdf.region.spec import RegionSpec
+from bdf.validation import rows_all
 from service import slices, webmap
 from service.problems import Problem
 from service.wire import (
@@ -537,7 +538,7 @@ def read_query(spec: RegionSpec, body: bytes, media: str, limits: Limits, modes:
     X = _to_region(spec, frame, P, None)[0]
     outside = ~spec.inside(X)
     # a row not finite is an error, and so is a query with no point inside
-    _inside(spec, X, "point(s)", frame, P, outside if outside.all() else ~np.isfinite(X).all(axis=1))
+    _inside(spec, X, "point(s)", frame, P, outside if outside.all() else ~rows_all(np.isfinite(X)))
     if heading is not None:
         heading = np.asarray(heading, float)
         if heading.ndim == 0:
@@ -592,17 +593,19 @@ def negotiate(accept: str | None, offered: list[str]) -> str:
     raise Problem(406, f"this resource is available as {', '.join(offered)}; Accept asked for {accept!r}")
 
 
+#: what ends an Arrow IPC stream: a continuation marker and a length of zero
+ARROW_END_BYTES = 8
+
+
 def arrow_body(columns: dict[str, np.ndarray], metadata: dict[str, str] | None = None) -> memoryview:
-    """An Arrow IPC stream of ``columns`` in one buffer sized by a dry run, as a memoryview a
-    response sends without a copy (a growing stream copied into ``bytes`` takes about twice
-    as long on large grids: ``bench/bench_kernels.py``)."""
-    table = pa.table(columns, metadata=metadata)
-    size = pa.MockOutputStream()
-    with pa.ipc.new_stream(size, table.schema) as writer:
-        writer.write_table(table)
-    buffer = pa.allocate_buffer(size.size())
-    with pa.ipc.new_stream(pa.FixedSizeBufferWriter(buffer), table.schema) as writer:
-        writer.write_table(table)
+    """An Arrow IPC stream of ``columns`` written once into a buffer of its exact size, as a
+    memoryview a response sends without a copy (a growing stream copied into ``bytes`` takes
+    about twice as long on large grids: ``bench/bench_kernels.py``)."""
+    batch = pa.record_batch(columns, metadata=metadata)
+    size = batch.schema.serialize().size + pa.ipc.get_record_batch_size(batch) + ARROW_END_BYTES
+    buffer = pa.allocate_buffer(size)
+    with pa.ipc.new_stream(pa.FixedSizeBufferWriter(buffer), batch.schema) as writer:
+        writer.write_batch(batch)
     return memoryview(buffer)
 
 
