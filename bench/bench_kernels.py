@@ -7,7 +7,7 @@
 * digests: SHA-256 of a city Parquet file by ``hashlib.file_digest`` and by fresh 16 MB
   reads (the code before 2026-11-25), in nanoseconds a point;
 * Arrow bodies: a 100 x 100 x 30 grid's columns, made as the grid route makes them, encoded
-  by ``formats.arrow_body`` (one buffer sized by a dry run) and by a growing stream copied
+  by ``formats.arrow_body`` (one buffer of the stream's exact size) and by a growing stream copied
   into ``bytes`` (before), median of 10;
 * the evidence search's floor: one heading class of the 8-sector city (1 million points),
   its log evidence at ``lam`` = 1e-10 and 1e-3 x mean(diag G), from the factorisation and

@@ -863,16 +863,24 @@ def test_npz_bytes_are_what_numpy_writes():
 
 
 def test_arrow_body_is_what_pyarrow_writes():
-    """The buffer sized by a dry run holds exactly the stream pyarrow writes unsized."""
+    """The buffer sized from the schema and the record batch holds exactly the stream
+    pyarrow writes unsized, with metadata, nulls, one row or none."""
     import pyarrow as pa
 
     rng = np.random.default_rng(0)
-    columns = {"x": rng.standard_normal(1000), "known": rng.random(1000) > 0.5, "n": np.arange(1000)}
-    for metadata in (None, {"shape": "10,10,10"}):
-        table = pa.table(columns, metadata=metadata)
+    columns = {
+        "x": rng.standard_normal(1000),
+        "known": rng.random(1000) > 0.5,
+        "n": np.arange(1000),
+        "v": pa.array(rng.standard_normal(1000), mask=rng.random(1000) > 0.9),
+    }
+    cases = [(columns, None), (columns, {"shape": "10,10,10"})]
+    cases += [({name: values[:rows] for name, values in columns.items()}, None) for rows in (1, 0)]
+    for columns, metadata in cases:
+        batch = pa.record_batch(columns, metadata=metadata)
         sink = pa.BufferOutputStream()
-        with pa.ipc.new_stream(sink, table.schema) as writer:
-            writer.write_table(table)
+        with pa.ipc.new_stream(sink, batch.schema) as writer:
+            writer.write_batch(batch)
         assert bytes(arrow_body(columns, metadata)) == sink.getvalue().to_pybytes()
         assert arrow_bytes(columns, metadata) == sink.getvalue().to_pybytes()
 
